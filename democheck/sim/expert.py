@@ -1,0 +1,119 @@
+"""The scripted expert: operational-space pushing with torque commands.
+
+The expert sees the simulator's true object poses (it is privileged, as a
+human teleoperator would be).  It moves the fingertip with an end-effector PD
+law mapped to joint torques through the Jacobian and the operational-space
+inertia, holds the arm near its home posture in the null space, and follows
+a small state machine:
+
+1. *approach*: lift to a safe height and fly to a point behind the target on
+   the goal-to-target line;
+2. *descend* to pushing height;
+3. *push*: keep the fingertip on that line, a little inside the object, so the
+   target is pushed through its centre towards the goal; if the target slips
+   off the line, go back to *approach*;
+4. *retreat*: once the target is at the goal, back away and hold still.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from democheck.sim import scene
+from democheck.sim.env import PushEnv
+
+Z_SAFE = 0.105
+Z_PUSH = 0.022
+KP, KD = 150.0, 22.0
+KQ, KDQ = 1.5, 0.3
+MAX_ERR = 0.12
+PUSH_LEAD = 0.06  # how far ahead of the fingertip the push waypoint runs
+
+
+class ScriptedExpert:
+    """Call ``act(env)`` once per control step after ``env.reset``; returns normalised torques."""
+
+    def __init__(self, env: PushEnv, role: str = "target"):
+        self.env = env
+        self.role = role
+        self.phase = "approach"
+        self._retreat_point = np.zeros(3)
+        self._jac = np.zeros((3, env.model.nv))
+        self._mass = np.zeros((env.model.nv, env.model.nv))
+
+    def reset(self) -> None:
+        self.phase = "approach"
+
+    def _object_xy(self) -> np.ndarray:
+        return self.env.data.qpos[self.env._obj_qadr[self.role][:2]].copy()
+
+    def _object_radius(self) -> float:
+        return (self.env.target if self.role == "target" else self.env.distractor).radius
+
+    def waypoint(self) -> np.ndarray:
+        """Where the fingertip should go next, updating the phase."""
+        tip = self.env.tip_pos
+        obj = self._object_xy()
+        to_goal = scene.GOAL_XY - obj
+        dist = np.linalg.norm(to_goal)
+        u = to_goal / max(dist, 1e-9)
+        r = self._object_radius()
+        behind = obj - u * (r + scene.TIP_RADIUS + 0.02)
+        if self.phase != "retreat" and dist < 0.012:
+            self.phase = "retreat"
+            # Back away along the last push direction and up, never across the object.
+            self._retreat_point = np.array([*(tip[:2] - u * 0.05), Z_SAFE])
+        if self.phase == "retreat":
+            if dist < scene.GOAL_RADIUS * 0.7:
+                return self._retreat_point
+            self.phase = "approach"  # drifted out: push again
+        if self.phase == "push":
+            rel = obj - tip[:2]
+            along = float(np.dot(-rel, u))
+            cos = float(np.dot(rel, u)) / max(np.linalg.norm(rel), 1e-9)
+            if along > -0.3 * r or cos < np.cos(np.radians(55)):
+                self.phase = "approach"
+            else:
+                # A point on the push line just ahead of the fingertip: the PD law's pull is the push.
+                # Slow down near the goal so the target does not overshoot.
+                lead = float(np.clip(dist, 0.02, PUSH_LEAD))
+                return np.array([*(obj + u * (along + lead)), Z_PUSH])
+        if self.phase == "approach":
+            if np.linalg.norm(tip[:2] - behind) < 0.02:
+                self.phase = "descend"
+            else:
+                # Stay high while far from the pre-push point so the tip never sweeps through objects.
+                return np.array([*behind, Z_SAFE])
+        if self.phase == "descend":
+            if np.linalg.norm(tip[:2] - behind) > 0.04:
+                self.phase = "approach"
+                return np.array([*behind, Z_SAFE])
+            if tip[2] < Z_PUSH + 0.012:
+                self.phase = "push"
+                return np.array([*(behind + u * PUSH_LEAD), Z_PUSH])
+            return np.array([*behind, Z_PUSH])
+        raise AssertionError(self.phase)
+
+    def act(self) -> np.ndarray:
+        env, m, d = self.env, self.env.model, self.env.data
+        goal = self.waypoint()
+        dofs = env.arm_dofs
+        mujoco.mj_jacSite(m, d, self._jac, None, env.tip_site)
+        J = self._jac[:, dofs]
+        mujoco.mj_fullM(m, d, self._mass)
+        M = self._mass[np.ix_(dofs, dofs)]
+        Minv = np.linalg.inv(M)
+        lam = np.linalg.inv(J @ Minv @ J.T + 1e-4 * np.eye(3))
+        err = goal - env.tip_pos
+        n = np.linalg.norm(err)
+        if n > MAX_ERR:
+            err *= MAX_ERR / n
+        qvel = d.qvel[dofs]
+        force = lam @ (KP * err - KD * (J @ qvel))
+        # Null space: stay near the home posture, damp internal motion.
+        jbar = Minv @ J.T @ lam
+        null = np.eye(7) - J.T @ jbar.T
+        q = d.qpos[env._arm_qadr]
+        torque = J.T @ force + null @ (KQ * (scene.ARM_HOME - q) - KDQ * qvel)
+        return np.clip(torque / scene.TORQUE_LIMIT, -1.0, 1.0).astype(np.float32)
