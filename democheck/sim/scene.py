@@ -24,6 +24,9 @@ import numpy as np
 
 from democheck.sim.catalog import ObjectSpec
 
+# Bump when the arm, table, camera or physics change: it goes into every sim record.
+SCENE_VERSION = 1
+
 TIMESTEP = 0.01
 FRAME_SKIP = 5  # control at 20 Hz
 FPS = int(round(1.0 / (TIMESTEP * FRAME_SKIP)))

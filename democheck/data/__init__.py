@@ -1,0 +1,28 @@
+"""Datasets on disk: Demo, DemoSet, format readers and writers, ``open_dataset``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from democheck.data.demo import Demo, DemoSet
+from democheck.errors import DatasetError
+
+__all__ = ["Demo", "DemoSet", "open_dataset"]
+
+
+def open_dataset(path: str | Path, camera: str | None = None, state_key: str | None = None,
+                 action_key: str | None = None) -> DemoSet:
+    """Open a dataset folder, sniffing its format (LeRobot v3.0 or v2.1).
+
+    ``camera`` picks the image feature when there are several (full key or the
+    part after ``observation.images.``); ``state_key``/``action_key`` override
+    the features found from ``meta/info.json``.
+    """
+    root = Path(path)
+    if not root.exists():
+        raise DatasetError(f"{root}: no such file or directory")
+    if root.is_dir() and (root / "meta" / "info.json").exists():
+        from democheck.data.lerobot import open_lerobot
+
+        return DemoSet(open_lerobot(root, camera=camera, state_key=state_key, action_key=action_key))
+    raise DatasetError(f"{root}: not a dataset democheck knows (expected a LeRobot folder with meta/info.json)")

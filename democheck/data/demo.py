@@ -1,0 +1,137 @@
+"""Demo and DemoSet: one vocabulary for every dataset format.
+
+A ``Demo`` is one episode.  A ``DemoSet`` is indexed by ``episode_index``,
+never by frame, and loads lazily: iterating or ``demos[e]`` decodes one
+episode at a time, and ``cue_frames(e)`` reads only the first and last frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Protocol
+
+import numpy as np
+import pandas as pd
+
+
+@dataclass
+class Demo:
+    """One demonstration: frames uint8 [T,H,W,3], state float32 [T,S], actions float32 [T,A]."""
+
+    episode_index: int
+    task: str
+    frames: np.ndarray
+    state: np.ndarray
+    actions: np.ndarray
+    success: bool | None = None
+    label: str | None = None
+    split: str | None = None
+    sim: dict[str, Any] | None = None
+    env_state: np.ndarray | None = None
+    source_episode: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+class DemoSource(Protocol):
+    """What a format reader provides to ``DemoSet``."""
+
+    root: Path
+    format: str
+    fps: float
+    camera: str
+    image_shape: tuple[int, int, int]
+    state_dim: int
+    action_dim: int
+    episodes: pd.DataFrame  # index: episode_index; columns: task, length (+ split, success, label when known)
+
+    def load(self, episode_index: int) -> Demo: ...
+
+    def cue_frames(self, episode_index: int) -> np.ndarray: ...
+
+
+class DemoSet:
+    """A lazily loaded collection of Demos, indexed by episode."""
+
+    def __init__(self, source: DemoSource):
+        self._src = source
+
+    # metadata
+    @property
+    def root(self) -> Path:
+        return self._src.root
+
+    @property
+    def format(self) -> str:
+        return self._src.format
+
+    @property
+    def fps(self) -> float:
+        return self._src.fps
+
+    @property
+    def camera(self) -> str:
+        return self._src.camera
+
+    @property
+    def image_shape(self) -> tuple[int, int, int]:
+        return self._src.image_shape
+
+    @property
+    def state_dim(self) -> int:
+        return self._src.state_dim
+
+    @property
+    def action_dim(self) -> int:
+        return self._src.action_dim
+
+    @property
+    def episodes(self) -> pd.DataFrame:
+        """One row per episode (index: episode_index): task, length, and split/success/label when known."""
+        return self._src.episodes
+
+    @property
+    def episode_indices(self) -> list[int]:
+        return [int(e) for e in self._src.episodes.index]
+
+    @property
+    def tasks(self) -> list[str]:
+        return sorted(self._src.episodes["task"].unique())
+
+    def __len__(self) -> int:
+        return len(self._src.episodes)
+
+    def __contains__(self, episode_index: int) -> bool:
+        return episode_index in self._src.episodes.index
+
+    def __getitem__(self, episode_index: int) -> Demo:
+        if episode_index not in self._src.episodes.index:
+            raise KeyError(f"no episode {episode_index} in {self.root}")
+        return self._src.load(int(episode_index))
+
+    def __iter__(self) -> Iterator[Demo]:
+        for e in self.episode_indices:
+            yield self._src.load(e)
+
+    def cue_frames(self, episode_index: int) -> np.ndarray:
+        """First and last frame of one episode, uint8 [2, H, W, 3], without decoding the rest."""
+        return self._src.cue_frames(int(episode_index))
+
+    def by_task(self) -> dict[str, list[int]]:
+        """Episode indices grouped by task string (demos with the same string are the same task)."""
+        groups = self._src.episodes.groupby("task", sort=True).groups
+        return {task: sorted(int(e) for e in idx) for task, idx in groups.items()}
+
+    def split(self, name: str) -> list[int]:
+        """Episode indices of one split (train/val/test) when the dataset records splits."""
+        if "split" not in self._src.episodes:
+            return []
+        return [int(e) for e in self._src.episodes.index[self._src.episodes["split"] == name]]
+
+    def __repr__(self) -> str:
+        h, w, _ = self.image_shape
+        return (f"DemoSet({self.root}, format={self.format}, episodes={len(self)}, tasks={len(self.tasks)}, "
+                f"camera={self.camera}, image={h}x{w})")

@@ -1,0 +1,525 @@
+"""LeRobotDataset layouts: write v3.0, read v3.0 and v2.1.
+
+v3.0 layout written by democheck (LeRobot and the tools built for it open it)::
+
+    meta/info.json                      codebase_version, fps, features, path templates, totals, splits
+    meta/tasks.parquet                  task string (index) -> task_index
+    meta/episodes/chunk-000/file-000.parquet   one row per episode: length, data/video file and ranges
+    meta/stats.json                     per-feature mean/std/min/max/count
+    meta/democheck/episodes.parquet     democheck's sidecar: split, success, label, source, sim record
+    meta/democheck/suite.json           the recipe and generation summary (synthetic datasets)
+    data/chunk-000/file-NNN.parquet     one row per frame: state, action, timestamps, indices
+    videos/observation.images.main/chunk-000/file-NNN.mp4
+
+Several episodes share one data file and one video file; the episodes table
+says where each one lies.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from democheck.data import video
+from democheck.data.demo import Demo
+from democheck.errors import DatasetError
+
+CODEBASE_VERSION = "v3.0"
+CHUNKS_SIZE = 1000
+IMAGE_KEY = "observation.images.main"
+STATE_KEY = "observation.state"
+ENV_STATE_KEY = "observation.environment_state"
+ACTION_KEY = "action"
+DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
+EPISODES_PATH = "meta/episodes/chunk-000/file-000.parquet"
+SIDECAR_PATH = "meta/democheck/episodes.parquet"
+SUITE_PATH = "meta/democheck/suite.json"
+
+INDEX_FEATURES = {
+    "timestamp": {"dtype": "float32", "shape": [1], "names": None},
+    "frame_index": {"dtype": "int64", "shape": [1], "names": None},
+    "episode_index": {"dtype": "int64", "shape": [1], "names": None},
+    "index": {"dtype": "int64", "shape": [1], "names": None},
+    "task_index": {"dtype": "int64", "shape": [1], "names": None},
+}
+
+
+# ---------------------------------------------------------------------------
+# writing
+# ---------------------------------------------------------------------------
+
+@dataclass
+class VideoOptions:
+    pix_fmt: str = video.DEFAULT_PIX_FMT
+    crf: int = video.DEFAULT_CRF
+
+
+def _fixed_list(arr: np.ndarray) -> pa.FixedSizeListArray:
+    arr = np.ascontiguousarray(arr, dtype=np.float32)
+    return pa.FixedSizeListArray.from_arrays(pa.array(arr.reshape(-1)), arr.shape[1])
+
+
+def _moments(x: np.ndarray) -> dict[str, np.ndarray]:
+    x = x.astype(np.float64)
+    return {"sum": x.sum(0), "sumsq": (x * x).sum(0), "min": x.min(0), "max": x.max(0), "count": np.array([len(x)])}
+
+
+def write_shard(root: Path, file_index: int, demos: list[Demo], task_index: dict[str, int], first_index: int,
+                fps: int, video_opts: VideoOptions) -> list[dict[str, Any]]:
+    """Write one data file and one video file holding ``demos`` back to back.
+
+    ``first_index`` is the global frame index of the first frame.  Returns one
+    metadata row per episode (for the episodes table and the sidecar) with the
+    per-episode moments used for stats.json.
+    """
+    chunk = file_index // CHUNKS_SIZE
+    data_path = root / DATA_PATH.format(chunk_index=chunk, file_index=file_index)
+    video_path = root / VIDEO_PATH.format(video_key=IMAGE_KEY, chunk_index=chunk, file_index=file_index)
+    data_path.parent.mkdir(parents=True, exist_ok=True)
+    video_path.parent.mkdir(parents=True, exist_ok=True)
+    rows, tables = [], []
+    size = demos[0].frames.shape[1]
+    index = first_index
+    with video.VideoWriter(video_path, fps, size, video_opts.pix_fmt, video_opts.crf) as vw:
+        for demo in demos:
+            T = len(demo)
+            start, end = vw.write(demo.frames)
+            cols = {
+                STATE_KEY: _fixed_list(demo.state),
+                ENV_STATE_KEY: _fixed_list(demo.env_state),
+                ACTION_KEY: _fixed_list(demo.actions),
+                "timestamp": pa.array(np.arange(T, dtype=np.float32) / np.float32(fps)),
+                "frame_index": pa.array(np.arange(T, dtype=np.int64)),
+                "episode_index": pa.array(np.full(T, demo.episode_index, dtype=np.int64)),
+                "index": pa.array(np.arange(index, index + T, dtype=np.int64)),
+                "task_index": pa.array(np.full(T, task_index[demo.task], dtype=np.int64)),
+            }
+            tables.append(pa.table(cols))
+            # Sub-sample frames for image stats: every 10th is plenty for a mean and a std.
+            img = demo.frames[::10].reshape(-1, 3).astype(np.float64) / 255.0
+            rows.append({
+                "episode_index": demo.episode_index, "task": demo.task, "length": T,
+                "data/chunk_index": chunk, "data/file_index": file_index,
+                "dataset_from_index": index, "dataset_to_index": index + T,
+                f"videos/{IMAGE_KEY}/chunk_index": chunk, f"videos/{IMAGE_KEY}/file_index": file_index,
+                f"videos/{IMAGE_KEY}/from_timestamp": start / fps, f"videos/{IMAGE_KEY}/to_timestamp": end / fps,
+                "split": demo.split, "success": demo.success, "label": demo.label or "clean",
+                "source_episode": -1 if demo.source_episode is None else int(demo.source_episode),
+                "sim": json.dumps(demo.sim, sort_keys=True) if demo.sim is not None else "",
+                "_moments": {STATE_KEY: _moments(demo.state), ACTION_KEY: _moments(demo.actions),
+                             ENV_STATE_KEY: _moments(demo.env_state), IMAGE_KEY: _moments(img)},
+            })
+            index += T
+    pq.write_table(pa.concat_tables(tables), data_path, compression="zstd")
+    return rows
+
+
+def _stats_entry(moments: list[dict[str, np.ndarray]], image: bool = False) -> dict[str, Any]:
+    n = sum(float(m["count"][0]) for m in moments)
+    s = sum(m["sum"] for m in moments)
+    ss = sum(m["sumsq"] for m in moments)
+    mean = s / n
+    std = np.sqrt(np.maximum(ss / n - mean * mean, 0.0))
+    out = {"mean": mean, "std": std, "min": np.min([m["min"] for m in moments], 0),
+           "max": np.max([m["max"] for m in moments], 0)}
+    # LeRobot keeps image stats per channel with shape [3, 1, 1].
+    res = {k: (v.reshape(3, 1, 1) if image else v).tolist() for k, v in out.items()}
+    res["count"] = [int(n)]
+    return res
+
+
+def write_meta(root: Path, rows: list[dict[str, Any]], tasks: list[str], fps: int, image_size: int,
+               state_names: list[str], action_names: list[str], env_state_names: list[str],
+               video_opts: VideoOptions, suite: dict[str, Any] | None = None, robot_type: str = "democheck_arm7") -> None:
+    """Write meta/: info.json, tasks.parquet, episodes table, stats.json and democheck's sidecar."""
+    rows = sorted(rows, key=lambda r: r["episode_index"])
+    meta = root / "meta"
+    (meta / "democheck").mkdir(parents=True, exist_ok=True)
+    (root / EPISODES_PATH).parent.mkdir(parents=True, exist_ok=True)
+
+    # Tasks: the task string is the index, as LeRobot writes it.
+    pd.DataFrame({"task_index": np.arange(len(tasks), dtype=np.int64)},
+                 index=pd.Index(tasks, name="task")).to_parquet(meta / "tasks.parquet")
+
+    ep_cols = ["episode_index", "length", "data/chunk_index", "data/file_index", "dataset_from_index",
+               "dataset_to_index", f"videos/{IMAGE_KEY}/chunk_index", f"videos/{IMAGE_KEY}/file_index",
+               f"videos/{IMAGE_KEY}/from_timestamp", f"videos/{IMAGE_KEY}/to_timestamp"]
+    episodes = pd.DataFrame([{c: r[c] for c in ep_cols} for r in rows])
+    episodes.insert(1, "tasks", [[r["task"]] for r in rows])
+    episodes["meta/episodes/chunk_index"] = 0
+    episodes["meta/episodes/file_index"] = 0
+    for key in (STATE_KEY, ACTION_KEY):
+        per_ep = [_stats_entry([r["_moments"][key]]) for r in rows]
+        for stat in ("mean", "std", "min", "max", "count"):
+            episodes[f"stats/{key}/{stat}"] = [p[stat] for p in per_ep]
+    episodes.to_parquet(root / EPISODES_PATH, index=False)
+
+    sidecar = pd.DataFrame([{c: r[c] for c in ("episode_index", "split", "success", "label", "source_episode", "sim")}
+                            for r in rows])
+    sidecar.to_parquet(root / SIDECAR_PATH, index=False)
+
+    stats = {key: _stats_entry([r["_moments"][key] for r in rows], image=(key == IMAGE_KEY))
+             for key in (STATE_KEY, ACTION_KEY, ENV_STATE_KEY, IMAGE_KEY)}
+    (meta / "stats.json").write_text(json.dumps(stats, indent=2))
+
+    n_frames = int(sum(r["length"] for r in rows))
+    splits: dict[str, str] = {}
+    for name in ("train", "val", "test"):
+        idx = [r["episode_index"] for r in rows if r["split"] == name]
+        # LeRobot splits are "start:stop" ranges; ours are contiguous by construction.
+        if idx and idx == list(range(idx[0], idx[-1] + 1)):
+            splits[name] = f"{idx[0]}:{idx[-1] + 1}"
+    if not splits:
+        splits = {"train": f"0:{len(rows)}"}
+    n_files = len({r["data/file_index"] for r in rows})
+    info = {
+        "codebase_version": CODEBASE_VERSION,
+        "robot_type": robot_type,
+        "total_episodes": len(rows),
+        "total_frames": n_frames,
+        "total_tasks": len(tasks),
+        "chunks_size": CHUNKS_SIZE,
+        "data_files_size_in_mb": 100,
+        "video_files_size_in_mb": 500,
+        "fps": fps,
+        "splits": splits,
+        "data_path": DATA_PATH,
+        "video_path": VIDEO_PATH,
+        "features": {
+            IMAGE_KEY: {
+                "dtype": "video", "shape": [image_size, image_size, 3], "names": ["height", "width", "channels"],
+                "info": {"video.height": image_size, "video.width": image_size, "video.codec": "h264",
+                         "video.pix_fmt": video_opts.pix_fmt, "video.is_depth_map": False, "video.fps": fps,
+                         "video.channels": 3, "has_audio": False},
+            },
+            STATE_KEY: {"dtype": "float32", "shape": [len(state_names)], "names": state_names},
+            ENV_STATE_KEY: {"dtype": "float32", "shape": [len(env_state_names)], "names": env_state_names},
+            ACTION_KEY: {"dtype": "float32", "shape": [len(action_names)], "names": action_names},
+            **INDEX_FEATURES,
+        },
+        "democheck": {"files": n_files, "sidecar": SIDECAR_PATH},
+    }
+    (meta / "info.json").write_text(json.dumps(info, indent=2))
+    if suite is not None:
+        (root / SUITE_PATH).write_text(json.dumps(suite, indent=2, sort_keys=True))
+
+
+# ---------------------------------------------------------------------------
+# reading
+# ---------------------------------------------------------------------------
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: not valid JSON ({exc})") from None
+
+
+def _read_parquet(path: Path, columns: list[str] | None = None) -> pa.Table:
+    try:
+        return pq.read_table(path, columns=columns)
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing") from None
+    except (pa.ArrowException, OSError, ValueError) as exc:
+        raise DatasetError(f"{path}: unreadable parquet ({str(exc).splitlines()[0]})") from None
+
+
+def _inside(root: Path, rel: str) -> Path:
+    """A path from the dataset's metadata, refused if it escapes the dataset folder."""
+    path = (root / rel).resolve()
+    if not path.is_relative_to(root.resolve()):
+        raise DatasetError(f"{root / 'meta/info.json'}: path {rel!r} points outside the dataset")
+    return path
+
+
+def _column_matrix(table: pa.Table, key: str, path: Path) -> np.ndarray:
+    if key not in table.column_names:
+        raise DatasetError(f"{path}: no column {key!r}")
+    col = table.column(key).combine_chunks()
+    if pa.types.is_fixed_size_list(col.type) or pa.types.is_list(col.type) or pa.types.is_large_list(col.type):
+        flat = col.flatten().to_numpy(zero_copy_only=False)
+        n = len(col)
+        if n and flat.size % n:
+            raise DatasetError(f"{path}: column {key!r} has rows of different lengths")
+        return flat.reshape(n, -1 if n else 0).astype(np.float32)
+    return col.to_numpy(zero_copy_only=False).astype(np.float32).reshape(len(col), -1)
+
+
+class _LeRobotBase:
+    """What v2.1 and v3.0 readers share: info.json, feature keys, episode table, sidecar."""
+
+    format = "lerobot"
+
+    def __init__(self, root: Path, info: dict[str, Any], camera: str | None, state_key: str | None,
+                 action_key: str | None):
+        self.root = root
+        self.info = info
+        try:
+            self.fps = float(info["fps"])
+            self.features: dict[str, Any] = dict(info["features"])
+        except (KeyError, TypeError, ValueError):
+            raise DatasetError(f"{root / 'meta/info.json'}: needs 'fps' and 'features'") from None
+        self.camera = self._pick_camera(camera)
+        feat = self.features[self.camera]
+        self.camera_dtype = feat.get("dtype")
+        self.image_shape = self._hwc(feat.get("shape", []), feat.get("names"))
+        self.state_key = self._pick_key(state_key, [STATE_KEY, "state", "observation.qpos"], "state", "--state-key")
+        self.action_key = self._pick_key(action_key, [ACTION_KEY, "actions"], "action", "--action-key")
+        self.state_dim = int(np.prod(self.features[self.state_key].get("shape", [1])))
+        self.action_dim = int(np.prod(self.features[self.action_key].get("shape", [1])))
+        self._cache: OrderedDict[Path, dict[str, Any]] = OrderedDict()
+
+    def _pick_camera(self, camera: str | None) -> str:
+        cams = [k for k, f in self.features.items() if isinstance(f, dict) and f.get("dtype") in ("video", "image")]
+        if not cams:
+            raise DatasetError(f"{self.root / 'meta/info.json'}: no image or video feature")
+        if camera is None:
+            return cams[0]
+        for key in (camera, f"observation.images.{camera}"):
+            if key in cams:
+                return key
+        raise DatasetError(f"{self.root / 'meta/info.json'}: no camera {camera!r}; choose one of {', '.join(cams)}")
+
+    def _pick_key(self, given: str | None, candidates: list[str], what: str, option: str) -> str:
+        if given is not None:
+            if given not in self.features:
+                raise DatasetError(f"{self.root / 'meta/info.json'}: no feature {given!r} ({option})")
+            return given
+        for key in candidates:
+            if key in self.features:
+                return key
+        raise DatasetError(f"{self.root / 'meta/info.json'}: no {what} feature found; name it with {option}")
+
+    def _hwc(self, shape: list[int], names: list[str] | None) -> tuple[int, int, int]:
+        if len(shape) != 3:
+            raise DatasetError(f"{self.root / 'meta/info.json'}: camera {self.camera!r} has shape {shape}, not 3-D")
+        if names and list(names)[0] in ("channel", "channels") or shape[0] == 3 and shape[2] != 3:
+            return int(shape[1]), int(shape[2]), int(shape[0])
+        return int(shape[0]), int(shape[1]), int(shape[2])
+
+    def _attach_sidecar(self, episodes: pd.DataFrame) -> pd.DataFrame:
+        path = self.root / SIDECAR_PATH
+        if path.exists():
+            side = _read_parquet(path).to_pandas().set_index("episode_index")
+            episodes = episodes.join(side, how="left")
+        return episodes
+
+    def _frame_table(self, path: Path) -> dict[str, Any]:
+        """Columns of one data file as arrays, with each episode's row range; two files cached."""
+        if path in self._cache:
+            self._cache.move_to_end(path)
+            return self._cache[path]
+        cols = [self.state_key, self.action_key, "episode_index", "frame_index"]
+        if ENV_STATE_KEY in self.features:
+            cols.append(ENV_STATE_KEY)
+        if self.camera_dtype == "image":
+            cols.append(self.camera)
+        schema = _read_parquet_schema(path)
+        table = _read_parquet(path, [c for c in cols if c in schema])
+        eps = table.column("episode_index").to_numpy() if "episode_index" in table.column_names else None
+        if eps is None:
+            raise DatasetError(f"{path}: no column 'episode_index'")
+        order = np.argsort(eps, kind="stable")
+        uniq, starts, counts = np.unique(eps[order], return_index=True, return_counts=True)
+        entry = {
+            "state": _column_matrix(table, self.state_key, path)[order],
+            "actions": _column_matrix(table, self.action_key, path)[order],
+            "env_state": _column_matrix(table, ENV_STATE_KEY, path)[order] if ENV_STATE_KEY in table.column_names else None,
+            "images": table.column(self.camera).to_pylist() if self.camera_dtype == "image" else None,
+            "order": order,
+            "ranges": {int(e): (int(s), int(s + c)) for e, s, c in zip(uniq, starts, counts)},
+        }
+        self._cache[path] = entry
+        while len(self._cache) > 2:
+            self._cache.popitem(last=False)
+        return entry
+
+    def _rows(self, path: Path, episode_index: int) -> tuple[dict[str, Any], int, int]:
+        entry = self._frame_table(path)
+        if episode_index not in entry["ranges"]:
+            raise DatasetError(f"{path}: episode {episode_index} has no rows")
+        s, e = entry["ranges"][episode_index]
+        return entry, s, e
+
+    def _decode_images(self, entry: dict[str, Any], s: int, e: int, path: Path) -> np.ndarray:
+        from io import BytesIO
+
+        from PIL import Image
+
+        out = []
+        for i in entry["order"][s:e]:
+            cell = entry["images"][i]
+            data = cell.get("bytes") if isinstance(cell, dict) else cell
+            if not data and isinstance(cell, dict) and cell.get("path"):
+                data = _inside(self.root, cell["path"]).read_bytes()
+            try:
+                out.append(np.asarray(Image.open(BytesIO(data)).convert("RGB")))
+            except Exception as exc:  # PIL raises many types for bad bytes
+                raise DatasetError(f"{path}: unreadable image in {self.camera!r} ({exc})") from None
+        return np.stack(out)
+
+    def _make_demo(self, episode_index: int, frames: np.ndarray, entry: dict[str, Any], s: int, e: int) -> Demo:
+        row = self.episodes.loc[episode_index]
+        sim = row.get("sim") if "sim" in row else None
+        src = row.get("source_episode") if "source_episode" in row else None
+        success = row.get("success") if "success" in row else None
+        return Demo(
+            episode_index=episode_index, task=str(row["task"]), frames=frames,
+            state=entry["state"][s:e], actions=entry["actions"][s:e],
+            success=None if success is None or pd.isna(success) else bool(success),
+            label=row.get("label") if "label" in row and isinstance(row.get("label"), str) else None,
+            split=row.get("split") if "split" in row and isinstance(row.get("split"), str) else None,
+            sim=json.loads(sim) if isinstance(sim, str) and sim else None,
+            env_state=None if entry["env_state"] is None else entry["env_state"][s:e],
+            source_episode=None if src is None or pd.isna(src) or int(src) < 0 else int(src),
+        )
+
+
+def _read_parquet_schema(path: Path) -> list[str]:
+    try:
+        return pq.read_schema(path).names
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing") from None
+    except (pa.ArrowException, OSError, ValueError) as exc:
+        raise DatasetError(f"{path}: unreadable parquet ({str(exc).splitlines()[0]})") from None
+
+
+class LeRobotV3(_LeRobotBase):
+    """Reader for LeRobotDataset v3.0 (several episodes per data and video file)."""
+
+    format = "lerobot-v3.0"
+
+    def __init__(self, root: Path, info: dict[str, Any], **keys: str | None):
+        super().__init__(root, info, **keys)
+        ep_dir = root / "meta" / "episodes"
+        files = sorted(ep_dir.glob("chunk-*/file-*.parquet"))
+        if not files:
+            raise DatasetError(f"{ep_dir}: no episode metadata files")
+        eps = pd.concat([_read_parquet(f).to_pandas() for f in files], ignore_index=True)
+        need = ["episode_index", "tasks", "length", "data/chunk_index", "data/file_index"]
+        missing = [c for c in need if c not in eps.columns]
+        if missing:
+            raise DatasetError(f"{files[0]}: episode table lacks {', '.join(missing)}")
+        eps["task"] = [t[0] if len(t) else "" for t in eps["tasks"]]
+        self._eps = eps.set_index("episode_index", drop=False)
+        self.episodes = self._attach_sidecar(eps.set_index("episode_index")[["task", "length"]])
+
+    def _data_path(self, episode_index: int) -> Path:
+        r = self._eps.loc[episode_index]
+        rel = self.info.get("data_path", DATA_PATH).format(chunk_index=int(r["data/chunk_index"]),
+                                                           file_index=int(r["data/file_index"]))
+        return _inside(self.root, rel)
+
+    def _video_span(self, episode_index: int) -> tuple[Path, int, int]:
+        r = self._eps.loc[episode_index]
+        pre = f"videos/{self.camera}/"
+        try:
+            rel = self.info.get("video_path", VIDEO_PATH).format(
+                video_key=self.camera, chunk_index=int(r[pre + "chunk_index"]), file_index=int(r[pre + "file_index"]))
+            start = int(round(float(r[pre + "from_timestamp"]) * self.fps))
+        except KeyError as exc:
+            raise DatasetError(f"{self.root / 'meta/episodes'}: no {exc} for camera {self.camera!r}") from None
+        return _inside(self.root, rel), start, start + int(r["length"])
+
+    def load(self, episode_index: int) -> Demo:
+        path = self._data_path(episode_index)
+        entry, s, e = self._rows(path, episode_index)
+        if self.camera_dtype == "video":
+            vpath, start, stop = self._video_span(episode_index)
+            frames = video.read_range(vpath, start, stop, self.fps)
+        else:
+            frames = self._decode_images(entry, s, e, path)
+        return self._make_demo(episode_index, frames, entry, s, e)
+
+    def cue_frames(self, episode_index: int) -> np.ndarray:
+        if self.camera_dtype == "video":
+            vpath, start, stop = self._video_span(episode_index)
+            return video.read_frames(vpath, [start, stop - 1], self.fps)
+        path = self._data_path(episode_index)
+        entry, s, e = self._rows(path, episode_index)
+        return np.stack([self._decode_images(entry, s, s + 1, path)[0], self._decode_images(entry, e - 1, e, path)[0]])
+
+
+class LeRobotV21(_LeRobotBase):
+    """Reader for LeRobotDataset v2.0/v2.1 (one data and one video file per episode)."""
+
+    format = "lerobot-v2.1"
+
+    def __init__(self, root: Path, info: dict[str, Any], **keys: str | None):
+        super().__init__(root, info, **keys)
+        self.chunks_size = int(info.get("chunks_size", CHUNKS_SIZE))
+        tasks_path = root / "meta" / "tasks.jsonl"
+        ep_path = root / "meta" / "episodes.jsonl"
+        task_names = {int(t["task_index"]): t["task"] for t in _read_jsonl(tasks_path)}
+        rows = []
+        for ep in _read_jsonl(ep_path):
+            try:
+                tasks = ep.get("tasks") or [task_names.get(int(ep.get("task_index", 0)), "")]
+                rows.append({"episode_index": int(ep["episode_index"]), "task": str(tasks[0]), "length": int(ep["length"])})
+            except (KeyError, TypeError, ValueError):
+                raise DatasetError(f"{ep_path}: malformed episode line {ep!r:.80}") from None
+        if not rows:
+            raise DatasetError(f"{ep_path}: no episodes")
+        self.episodes = self._attach_sidecar(pd.DataFrame(rows).set_index("episode_index"))
+
+    def _path(self, template_key: str, episode_index: int) -> Path:
+        chunk = episode_index // self.chunks_size
+        rel = self.info[template_key].format(episode_chunk=chunk, episode_index=episode_index, video_key=self.camera)
+        return _inside(self.root, rel)
+
+    def load(self, episode_index: int) -> Demo:
+        path = self._path("data_path", episode_index)
+        entry, s, e = self._rows(path, episode_index)
+        if self.camera_dtype == "video":
+            frames = video.read_range(self._path("video_path", episode_index), 0, e - s, self.fps)
+        else:
+            frames = self._decode_images(entry, s, e, path)
+        return self._make_demo(episode_index, frames, entry, s, e)
+
+    def cue_frames(self, episode_index: int) -> np.ndarray:
+        n = int(self.episodes.loc[episode_index, "length"])
+        if self.camera_dtype == "video":
+            return video.read_frames(self._path("video_path", episode_index), [0, n - 1], self.fps)
+        path = self._path("data_path", episode_index)
+        entry, s, e = self._rows(path, episode_index)
+        return np.stack([self._decode_images(entry, s, s + 1, path)[0], self._decode_images(entry, e - 1, e, path)[0]])
+
+
+def _read_jsonl(path: Path) -> list[dict[str, Any]]:
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing") from None
+    out = []
+    for n, line in enumerate(text.splitlines(), 1):
+        if line.strip():
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:
+                raise DatasetError(f"{path}:{n}: not valid JSON") from None
+    return out
+
+
+def open_lerobot(root: Path, camera: str | None = None, state_key: str | None = None,
+                 action_key: str | None = None) -> _LeRobotBase:
+    info = _read_json(root / "meta" / "info.json")
+    if not isinstance(info, dict):
+        raise DatasetError(f"{root / 'meta/info.json'}: not a JSON object")
+    version = str(info.get("codebase_version", ""))
+    keys = dict(camera=camera, state_key=state_key, action_key=action_key)
+    if version.startswith("v3"):
+        return LeRobotV3(root, info, **keys)
+    if version.startswith("v2"):
+        return LeRobotV21(root, info, **keys)
+    raise DatasetError(f"{root / 'meta/info.json'}: unsupported LeRobot codebase_version {version!r} (v2.x, v3.x)")

@@ -1,0 +1,18 @@
+"""democheck's own error types.
+
+Anything a user can cause (a bad path, a broken file, a wrong option) raises a
+``DemocheckError`` whose message is one line naming the file and the problem;
+the CLI prints it and exits with status 2, without a traceback.
+"""
+
+
+class DemocheckError(Exception):
+    """A problem with the user's input, reported as one line."""
+
+
+class DatasetError(DemocheckError):
+    """A dataset that cannot be read: missing files, malformed metadata, wrong shapes."""
+
+
+class RecipeError(DemocheckError):
+    """A suite recipe that does not exist or does not parse."""
