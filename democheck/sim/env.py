@@ -9,6 +9,7 @@ on at least ``SUCCESS_STEPS`` control steps of the episode.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -152,7 +153,8 @@ class PushEnv(gym.Env):
         if dist < scene.GOAL_RADIUS:
             self.steps_in_goal += 1
         obs = self._observation()
-        return obs, -float(dist), False, self.t >= self.max_steps, self._info()
+        reward = -dist if self.with_objects else 0.0  # an empty scene has nothing to push
+        return obs, float(reward), False, self.t >= self.max_steps, self._info(dist)
 
     def render(self) -> np.ndarray:
         if self._renderer is None:
@@ -179,7 +181,8 @@ class PushEnv(gym.Env):
     def target_to_goal(self) -> float:
         if not self.with_objects:
             return float("inf")
-        return float(np.linalg.norm(self.data.qpos[self._obj_qadr["target"][:2]] - scene.GOAL_XY))
+        x, y = self.data.qpos[self._obj_qadr["target"][:2]]
+        return math.hypot(x - scene.GOAL_XY[0], y - scene.GOAL_XY[1])
 
     @property
     def tip_pos(self) -> np.ndarray:
@@ -197,6 +200,6 @@ class PushEnv(gym.Env):
         image = self.render() if self.render_images else np.zeros((self.image_size,) * 2 + (3,), np.uint8)
         return {"image": image, "state": self.state()}
 
-    def _info(self) -> dict[str, Any]:
+    def _info(self, dist: float | None = None) -> dict[str, Any]:
         return {"success": self.steps_in_goal >= SUCCESS_STEPS, "steps_in_goal": self.steps_in_goal,
-                "target_to_goal": self.target_to_goal()}
+                "target_to_goal": self.target_to_goal() if dist is None else dist}

@@ -17,6 +17,8 @@ a small state machine:
 
 from __future__ import annotations
 
+import math
+
 import mujoco
 import numpy as np
 
@@ -40,7 +42,7 @@ class ScriptedExpert:
         self.phase = "approach"
         self._retreat_point = np.zeros(3)
         self._jac = np.zeros((3, env.model.nv))
-        self._mass = np.zeros((env.model.nv, env.model.nv))
+        self._jminv = np.zeros((3, env.model.nv))
 
     def reset(self) -> None:
         self.phase = "approach"
@@ -56,7 +58,7 @@ class ScriptedExpert:
         tip = self.env.tip_pos
         obj = self._object_xy()
         to_goal = scene.GOAL_XY - obj
-        dist = np.linalg.norm(to_goal)
+        dist = math.hypot(*to_goal)
         u = to_goal / max(dist, 1e-9)
         r = self._object_radius()
         behind = obj - u * (r + scene.TIP_RADIUS + 0.02)
@@ -100,20 +102,17 @@ class ScriptedExpert:
         goal = self.waypoint()
         dofs = env.arm_dofs
         mujoco.mj_jacSite(m, d, self._jac, None, env.tip_site)
-        J = self._jac[:, dofs]
-        mujoco.mj_fullM(m, d, self._mass)
-        M = self._mass[np.ix_(dofs, dofs)]
-        Minv = np.linalg.inv(M)
-        lam = np.linalg.inv(J @ Minv @ J.T + 1e-4 * np.eye(3))
-        err = goal - env.tip_pos
-        n = np.linalg.norm(err)
+        # J M^-1 from MuJoCo's own factorisation of M (the arm's block is independent of the objects').
+        mujoco.mj_solveM(m, d, self._jminv, self._jac)
+        J, JMinv = self._jac[:, dofs], self._jminv[:, dofs]
+        lam = np.linalg.inv(J @ JMinv.T + 1e-4 * np.eye(3))  # operational-space inertia
+        err = goal - d.site_xpos[env.tip_site]
+        n = math.sqrt(float(err @ err))
         if n > MAX_ERR:
             err *= MAX_ERR / n
         qvel = d.qvel[dofs]
         force = lam @ (KP * err - KD * (J @ qvel))
-        # Null space: stay near the home posture, damp internal motion.
-        jbar = Minv @ J.T @ lam
-        null = np.eye(7) - J.T @ jbar.T
-        q = d.qpos[env._arm_qadr]
-        torque = J.T @ force + null @ (KQ * (scene.ARM_HOME - q) - KDQ * qvel)
+        # Null space: stay near the home posture and damp internal motion, without disturbing the fingertip.
+        posture = KQ * (scene.ARM_HOME - d.qpos[env._arm_qadr]) - KDQ * qvel
+        torque = J.T @ force + posture - J.T @ (lam @ (JMinv @ posture))
         return np.clip(torque / scene.TORQUE_LIMIT, -1.0, 1.0).astype(np.float32)

@@ -9,7 +9,6 @@ depend on the number of workers.
 
 from __future__ import annotations
 
-import math
 import multiprocessing as mp
 import queue as queue_mod
 import time
@@ -40,8 +39,9 @@ class Recipe:
     steps: int = 100
     image_size: int = 64
     max_attempts: int = 5  # layouts the expert fails on are re-drawn, up to this many tries
+    episodes_per_file: int = 50  # fixed, not tied to --workers: the encoder's output depends on the file's content
     pix_fmt: str = "yuv444p"
-    crf: int = 15
+    crf: int = 20
 
     @property
     def n_tasks(self) -> int:
@@ -81,6 +81,8 @@ class Recipe:
             problems.append("at least 2 steps per episode")
         if not 8 <= self.image_size <= 512:
             problems.append("an image size between 8 and 512")
+        if self.episodes_per_file < 1:
+            problems.append("at least one episode per file")
         if self.pix_fmt not in ("yuv444p", "yuv420p"):
             problems.append("pix_fmt yuv444p or yuv420p")
         if self.pix_fmt == "yuv420p" and self.image_size % 2:
@@ -131,7 +133,7 @@ def load_recipe(name_or_path: str) -> Recipe:
                           "test_object_fraction": "test_object_fraction"},
                 "episodes": {"demos_per_task": "demos_per_task", "steps": "steps", "image_size": "image_size",
                              "max_attempts": "max_attempts"},
-                "video": {"pix_fmt": "pix_fmt", "crf": "crf"}}
+                "video": {"pix_fmt": "pix_fmt", "crf": "crf", "episodes_per_file": "episodes_per_file"}}
     for section, fields in sections.items():
         for key, value in doc.get(section, {}).items():
             if key not in fields:
@@ -221,12 +223,13 @@ def _shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, Any]]:
     return rows
 
 
-def plan_shards(recipe: Recipe, workers: int) -> list[tuple[int, int, list[tuple[int, int]]]]:
-    """Contiguous episode ranges, one data/video file each: (file_index, first frame index, [(episode, task)])."""
+def plan_shards(recipe: Recipe) -> list[tuple[int, int, list[tuple[int, int]]]]:
+    """Contiguous episode ranges, one data/video file each: (file_index, first frame index, [(episode, task)]).
+
+    The partition depends on the recipe alone, so the files are identical whatever the number of workers.
+    """
     n = recipe.n_episodes
-    # Several files per worker balance the load; but no tiny files, and none over 500 episodes.
-    per = math.ceil(n / (workers * 4))
-    per = min(max(per, min(50, math.ceil(n / workers))), 500)
+    per = recipe.episodes_per_file
     episodes = [(e, e // recipe.demos_per_task) for e in range(n)]
     return [(f, s * recipe.steps, episodes[s:s + per]) for f, s in enumerate(range(0, n, per))]
 
@@ -243,7 +246,7 @@ def generate(recipe: Recipe, out: str | Path, workers: int = 2, force: bool = Fa
     recipe.validate()
     tasks = make_tasks(recipe.train_tasks, recipe.val_tasks, recipe.test_tasks, recipe.seed,
                        recipe.test_object_fraction)
-    jobs = plan_shards(recipe, workers)
+    jobs = plan_shards(recipe)
     t0 = time.perf_counter()
     with atomic_output_dir(out, force=force) as tmp:
         rows: list[dict[str, Any]] = []

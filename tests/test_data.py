@@ -1,0 +1,169 @@
+import json
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from democheck.data import open_dataset
+from democheck.data.video import VideoWriter, read_frames
+from democheck.errors import DatasetError
+from democheck.sim.catalog import OBJECTS
+from democheck.sim.env import PushEnv
+from democheck.sim.expert import ScriptedExpert
+from democheck.sim.suite import record_demo
+
+
+def psnr(a, b):
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return 10 * np.log10(255.0**2 / max(mse, 1e-12))
+
+
+def test_lerobot_v3_layout(tiny_dataset):
+    root, summary = tiny_dataset
+    info = json.loads((root / "meta/info.json").read_text())
+    assert info["codebase_version"] == "v3.0" and info["fps"] == 20
+    assert info["total_episodes"] == 12 and info["total_frames"] == 12 * 12
+    assert info["features"]["observation.images.main"]["dtype"] == "video"
+    assert set(info["splits"]) == {"train", "val", "test"}
+    tasks = pd.read_parquet(root / "meta/tasks.parquet")
+    assert tasks.index.name == "task" and len(tasks) == 4
+    eps = pd.read_parquet(root / "meta/episodes/chunk-000/file-000.parquet")
+    for col in ("episode_index", "tasks", "length", "dataset_from_index", "dataset_to_index",
+                "videos/observation.images.main/from_timestamp", "videos/observation.images.main/to_timestamp"):
+        assert col in eps
+    data = pq.read_table(root / "data/chunk-000/file-000.parquet")
+    assert {"observation.state", "action", "timestamp", "frame_index", "episode_index", "index", "task_index"} <= set(
+        data.column_names)
+    stats = json.loads((root / "meta/stats.json").read_text())
+    assert np.array(stats["observation.images.main"]["mean"]).shape == (3, 1, 1)
+    assert (root / "videos/observation.images.main/chunk-000/file-000.mp4").exists()
+
+
+def test_round_trip_matches_resimulation(tiny_dataset):
+    """Write -> open_dataset -> compare with the episode re-simulated from its sim record."""
+    root, _ = tiny_dataset
+    ds = open_dataset(root)
+    assert len(ds) == 12 and len(ds.by_task()) == 4 and all(len(v) == 3 for v in ds.by_task().values())
+    for e in (0, 7, 11):
+        demo = ds[e]
+        assert demo.frames.shape == (12, 16, 16, 3) and demo.state.shape == (12, 17) and demo.actions.shape == (12, 7)
+        assert demo.label == "clean" and demo.split in ("train", "val", "test") and demo.sim is not None
+        env = PushEnv((OBJECTS[demo.sim["target"]], OBJECTS[demo.sim["distractor"]]), image_size=16)
+        actions = iter(demo.actions)
+        rec = record_demo(env, lambda: next(actions), len(demo), layout=demo.sim["layout"])
+        np.testing.assert_array_equal(rec["state"], demo.state)
+        np.testing.assert_array_equal(rec["env_state"], demo.env_state)
+        assert psnr(rec["frames"], demo.frames) >= 30  # 16x16 frames; the 64x64 bound is checked below
+        cue = ds.cue_frames(e)
+        np.testing.assert_array_equal(cue[0], demo.frames[0])
+        np.testing.assert_array_equal(cue[1], demo.frames[-1])
+
+
+def test_video_quality_at_64(tmp_path):
+    env = PushEnv((OBJECTS["block-yellow-small"], OBJECTS["ell-blue-large"]), image_size=64)
+    env.reset(seed=4)
+    rec = record_demo(env, ScriptedExpert(env).act, 40, seed=4)
+    with VideoWriter(tmp_path / "v.mp4", 20, 64) as vw:
+        vw.write(rec["frames"])
+    decoded = read_frames(tmp_path / "v.mp4", np.arange(40), 20)
+    assert psnr(rec["frames"], decoded) >= 35
+    assert min(psnr(a, b) for a, b in zip(rec["frames"], decoded)) >= 33
+
+
+def test_sparse_read_does_not_decode_everything(tmp_path):
+    frames = np.random.default_rng(0).integers(0, 255, (200, 16, 16, 3), dtype=np.uint8)
+    with VideoWriter(tmp_path / "v.mp4", 20, 16, crf=0) as vw:
+        vw.write(frames[:100])
+        vw.write(frames[100:])
+    got = read_frames(tmp_path / "v.mp4", [0, 99, 100, 199], 20)
+    assert got.shape == (4, 16, 16, 3)
+    assert psnr(got, frames[[0, 99, 100, 199]]) > 30
+
+
+def _write_v21(root, n_eps=3, T=5, size=8, image_path=None):
+    """A LeRobot v2.1 dataset with PNG image features, as LeRobot writes one."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    (root / "meta").mkdir(parents=True)
+    info = {
+        "codebase_version": "v2.1", "fps": 10, "chunks_size": 1000,
+        "data_path": "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet",
+        "video_path": None,
+        "features": {
+            "observation.images.top": {"dtype": "image", "shape": [size, size, 3], "names": ["height", "width", "channel"]},
+            "observation.images.wrist": {"dtype": "image", "shape": [size, size, 3], "names": ["height", "width", "channel"]},
+            "observation.state": {"dtype": "float32", "shape": [4], "names": None},
+            "action": {"dtype": "float32", "shape": [2], "names": None},
+            "episode_index": {"dtype": "int64", "shape": [1]}, "frame_index": {"dtype": "int64", "shape": [1]},
+        },
+    }
+    (root / "meta/info.json").write_text(json.dumps(info))
+    (root / "meta/tasks.jsonl").write_text('{"task_index": 0, "task": "stack"}\n{"task_index": 1, "task": "pour"}\n')
+    lines, truth = [], {}
+    rng = np.random.default_rng(1)
+    for e in range(n_eps):
+        task = ["stack", "pour"][e % 2]
+        lines.append(json.dumps({"episode_index": e, "tasks": [task], "length": T}))
+        imgs = rng.integers(0, 255, (T, size, size, 3), dtype=np.uint8)
+        state = rng.normal(size=(T, 4)).astype(np.float32)
+        action = rng.normal(size=(T, 2)).astype(np.float32)
+        truth[e] = (imgs, state, action, task)
+
+        def png(a):
+            buf = BytesIO()
+            Image.fromarray(a).save(buf, format="PNG")
+            return {"bytes": buf.getvalue(), "path": image_path}
+
+        table = pa.table({
+            "observation.images.top": [png(a) for a in imgs],
+            "observation.images.wrist": [png(255 - a) for a in imgs],
+            "observation.state": [list(s) for s in state], "action": [list(a) for a in action],
+            "episode_index": [e] * T, "frame_index": list(range(T)),
+        })
+        path = root / f"data/chunk-000/episode_{e:06d}.parquet"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        pq.write_table(table, path)
+    (root / "meta/episodes.jsonl").write_text("\n".join(lines) + "\n")
+    return truth
+
+
+def test_lerobot_v21_images(tmp_path):
+    truth = _write_v21(tmp_path / "v21")
+    ds = open_dataset(tmp_path / "v21")
+    assert ds.format == "lerobot-v2.1" and ds.camera == "observation.images.top" and len(ds) == 3
+    for e, (imgs, state, action, task) in truth.items():
+        demo = ds[e]
+        np.testing.assert_array_equal(demo.frames, imgs)  # PNG is lossless
+        np.testing.assert_allclose(demo.state, state)
+        np.testing.assert_allclose(demo.actions, action)
+        assert demo.task == task
+    wrist = open_dataset(tmp_path / "v21", camera="wrist")
+    np.testing.assert_array_equal(wrist.cue_frames(1)[1], 255 - truth[1][0][-1])
+    assert wrist.by_task() == {"pour": [1], "stack": [0, 2]}
+
+
+def test_bad_inputs_are_one_line_errors(tmp_path):
+    _write_v21(tmp_path / "v21")
+    with pytest.raises(DatasetError, match="no camera 'side'"):
+        open_dataset(tmp_path / "v21", camera="side")
+    with pytest.raises(DatasetError, match="no such file"):
+        open_dataset(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match="not a dataset"):
+        open_dataset(tmp_path / "empty")
+    (tmp_path / "v21/meta/info.json").write_text("{not json")
+    with pytest.raises(DatasetError, match="info.json: not valid JSON"):
+        open_dataset(tmp_path / "v21")
+
+
+def test_paths_cannot_escape_the_dataset(tmp_path):
+    _write_v21(tmp_path / "v21")
+    info = json.loads((tmp_path / "v21/meta/info.json").read_text())
+    info["data_path"] = "../../etc/episode_{episode_index:06d}.parquet"
+    (tmp_path / "v21/meta/info.json").write_text(json.dumps(info))
+    with pytest.raises(DatasetError, match="outside the dataset"):
+        open_dataset(tmp_path / "v21")[0]

@@ -1,0 +1,70 @@
+import numpy as np
+import pytest
+
+from democheck.sim import scene
+from democheck.sim.catalog import OBJECTS, make_tasks
+from democheck.sim.env import EPISODE_STEPS, SUCCESS_STEPS, PushEnv
+from democheck.sim.expert import ScriptedExpert
+
+PAIR = (OBJECTS["cylinder-green-large"], OBJECTS["cross-orange-small"])
+
+
+@pytest.mark.parametrize("with_objects", [True, False], ids=["scene", "no-objects"])
+def test_reset_step_shapes(with_objects):
+    env = PushEnv(PAIR, image_size=16, with_objects=with_objects)
+    obs, info = env.reset(seed=1)
+    assert obs["image"].shape == (16, 16, 3) and obs["image"].dtype == np.uint8
+    assert obs["state"].shape == (17,) and obs["state"].dtype == np.float32
+    assert env.observation_space.contains(obs)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        obs, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 7))
+        assert np.isfinite(obs["state"]).all() and np.isfinite(reward)
+        assert isinstance(info["success"], bool)
+    assert obs["image"].std() > 0  # something was rendered
+    env.close()
+
+
+def test_layouts_inside_workspace_and_seeded():
+    env = PushEnv(PAIR, image_size=16, render_images=False)
+    seen = []
+    for seed in range(20):
+        env.reset(seed=seed)
+        t, d = np.array(env.layout.target[:2]), np.array(env.layout.distractor[:2])
+        for p in (t, d):
+            assert (scene.WORKSPACE[:, 0] <= p).all() and (p <= scene.WORKSPACE[:, 1]).all()
+        assert np.linalg.norm(t - scene.GOAL_XY) > scene.GOAL_RADIUS
+        seen.append(env.layout)
+    env.reset(seed=3)
+    assert env.layout == seen[3]
+    assert len(set(seen)) == 20
+
+
+def test_success_rule_counts_steps_in_goal():
+    env = PushEnv(PAIR, image_size=16, render_images=False)
+    env.reset(seed=0)
+    qadr = env._obj_qadr["target"]
+    env.data.qpos[qadr[:2]] = scene.GOAL_XY  # place the target in the goal
+    for k in range(SUCCESS_STEPS):
+        _, _, _, _, info = env.step(np.zeros(7))
+        assert info["success"] == (k + 1 >= SUCCESS_STEPS)
+    assert info["steps_in_goal"] == SUCCESS_STEPS
+
+
+def test_actions_are_scaled_and_clipped():
+    env = PushEnv(PAIR, image_size=16, render_images=False)
+    env.reset(seed=0)
+    env.step(np.full(7, 5.0))
+    assert np.allclose(env.data.ctrl, scene.TORQUE_LIMIT)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_expert_succeeds(seed):
+    tasks = make_tasks(4, 0, 2, seed=0)
+    task = tasks[seed] if seed < 2 else tasks[-1]  # includes a meta-test task
+    env = PushEnv(task, image_size=16, render_images=False)
+    env.reset(seed=seed)
+    expert = ScriptedExpert(env)
+    for _ in range(EPISODE_STEPS):
+        _, _, _, truncated, info = env.step(expert.act())
+    assert truncated and info["success"], info
