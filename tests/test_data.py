@@ -82,8 +82,8 @@ def test_sparse_read_does_not_decode_everything(tmp_path):
     assert psnr(got, frames[[0, 99, 100, 199]]) > 30
 
 
-def _write_v21(root, n_eps=3, T=5, size=8, image_path=None):
-    """A LeRobot v2.1 dataset with PNG image features, as LeRobot writes one."""
+def _write_v21(root, n_eps=3, T=5, size=8, image_path=None, videos=False):
+    """A LeRobot v2.1 dataset with PNG image features (or one MP4 per episode), as LeRobot writes one."""
     from io import BytesIO
 
     from PIL import Image
@@ -92,7 +92,7 @@ def _write_v21(root, n_eps=3, T=5, size=8, image_path=None):
     info = {
         "codebase_version": "v2.1", "fps": 10, "chunks_size": 1000,
         "data_path": "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet",
-        "video_path": None,
+        "video_path": "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4" if videos else None,
         "features": {
             "observation.images.top": {"dtype": "image", "shape": [size, size, 3], "names": ["height", "width", "channel"]},
             "observation.images.wrist": {"dtype": "image", "shape": [size, size, 3], "names": ["height", "width", "channel"]},
@@ -101,6 +101,9 @@ def _write_v21(root, n_eps=3, T=5, size=8, image_path=None):
             "episode_index": {"dtype": "int64", "shape": [1]}, "frame_index": {"dtype": "int64", "shape": [1]},
         },
     }
+    if videos:
+        for key in ("observation.images.top", "observation.images.wrist"):
+            info["features"][key]["dtype"] = "video"
     (root / "meta/info.json").write_text(json.dumps(info))
     (root / "meta/tasks.jsonl").write_text('{"task_index": 0, "task": "stack"}\n{"task_index": 1, "task": "pour"}\n')
     lines, truth = [], {}
@@ -124,6 +127,13 @@ def _write_v21(root, n_eps=3, T=5, size=8, image_path=None):
             "observation.state": [list(s) for s in state], "action": [list(a) for a in action],
             "episode_index": [e] * T, "frame_index": list(range(T)),
         })
+        if videos:
+            table = table.drop_columns(["observation.images.top", "observation.images.wrist"])
+            for key, clip in (("observation.images.top", imgs), ("observation.images.wrist", 255 - imgs)):
+                vpath = root / f"videos/chunk-000/{key}/episode_{e:06d}.mp4"
+                vpath.parent.mkdir(parents=True, exist_ok=True)
+                with VideoWriter(vpath, 10, size, crf=0) as vw:
+                    vw.write(clip)
         path = root / f"data/chunk-000/episode_{e:06d}.parquet"
         path.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(table, path)
@@ -144,6 +154,33 @@ def test_lerobot_v21_images(tmp_path):
     wrist = open_dataset(tmp_path / "v21", camera="wrist")
     np.testing.assert_array_equal(wrist.cue_frames(1)[1], 255 - truth[1][0][-1])
     assert wrist.by_task() == {"pour": [1], "stack": [0, 2]}
+
+
+def test_lerobot_v21_videos(tmp_path):
+    truth = _write_v21(tmp_path / "v21v", size=16, T=12, videos=True)
+    ds = open_dataset(tmp_path / "v21v", camera="observation.images.wrist")
+    for e, (imgs, state, _, _) in truth.items():
+        demo = ds[e]
+        assert demo.frames.shape == (12, 16, 16, 3)
+        assert psnr(demo.frames, 255 - imgs) > 30  # CRF 0 on noise: near lossless
+        np.testing.assert_allclose(demo.state, state)
+        np.testing.assert_array_equal(ds.cue_frames(e), demo.frames[[0, -1]])
+
+
+def test_cue_frames_do_not_decode_whole_episodes(tiny_dataset, tmp_path):
+    from democheck.data import video
+    from democheck.sim.suite import generate
+    from tests.conftest import TINY
+
+    # Long episodes make the point: 60 steps each, cues need 2 frames.
+    root = tmp_path / "long"
+    generate(TINY.with_overrides(steps=60, demos=2), root, workers=1)
+    ds = open_dataset(root)
+    before = video.frames_decoded
+    for e in ds.episode_indices:
+        ds.cue_frames(e)
+    per_demo = (video.frames_decoded - before) / len(ds)
+    assert per_demo <= 2 + video.GOP, per_demo  # at most one GOP before the last frame, never 60
 
 
 def test_bad_inputs_are_one_line_errors(tmp_path):

@@ -1,0 +1,52 @@
+# democheck: set-up, demo and tests on a fresh Debian machine with Python 3.11.
+#   make demo   - install, then run the main job
+#   make test   - install, then run the default (fast) tests
+# Override the interpreter with `make PYTHON=python3.12 ...`.
+
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+SYSDEPS := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0
+export MUJOCO_GL ?= egl
+
+.PHONY: setup sysdeps demo test bench clean
+
+# Headless MuJoCo rendering needs EGL and Mesa; install them when missing and when we may.
+sysdeps:
+	@missing=""; \
+	if command -v dpkg >/dev/null 2>&1; then \
+	  for p in $(SYSDEPS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	fi; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ]; then SUDO=""; elif sudo -n true 2>/dev/null; then SUDO="sudo"; else SUDO=none; fi; \
+	  if [ "$$SUDO" = none ]; then \
+	    echo "democheck: headless rendering needs:$$missing -- run: sudo apt-get install -y$$missing" >&2; \
+	  else \
+	    echo "installing$$missing"; \
+	    $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends $$missing >/dev/null; \
+	  fi; \
+	fi
+
+$(BIN)/activate:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+
+# Re-install when the project's requirements change.
+$(VENV)/.installed: pyproject.toml | $(BIN)/activate
+	$(BIN)/pip install -q -e '.[test]'
+	@touch $@
+
+setup: sysdeps $(VENV)/.installed
+
+demo: setup
+	$(BIN)/democheck synth push-mini --out data/push-mini --force
+	$(BIN)/democheck info data/push-mini
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+bench: setup
+	$(BIN)/python benchmarks/synth_speed.py --repeats 3
+
+clean:
+	rm -rf $(VENV) *.egg-info .pytest_cache
