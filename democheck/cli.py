@@ -106,6 +106,69 @@ def info(
         console.print(table)
 
 
+@app.command()
+def train(
+    dataset: Annotated[Path, typer.Argument(help="Training dataset (LeRobot v3.0/v2.1); tasks need two or more demos.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write (config.json, model.safetensors, README.md).")],
+    model_type: Annotated[str, typer.Option(help="petnet (probabilistic task embedding) or tecnet (the TecNets baseline).")] = "petnet",
+    steps: Annotated[int, typer.Option(help="Optimiser steps.")] = 20_000,
+    batch_tasks: Annotated[int, typer.Option(help="Tasks per step; each gives one cue and one demonstrated trajectory.")] = 16,
+    timesteps: Annotated[int, typer.Option(help="Timesteps of each demonstrated trajectory per step.")] = 8,
+    lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 5e-4,
+    kl_weight: Annotated[float, typer.Option(help="Weight of a KL term on the task posterior (0: the paper's loss).")] = 0.0,
+    kl_target: Annotated[str, typer.Option(help="prior: KL to N(0, I); np: Neural-Process style, cue vs cue+target.")] = "prior",
+    seed: Annotated[int, typer.Option(help="Seed for initialisation, sampling and noise.")] = 0,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    val_every: Annotated[int, typer.Option(help="Validate on the val split every this many steps.")] = 500,
+    ckpt_every: Annotated[int, typer.Option(help="Save the run's state for --resume every this many steps.")] = 1000,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last saved state.")] = False,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out, or discard an interrupted run and start over.")] = False,
+    camera: Annotated[Optional[str], typer.Option(help="Image feature to train on when there are several.")] = None,
+    cache_dir: Annotated[Optional[Path], typer.Option(help="Where decoded frames are cached (default ~/.cache/democheck).")] = None,
+) -> None:
+    """Train PETNet (or the TecNets baseline) on a dataset; writes a safetensors checkpoint with a model card."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    with _user_errors():
+        if model_type not in ("petnet", "tecnet"):
+            raise DemocheckError(f"--model-type must be petnet or tecnet, not {model_type!r}")
+        if kl_target not in ("prior", "np"):
+            raise DemocheckError(f"--kl-target must be prior or np, not {kl_target!r}")
+        if min(steps, batch_tasks, timesteps, val_every, ckpt_every) < 1:
+            raise DemocheckError("--steps, --batch-tasks, --timesteps, --val-every and --ckpt-every must be positive")
+        from democheck.workflows import train_model
+        from democheck.petnet.train import TrainConfig
+
+        tc = TrainConfig(steps=steps, batch_tasks=batch_tasks, timesteps=timesteps, lr=lr, kl_weight=kl_weight,
+                         kl_target=kl_target, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
+        cols = (TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(),
+                TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
+        with Progress(*cols, console=err_console) as bar:
+            job = bar.add_task("decode", total=None, info="")
+
+            def on_decode(done: int, total: int) -> None:
+                bar.update(job, completed=done, total=total, description="decode frames")
+
+            def on_step(step: int, total: int, report: dict) -> None:
+                info = f"loss {report.get('train_loss', float('nan')):.4f}"
+                if "val_mse" in report:
+                    on_step.val = f"  val mse {report['val_mse']:.4f}"
+                bar.update(job, completed=step, total=total, description="train", info=info + on_step.val)
+
+            on_step.val = ""
+            result = train_model(dataset, out, tc, model_type=model_type, resume=resume, force=force, camera=camera,
+                                 cache_dir=cache_dir, on_decode=on_decode, on_step=on_step)
+    table = Table(title=f"{model_type} -> {out}", show_header=False)
+    final = result.metrics["final"]
+    for key in ("train_mse", "val_mse", "val_embed"):
+        if key in final:
+            table.add_row(key.replace("_", " "), f"{final[key]:.4f}")
+    for name, v in result.metrics.get("task_sigma", {}).items():
+        table.add_row(f"mean sigma: {name}", f"{v:.4f}")
+    table.add_row("wall time", f"{result.metrics['wall_s'] / 60:.1f} min")
+    console.print(table)
+
+
 def main() -> None:  # pragma: no cover - console-script entry point
     app()
 

@@ -1,0 +1,217 @@
+"""PETNet and the TecNets baseline, in one file.
+
+PETNet (Matsushima et al. 2020):
+
+- ``TaskEncoder`` maps a *cue* (first and last frame of a demonstration,
+  stacked on channels) to a Gaussian over task space: a mean and a variance
+  per dimension.  The variance is the demonstration's *task uncertainty*.
+- ``Controller`` maps the current frame, the robot state and a task variable
+  ``z`` to normalised joint torques.
+- Training draws ``z ~ N(mu, var)`` by reparameterisation from one demo of a
+  task and clones the actions of *another* demo of the same task (MSE).
+- Several cues of one task combine by the product of Gaussians.
+
+TecNets (James et al. 2018): the same conv/FC shapes, a deterministic
+L2-normalised embedding averaged over cues, trained with a hinge embedding
+loss plus the same control loss.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass
+class ModelConfig:
+    """Everything needed to rebuild the network; stored in the checkpoint's config.json."""
+
+    model_type: str = "petnet"  # "petnet" | "tecnet"
+    image_size: int = 64
+    state_dim: int = 17
+    action_dim: int = 7
+    z_dim: int = 10  # PETNet: 10 means + 10 variances; TecNets: a 20-d embedding
+    conv_channels: int = 16
+    conv_layers: int = 4
+    kernel: int = 5
+    fc_units: int = 200
+    fc_layers: int = 3
+    var_floor: float = 1e-4
+
+    @property
+    def embed_dim(self) -> int:
+        return self.z_dim if self.model_type == "petnet" else 2 * self.z_dim
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def conv_stack(in_ch: int, cfg: ModelConfig) -> nn.Sequential:
+    """4 conv layers, 5x5, 16 channels, stride 2, ReLU (no normalisation: a demo's score must not depend on its batch)."""
+    layers: list[nn.Module] = []
+    ch = in_ch
+    for _ in range(cfg.conv_layers):
+        layers += [nn.Conv2d(ch, cfg.conv_channels, cfg.kernel, stride=2, padding=cfg.kernel // 2), nn.ReLU()]
+        ch = cfg.conv_channels
+    layers.append(nn.Flatten())
+    return nn.Sequential(*layers)
+
+
+def conv_out_dim(cfg: ModelConfig) -> int:
+    side = cfg.image_size
+    for _ in range(cfg.conv_layers):
+        side = (side + 2 * (cfg.kernel // 2) - cfg.kernel) // 2 + 1
+    return cfg.conv_channels * side * side
+
+
+def mlp(in_dim: int, out_dim: int, cfg: ModelConfig) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    d = in_dim
+    for _ in range(cfg.fc_layers):
+        layers += [nn.Linear(d, cfg.fc_units), nn.ReLU()]
+        d = cfg.fc_units
+    layers.append(nn.Linear(d, out_dim))
+    return nn.Sequential(*layers)
+
+
+def to_input(frames: torch.Tensor) -> torch.Tensor:
+    """uint8 [..., H, W, C] -> float [..., C, H, W] in [-0.5, 0.5], channels_last for fast CPU convs."""
+    x = frames.permute(*range(frames.dim() - 3), -1, -3, -2).float().div_(255.0).sub_(0.5)
+    return x.contiguous(memory_format=torch.channels_last) if x.dim() == 4 else x
+
+
+def cue_input(cues: torch.Tensor) -> torch.Tensor:
+    """uint8 [B, 2, H, W, 3] (first, last frame) -> float [B, 6, H, W]."""
+    b, _, h, w, _ = cues.shape
+    x = cues.permute(0, 1, 4, 2, 3).reshape(b, 6, h, w).float().div_(255.0).sub_(0.5)
+    return x.contiguous(memory_format=torch.channels_last)
+
+
+class TaskEncoder(nn.Module):
+    """Cue -> (mu, var) of a diagonal Gaussian over task space.
+
+    var = floor + softplus(raw): softplus grows linearly, not exponentially,
+    so an out-of-distribution cue cannot blow the variance up to inf, and the
+    floor keeps 1/var finite in the product of Gaussians.
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.conv = conv_stack(6, cfg)
+        self.head = mlp(conv_out_dim(cfg), 2 * cfg.z_dim, cfg)
+
+    def forward(self, cue: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.head(self.conv(cue))
+        mu, raw = out.chunk(2, dim=-1)
+        return mu, self.cfg.var_floor + F.softplus(raw)
+
+
+class EmbeddingEncoder(nn.Module):
+    """TecNets: cue -> L2-normalised deterministic embedding."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.conv = conv_stack(6, cfg)
+        self.head = mlp(conv_out_dim(cfg), cfg.embed_dim, cfg)
+
+    def forward(self, cue: torch.Tensor) -> torch.Tensor:
+        return F.normalize(self.head(self.conv(cue)), dim=-1)
+
+
+class Controller(nn.Module):
+    """(frame, state, z) -> normalised torques; state and z join after the convolutions."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.conv = conv_stack(3, cfg)
+        self.head = mlp(conv_out_dim(cfg) + cfg.state_dim + cfg.embed_dim, cfg.action_dim, cfg)
+
+    def forward(self, frame: torch.Tensor, state: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        return self.head(torch.cat([self.conv(frame), state, z], dim=-1))
+
+
+def product_of_gaussians(mu: torch.Tensor, var: torch.Tensor, dim: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Combine Gaussians along ``dim``: 1/var = sum 1/var_i, mu = var * sum mu_i/var_i."""
+    precision = (1.0 / var).sum(dim)
+    var_c = 1.0 / precision
+    return var_c * (mu / var).sum(dim), var_c
+
+
+def kl_diag(mu_q: torch.Tensor, var_q: torch.Tensor, mu_p: torch.Tensor, var_p: torch.Tensor) -> torch.Tensor:
+    """KL(q || p) for diagonal Gaussians, summed over the last dimension."""
+    return 0.5 * (torch.log(var_p / var_q) + (var_q + (mu_q - mu_p) ** 2) / var_p - 1.0).sum(-1)
+
+
+class PETNet(nn.Module):
+    """Probabilistic task embedding + controller."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = TaskEncoder(cfg)
+        self.controller = Controller(cfg)
+
+    def task_posterior(self, cues: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """uint8 cues [B, N, 2, H, W, 3] -> the task posterior (mu, var) [B, z] of N cues each."""
+        b, n = cues.shape[:2]
+        mu, var = self.encoder(cue_input(cues.reshape(b * n, *cues.shape[2:])))
+        mu, var = mu.reshape(b, n, -1), var.reshape(b, n, -1)
+        return product_of_gaussians(mu, var, dim=1) if n > 1 else (mu[:, 0], var[:, 0])
+
+    def forward(self, cue: torch.Tensor, frames: torch.Tensor, state: torch.Tensor, sample: bool = True):
+        """cue uint8 [B, 2, H, W, 3]; frames uint8 [B, K, H, W, 3]; state [B, K, S] -> (actions [B, K, A], mu, var)."""
+        mu, var = self.encoder(cue_input(cue))
+        z = mu + var.sqrt() * torch.randn_like(mu) if sample else mu
+        b, k = frames.shape[:2]
+        zk = z[:, None].expand(b, k, z.shape[-1]).reshape(b * k, -1)
+        act = self.controller(to_input(frames.reshape(b * k, *frames.shape[2:])), state.reshape(b * k, -1), zk)
+        return act.reshape(b, k, -1), mu, var
+
+
+class TecNet(nn.Module):
+    """TecNets baseline: deterministic normalised embedding + controller."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = EmbeddingEncoder(cfg)
+        self.controller = Controller(cfg)
+
+    def embed(self, cues: torch.Tensor) -> torch.Tensor:
+        """uint8 cues [B, N, 2, H, W, 3] -> normalised mean embedding [B, D] of N cues each."""
+        b, n = cues.shape[:2]
+        e = self.encoder(cue_input(cues.reshape(b * n, *cues.shape[2:]))).reshape(b, n, -1)
+        return F.normalize(e.mean(1), dim=-1)
+
+    def forward(self, cue: torch.Tensor, frames: torch.Tensor, state: torch.Tensor, sample: bool = True):
+        e = self.encoder(cue_input(cue))
+        b, k = frames.shape[:2]
+        ek = e[:, None].expand(b, k, e.shape[-1]).reshape(b * k, -1)
+        act = self.controller(to_input(frames.reshape(b * k, *frames.shape[2:])), state.reshape(b * k, -1), ek)
+        return act.reshape(b, k, -1), e, None
+
+
+def hinge_embedding_loss(cue_emb: torch.Tensor, target_emb: torch.Tensor, margin: float = 0.1) -> torch.Tensor:
+    """TecNets: each target demo must be closer (cosine) to its own task's cue than to any other task's by ``margin``."""
+    sim = target_emb @ cue_emb.T  # [B, B]: target i vs cue j
+    pos = sim.diagonal()[:, None]
+    off = ~torch.eye(len(sim), dtype=torch.bool, device=sim.device)
+    return F.relu(margin - pos + sim)[off].mean()
+
+
+def build_model(cfg: ModelConfig) -> nn.Module:
+    if cfg.model_type == "petnet":
+        model: nn.Module = PETNet(cfg)
+    elif cfg.model_type == "tecnet":
+        model = TecNet(cfg)
+    else:
+        raise ValueError(f"unknown model type {cfg.model_type!r} (petnet, tecnet)")
+    return model.to(memory_format=torch.channels_last)
+
+
+__all__ = ["ModelConfig", "PETNet", "TecNet", "TaskEncoder", "Controller", "product_of_gaussians", "kl_diag",
+           "hinge_embedding_loss", "build_model", "cue_input", "to_input"]

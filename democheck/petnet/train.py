@@ -1,0 +1,365 @@
+"""Training PETNet (and the TecNets baseline) from decoded episode arrays.
+
+One step: a batch of tasks; for each, a *cue* demo and a *demonstrated
+trajectory* that are different demos of the task; ``z ~ N(mu, var)`` from the
+cue; loss = MSE of the controller's actions on K random timesteps of the
+trajectory (+ an optional KL term).  Adam, lr 5e-4.
+
+The run's state (weights, Adam moments, both RNGs, history) is saved every
+``ckpt_every`` steps into a work folder beside the output; ``resume=True``
+continues from it and reaches the same weights as an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from democheck.data.cache import EpisodeArrays
+from democheck.errors import DemocheckError
+from democheck.petnet.checkpoint import Normalisation, save_checkpoint
+from democheck.petnet.model import (ModelConfig, build_model, cue_input, hinge_embedding_loss, kl_diag,
+                                    product_of_gaussians, to_input)
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 20_000
+    batch_tasks: int = 16
+    timesteps: int = 8  # timesteps of the demonstrated trajectory per task per step
+    lr: float = 5e-4
+    kl_weight: float = 0.0  # 0: the paper's loss
+    kl_target: str = "prior"  # "prior": KL(q(z|cue) || N(0, I)); "np": KL(q(z|cue, target) || q(z|cue))
+    margin: float = 0.1  # TecNets hinge margin
+    embed_weight: float = 1.0  # TecNets hinge loss weight
+    seed: int = 0
+    val_every: int = 500
+    ckpt_every: int = 1000
+    device: str = "auto"
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise DemocheckError("--device cuda: no CUDA device is available")
+    if name not in ("cpu", "cuda"):
+        raise DemocheckError(f"--device must be auto, cpu or cuda, not {name!r}")
+    return torch.device(name)
+
+
+def task_rows(arrays: EpisodeArrays, split: str, seed: int) -> dict[str, np.ndarray]:
+    """Rows of each task with at least two demos, in the given split.
+
+    Datasets without splits use every task for training and hold out 10% of
+    tasks (at least one, when there are ten or more) for validation.
+    """
+    eps = arrays.episodes
+    if "split" in eps and eps["split"].notna().any():
+        sel = eps[eps["split"] == split]
+    else:
+        tasks = np.array(sorted(eps["task"].unique()))
+        held = set(np.random.default_rng([seed, 7]).permutation(tasks)[: len(tasks) // 10]) if len(tasks) >= 10 else set()
+        sel = eps[eps["task"].isin(held)] if split == "val" else eps[~eps["task"].isin(held)] if split == "train" else eps[:0]
+    groups = {t: np.asarray(idx) for t, idx in sel.groupby("task").indices.items()} if len(sel) else {}
+    # groupby().indices are positions within ``sel``; map them back to rows of ``arrays``.
+    return {t: sel.index.to_numpy()[pos] for t, pos in groups.items() if len(pos) >= 2}
+
+
+class Batches:
+    """Samples (cue, demonstrated trajectory) pairs of the same task."""
+
+    def __init__(self, arrays: EpisodeArrays, rows: dict[str, np.ndarray], norm: Normalisation):
+        self.a = arrays
+        self.tasks = sorted(rows)
+        self.rows = [rows[t] for t in self.tasks]
+        self.s_mean, self.s_std = np.float32(norm.state_mean), np.float32(norm.state_std)
+        self.a_mean, self.a_std = np.float32(norm.action_mean), np.float32(norm.action_std)
+
+    def sample(self, rng: np.random.Generator, n_tasks: int, k: int) -> dict[str, np.ndarray]:
+        picks = rng.choice(len(self.tasks), size=n_tasks, replace=len(self.tasks) < n_tasks)
+        cue_rows, traj_rows = [], []
+        for t in picks:
+            c, d = rng.choice(self.rows[t], size=2, replace=False)
+            cue_rows.append(c)
+            traj_rows.append(d)
+        return self.gather(np.array(cue_rows), np.array(traj_rows), rng=rng, k=k)
+
+    def gather(self, cue_rows: np.ndarray, traj_rows: np.ndarray, k: int, rng: np.random.Generator | None = None,
+               steps: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        a = self.a
+        lengths = a.lengths[traj_rows]
+        if steps is None:
+            steps = (rng.random((len(traj_rows), k)) * lengths[:, None]).astype(np.int64)
+        idx = a.offsets[traj_rows][:, None] + np.minimum(steps, lengths[:, None] - 1)
+        flat = idx.reshape(-1)
+        return {
+            "cue": a.cue(cue_rows),
+            "traj_cue": a.cue(traj_rows),
+            "frames": a.frames[flat].reshape(*idx.shape, *a.frames.shape[1:]),
+            "state": ((a.state[flat] - self.s_mean) / self.s_std).reshape(*idx.shape, -1),
+            "actions": ((a.actions[flat] - self.a_mean) / self.a_std).reshape(*idx.shape, -1),
+        }
+
+
+def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConfig, sample: bool = True
+           ) -> dict[str, torch.Tensor]:
+    """The training objective for either model type; ``sample=False`` uses z = mu (validation)."""
+    cfg: ModelConfig = model.cfg
+    cue = cue_input(batch["cue"])
+    frames, state = batch["frames"], batch["state"]
+    b, k = frames.shape[:2]
+    out: dict[str, torch.Tensor] = {}
+    if cfg.model_type == "petnet":
+        mu, var = model.encoder(cue)
+        if tc.kl_weight > 0 and tc.kl_target == "np":
+            mu_t, var_t = model.encoder(cue_input(batch["traj_cue"]))
+            mu_q, var_q = product_of_gaussians(torch.stack([mu, mu_t]), torch.stack([var, var_t]))
+            out["kl"] = kl_diag(mu_q, var_q, mu, var).mean()
+            mu_s, var_s = (mu_q, var_q) if sample else (mu, var)
+        else:
+            if tc.kl_weight > 0:
+                out["kl"] = kl_diag(mu, var, torch.zeros_like(mu), torch.ones_like(var)).mean()
+            mu_s, var_s = mu, var
+        z = mu_s + var_s.sqrt() * torch.randn_like(mu_s) if sample else mu_s
+        out["sigma"] = var.sqrt().mean()
+    else:
+        z = model.encoder(cue)
+        out["embed"] = hinge_embedding_loss(z, model.encoder(cue_input(batch["traj_cue"])), tc.margin)
+    zk = z[:, None].expand(b, k, z.shape[-1]).reshape(b * k, -1)
+    pred = model.controller(to_input(frames.reshape(b * k, *frames.shape[2:])), state.reshape(b * k, -1), zk)
+    out["mse"] = ((pred - batch["actions"].reshape(b * k, -1)) ** 2).mean()
+    total = out["mse"]
+    if "kl" in out:
+        total = total + tc.kl_weight * out["kl"]
+    if "embed" in out:
+        total = total + tc.embed_weight * out["embed"]
+    out["loss"] = total
+    return out
+
+
+def to_device(batch: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
+    return {k: torch.from_numpy(np.ascontiguousarray(v)).to(device, non_blocking=True) for k, v in batch.items()}
+
+
+# ---------------------------------------------------------------------------
+# run state (resume)
+# ---------------------------------------------------------------------------
+
+def _save_state(work: Path, model, opt, step: int, rng: np.random.Generator, info: dict[str, Any]) -> None:
+    tmp = work / "state.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    osd = opt.state_dict()
+    for i, st in osd["state"].items():
+        for name, t in st.items():
+            tensors[f"opt.{i}.{name}"] = t.detach().cpu().contiguous() if torch.is_tensor(t) else torch.tensor(t)
+    tensors["rng.torch"] = torch.get_rng_state()
+    save_file(tensors, str(tmp / "state.safetensors"))
+    doc = {"step": step, "rng": rng.bit_generator.state, "param_groups": osd["param_groups"], **info}
+    (tmp / "state.json").write_text(json.dumps(doc))
+    cur, old = work / "state", work / "state.old"
+    if cur.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(cur, old)
+    os.replace(tmp, cur)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _load_state(work: Path, model, opt) -> tuple[int, np.random.Generator, dict[str, Any]]:
+    for cand in (work / "state", work / "state.old"):  # state.old: a kill between the two renames
+        if (cand / "state.json").exists() and (cand / "state.safetensors").exists():
+            break
+    else:
+        raise DemocheckError(f"{work}: no saved training state to resume from")
+    doc = json.loads((cand / "state.json").read_text())
+    tensors = load_file(str(cand / "state.safetensors"))
+    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    state: dict[int, dict[str, torch.Tensor]] = {}
+    for key, v in tensors.items():
+        if key.startswith("opt."):
+            _, i, name = key.split(".", 2)
+            state.setdefault(int(i), {})[name] = v
+    opt.load_state_dict({"state": state, "param_groups": doc["param_groups"]})
+    torch.set_rng_state(tensors["rng.torch"])
+    rng = np.random.Generator(np.random.PCG64())
+    rng.bit_generator.state = doc["rng"]
+    return int(doc["step"]), rng, doc
+
+
+# ---------------------------------------------------------------------------
+# evaluation helpers
+# ---------------------------------------------------------------------------
+
+@torch.no_grad()
+def task_sigma(model, cues: np.ndarray, device: torch.device, chunk: int = 256) -> np.ndarray:
+    """Per-cue task standard deviation vectors sqrt(var): [N, z] for uint8 cues [N, 2, H, W, 3]."""
+    out = []
+    for s in range(0, len(cues), chunk):
+        _, var = model.encoder(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device)))
+        out.append(var.sqrt().cpu().numpy())
+    return np.concatenate(out) if out else np.zeros((0, model.cfg.z_dim), np.float32)
+
+
+def nonsense_cues(real: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Hand-made cues no demonstration could produce, shaped like ``real`` [N, 2, H, W, 3]."""
+    n = len(real)
+    h = real.shape[2]
+    still = np.repeat(real[:, :1], 2, axis=1)  # the last frame equals the first: nothing happened
+    shuffled = real.reshape(n, 2, -1, 3)[:, :, rng.permutation(h * h)].reshape(real.shape)
+    # A scene seen at another scale: the centre half of each frame blown up 2x (another suite's framing).
+    zoom = real[:, :, h // 4: h // 4 + h // 2, h // 4: h // 4 + h // 2].repeat(2, axis=2).repeat(2, axis=3)
+    return {
+        "black": np.zeros_like(real), "white": np.full_like(real, 255), "grey": np.full_like(real, 128),
+        "noise": rng.integers(0, 256, real.shape, dtype=np.uint8), "still": still, "pixel-shuffled": shuffled,
+        "zoomed": zoom[:, :, :h, :h],
+    }
+
+
+@torch.no_grad()
+def validate(model, val: Batches, tc: TrainConfig, device: torch.device, pairs: dict[str, np.ndarray]) -> dict[str, float]:
+    model.eval()
+    tot, n = {}, 0
+    for s in range(0, len(pairs["cue_rows"]), 32):
+        sl = slice(s, s + 32)
+        batch = to_device(val.gather(pairs["cue_rows"][sl], pairs["traj_rows"][sl], k=pairs["steps"].shape[1],
+                                     steps=pairs["steps"][sl]), device)
+        out = losses(model, batch, tc, sample=False)
+        m = len(pairs["cue_rows"][sl])
+        for key, v in out.items():
+            tot[key] = tot.get(key, 0.0) + float(v) * m
+        n += m
+    model.train()
+    return {k: v / max(n, 1) for k, v in tot.items()}
+
+
+def _val_pairs(val: Batches, seed: int, per_task: int = 2, k: int = 10) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng([seed, 11])
+    cue_rows, traj_rows = [], []
+    for rows in val.rows:
+        for _ in range(per_task):
+            c, d = rng.choice(rows, size=2, replace=False)
+            cue_rows.append(c)
+            traj_rows.append(d)
+    cue_rows, traj_rows = np.array(cue_rows, dtype=np.int64), np.array(traj_rows, dtype=np.int64)
+    lengths = val.a.lengths[traj_rows] if len(traj_rows) else np.zeros(0, np.int64)
+    steps = (np.linspace(0, 1, k, endpoint=False)[None] * lengths[:, None]).astype(np.int64)
+    return {"cue_rows": cue_rows, "traj_rows": traj_rows, "steps": steps}
+
+
+# ---------------------------------------------------------------------------
+# the run
+# ---------------------------------------------------------------------------
+
+@dataclass
+class TrainResult:
+    model: torch.nn.Module
+    config: ModelConfig
+    norm: Normalisation
+    history: list[dict[str, float]] = field(default_factory=list)
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "petnet", resume: bool = False,
+          force: bool = False, meta: dict[str, Any] | None = None,
+          on_progress: Callable[[int, int, dict[str, float]], None] | None = None,
+          card: Callable[[dict[str, Any]], str] | None = None, stop_after: int | None = None) -> TrainResult | None:
+    """Train and write the checkpoint folder ``out`` (atomically).
+
+    ``stop_after`` ends the run early after saving its state at that step, as
+    an interruption would (used by tests of ``resume``); it then returns None.
+    """
+    from democheck.fsutil import atomic_output_dir
+
+    out = Path(out)
+    work = out.parent / f".{out.name}.partial"
+    if out.exists() and any(out.iterdir()) and not force:
+        raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
+    if work.exists() and not resume:
+        if not force:
+            raise DemocheckError(f"{work}: an interrupted run of this model is there; pass --resume to continue it "
+                                 "or --force to start over")
+        shutil.rmtree(work)
+    device = resolve_device(tc.device)
+    torch.manual_seed(tc.seed)
+    rng = np.random.default_rng(tc.seed)
+
+    train_rows, val_rows = task_rows(arrays, "train", tc.seed), task_rows(arrays, "val", tc.seed)
+    if not train_rows:
+        raise DemocheckError("training needs at least one task with two or more demos (a cue and a trajectory); "
+                             "this dataset has none")
+    all_train = np.concatenate(list(train_rows.values()))
+    spans = np.concatenate([np.arange(arrays.offsets[r], arrays.offsets[r] + arrays.lengths[r]) for r in all_train])
+    norm = Normalisation.fit(arrays.state[spans], arrays.actions[spans])
+    h = arrays.frames.shape[1]
+    cfg = ModelConfig(model_type=model_type, image_size=h, state_dim=arrays.state.shape[1],
+                      action_dim=arrays.actions.shape[1])
+    model = build_model(cfg).to(device)
+    model.train()
+    opt = torch.optim.Adam(model.parameters(), lr=tc.lr)
+    batches, val = Batches(arrays, train_rows, norm), Batches(arrays, val_rows, norm)
+    pairs = _val_pairs(val, tc.seed) if val_rows else None
+
+    step, history, wall_before = 0, [], 0.0
+    if resume:
+        step, rng, doc = _load_state(work, model, opt)
+        if doc.get("train_config", {}) != {**asdict(tc), "steps": doc["train_config"]["steps"]}:
+            raise DemocheckError(f"{work}: saved with other training options; resume with the same options")
+        if doc.get("fingerprint") != arrays.fingerprint:
+            raise DemocheckError(f"{work}: saved from another dataset; resume on the same dataset")
+        history, wall_before = doc.get("history", []), float(doc.get("wall_s", 0.0))
+    work.mkdir(parents=True, exist_ok=True)
+
+    def save(at: int, wall: float) -> None:
+        _save_state(work, model, opt, at, rng, {"train_config": asdict(tc), "model_config": cfg.to_dict(),
+                                                "fingerprint": arrays.fingerprint, "history": history, "wall_s": wall})
+
+    t0 = time.perf_counter()
+    running: dict[str, float] = {}
+    while step < tc.steps:
+        batch = to_device(batches.sample(rng, tc.batch_tasks, tc.timesteps), device)
+        out_l = losses(model, batch, tc)
+        opt.zero_grad(set_to_none=True)
+        out_l["loss"].backward()
+        opt.step()
+        step += 1
+        for key, v in out_l.items():
+            running[key] = 0.98 * running.get(key, float(v)) + 0.02 * float(v)
+        report: dict[str, float] = {f"train_{k}": v for k, v in running.items()}
+        if pairs is not None and (step % tc.val_every == 0 or step == tc.steps):
+            report.update({f"val_{k}": v for k, v in validate(model, val, tc, device, pairs).items()})
+            history.append({"step": step, **report})
+        if on_progress:
+            on_progress(step, tc.steps, report)
+        if step % tc.ckpt_every == 0 or step == tc.steps or step == stop_after:
+            save(step, wall_before + time.perf_counter() - t0)
+        if stop_after is not None and step >= stop_after:
+            return None
+    wall = wall_before + time.perf_counter() - t0
+
+    # Final numbers: losses, and how uncertain the model is about real vs nonsense cues.
+    model.eval()
+    metrics: dict[str, Any] = {"steps": step, "wall_s": round(wall, 1), "final": history[-1] if history else report}
+    if cfg.model_type == "petnet":
+        sig_rows = np.concatenate(list(val_rows.values())) if val_rows else all_train[:500]
+        real = arrays.cue(sig_rows)
+        sig = {"val demos" if val_rows else "train demos": float(task_sigma(model, real, device).mean())}
+        for name, cues in nonsense_cues(real[:200], np.random.default_rng(tc.seed)).items():
+            sig[name] = float(task_sigma(model, cues, device).mean())
+        metrics["task_sigma"] = sig
+    meta = {**(meta or {}), "data": {**(meta or {}).get("data", {}), "fingerprint": arrays.fingerprint},
+            "training": {**asdict(tc), "model_type": model_type}, "metrics": metrics, "history": history}
+    with atomic_output_dir(out, force=True) as tmp:
+        save_checkpoint(tmp, model, cfg, norm, meta, card(meta) if card else None)
+    shutil.rmtree(work, ignore_errors=True)
+    return TrainResult(model, cfg, norm, history, metrics)
