@@ -4,6 +4,9 @@
 # Override the interpreter with `make PYTHON=python3.12 ...`.
 
 PYTHON ?= python3
+# pyproject.toml asks for torch>=2.4; installing this first keeps the set-up small where a CPU
+# build of this version is at hand. `make TORCH=torch` lets pip choose (a CUDA build on Linux).
+TORCH  ?= torch==2.13.0
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 SYSDEPS := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0
@@ -33,6 +36,7 @@ $(BIN)/activate:
 
 # Re-install when the project's requirements change.
 $(VENV)/.installed: pyproject.toml | $(BIN)/activate
+	$(BIN)/pip install -q '$(TORCH)'
 	$(BIN)/pip install -q -e '.[test]'
 	@touch $@
 

@@ -334,7 +334,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
         opt.step()
         step += 1
         for key, v in out_l.items():
-            running[key] = 0.98 * running.get(key, float(v)) + 0.02 * float(v)
+            v = float(v.detach())
+            running[key] = 0.98 * running.get(key, v) + 0.02 * v
         report: dict[str, float] = {f"train_{k}": v for k, v in running.items()}
         if pairs is not None and (step % tc.val_every == 0 or step == tc.steps):
             report.update({f"val_{k}": v for k, v in validate(model, val, tc, device, pairs).items()})

@@ -1,0 +1,143 @@
+import pickle
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from democheck.cli import app
+from democheck.data import open_dataset
+from democheck.data.cache import build_cache
+from democheck.errors import DemocheckError
+from democheck.petnet.checkpoint import CheckpointError, load_checkpoint
+from democheck.petnet.model import (ModelConfig, PETNet, TecNet, build_model, cue_input, hinge_embedding_loss,
+                                    product_of_gaussians)
+from democheck.petnet.train import Batches, TrainConfig, losses, task_rows, to_device, train
+
+FAST = dict(batch_tasks=2, timesteps=4, val_every=5, ckpt_every=5, device="cpu")
+
+
+@pytest.fixture(scope="module")
+def arrays(tiny_dataset, tmp_path_factory):
+    root, _ = tiny_dataset
+    return build_cache(open_dataset(root), tmp_path_factory.mktemp("cache"))
+
+
+@pytest.mark.parametrize("model_type", ["petnet", "tecnet"])
+def test_shapes_and_positivity(model_type):
+    cfg = ModelConfig(model_type=model_type, image_size=32)
+    model = build_model(cfg)
+    cue = torch.randint(0, 256, (3, 2, 32, 32, 3), dtype=torch.uint8)
+    frames = torch.randint(0, 256, (3, 5, 32, 32, 3), dtype=torch.uint8)
+    act, emb, var = model(cue, frames, torch.randn(3, 5, 17))
+    assert act.shape == (3, 5, 7) and torch.isfinite(act).all()
+    if model_type == "petnet":
+        assert emb.shape == (3, 10) and var.shape == (3, 10)
+        assert (var >= cfg.var_floor).all()
+        mu, var2 = model.task_posterior(cue[:, None].expand(3, 4, *cue.shape[1:]))
+        assert mu.shape == (3, 10) and torch.allclose(var2, var / 4, rtol=1e-5)  # 4 identical cues: var / 4
+    else:
+        assert emb.shape == (3, 20) and torch.allclose(emb.norm(dim=-1), torch.ones(3))
+        assert model.embed(cue[:, None]).shape == (3, 20)
+
+
+def test_product_of_gaussians_closed_form_and_brute_force():
+    g = torch.Generator().manual_seed(0)
+    mu = torch.randn(3, 1, generator=g, dtype=torch.float64)
+    var = torch.rand(3, 1, generator=g, dtype=torch.float64) + 0.2
+    m, v = product_of_gaussians(mu, var)
+    # Closed form, by hand for three Gaussians.
+    p = (1 / var).sum()
+    assert torch.allclose(v, 1 / p) and torch.allclose(m, (mu / var).sum() / p)
+    # Brute force: multiply the densities on a grid and read off mean and variance.
+    x = torch.linspace(-8, 8, 200_001, dtype=torch.float64)
+    logd = (-(x[None] - mu) ** 2 / (2 * var)).sum(0)
+    d = torch.exp(logd - logd.max())
+    d /= d.sum()
+    mean = (d * x).sum()
+    assert abs(mean - m.item()) < 1e-6 and abs((d * (x - mean) ** 2).sum() - v.item()) < 1e-6
+
+
+def test_hinge_loss_is_zero_when_tasks_are_separated():
+    e = torch.eye(4)
+    assert hinge_embedding_loss(e, e, margin=0.1) == 0
+    assert hinge_embedding_loss(e, e.roll(1, 0), margin=0.1) > 0
+
+
+def test_loss_falls_on_a_tiny_dataset(arrays, tmp_path):
+    tc = TrainConfig(steps=50, lr=2e-3, seed=0, **FAST)
+    torch.manual_seed(tc.seed)
+    result = train(arrays, tmp_path / "m", tc)
+    batches = Batches(arrays, task_rows(arrays, "train", 0), result.norm)
+    batch = to_device(batches.sample(np.random.default_rng(5), 4, 12), torch.device("cpu"))
+    torch.manual_seed(tc.seed)
+    fresh = build_model(result.config)  # the same initialisation train() started from
+    with torch.no_grad():
+        before = losses(fresh, batch, tc, sample=False)["mse"].item()
+        after = losses(result.model.eval(), batch, tc, sample=False)["mse"].item()
+    assert after < 0.7 * before, (before, after)
+
+
+def test_save_load_bit_identical_and_card(arrays, tmp_path):
+    result = train(arrays, tmp_path / "m", TrainConfig(steps=6, seed=1, **FAST))
+    ckpt = load_checkpoint(tmp_path / "m")
+    assert isinstance(ckpt.model, PETNet) and ckpt.meta["data"]["fingerprint"] == arrays.fingerprint
+    cue = torch.from_numpy(arrays.cue(np.arange(4)))
+    with torch.no_grad():
+        a = result.model.eval().encoder(cue_input(cue))
+        b = ckpt.model.encoder(cue_input(cue))
+    assert all(torch.equal(x, y) for x, y in zip(a, b))
+    assert not (tmp_path / ".m.partial").exists()  # the resume state is gone once the model is written
+
+
+def test_resume_reproduces_uninterrupted_run(arrays, tmp_path):
+    tc = TrainConfig(steps=14, seed=2, **FAST)
+    full = train(arrays, tmp_path / "full", tc)
+    assert train(arrays, tmp_path / "cut", tc, stop_after=7) is None  # "killed" after its step-7 save
+    assert (tmp_path / ".cut.partial").exists() and not (tmp_path / "cut").exists()
+    with pytest.raises(DemocheckError, match="--resume"):
+        train(arrays, tmp_path / "cut", tc)
+    resumed = train(arrays, tmp_path / "cut", tc, resume=True)
+    for (k, a), (_, b) in zip(full.model.state_dict().items(), resumed.model.state_dict().items()):
+        assert torch.equal(a, b), k
+
+
+def test_tecnet_trains(arrays, tmp_path):
+    result = train(arrays, tmp_path / "t", TrainConfig(steps=5, seed=0, **FAST), model_type="tecnet")
+    assert isinstance(load_checkpoint(tmp_path / "t").model, TecNet)
+    assert "val_embed" in result.history[-1]
+
+
+def test_loading_untrusted_files_fails_cleanly(arrays, tmp_path):
+    train(arrays, tmp_path / "m", TrainConfig(steps=2, seed=0, **FAST))
+    weights = tmp_path / "m" / "model.safetensors"
+    good = weights.read_bytes()
+    weights.write_bytes(pickle.dumps({"w": torch.zeros(3)}))
+    with pytest.raises(CheckpointError, match="not a safetensors file"):
+        load_checkpoint(tmp_path / "m")
+    weights.write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(CheckpointError, match="not a safetensors file"):
+        load_checkpoint(tmp_path / "m")
+    weights.write_bytes(good)
+    cfg = tmp_path / "m" / "config.json"
+    cfg.write_text(cfg.read_text().replace('"fc_units": 200', '"fc_units": 100'))
+    with pytest.raises(CheckpointError, match="do not match config.json"):
+        load_checkpoint(tmp_path / "m")
+    cfg.write_bytes(b"\x80\x04garbage")
+    with pytest.raises(CheckpointError, match="not valid JSON"):
+        load_checkpoint(tmp_path / "m")
+    with pytest.raises(CheckpointError, match="no such model folder"):
+        load_checkpoint(tmp_path / "nope")
+
+
+def test_train_cli(tiny_dataset, tmp_path, monkeypatch):
+    monkeypatch.setenv("DEMOCHECK_CACHE", str(tmp_path / "cache"))
+    root, _ = tiny_dataset
+    res = CliRunner().invoke(app, ["train", str(root), "--out", str(tmp_path / "m"), "--steps", "4", "--batch-tasks",
+                                   "2", "--timesteps", "2", "--val-every", "2", "--device", "cpu",
+                                   "--cache-dir", str(tmp_path / "cache")])
+    assert res.exit_code == 0, res.output
+    card = (tmp_path / "m" / "README.md").read_text()
+    assert "democheck" in card and "Intended use" in card and "fingerprint" in card
+    res = CliRunner().invoke(app, ["train", str(root), "--out", str(tmp_path / "m2"), "--model-type", "mlp"])
+    assert res.exit_code == 2 and "petnet or tecnet" in res.output
