@@ -51,6 +51,7 @@ def synth(
     size: Annotated[Optional[int], typer.Option(help="Square image size in pixels (64 default, 125 on request).")] = None,
     workers: Annotated[int, typer.Option(help="Parallel worker processes (each renders with its own GL context).")] = 2,
     seed: Annotated[Optional[int], typer.Option(help="Seed for tasks, layouts and arm noise; same seed, same dataset.")] = None,
+    plant: Annotated[Optional[str], typer.Option(help="Replace demos by bad ones, labelled: e.g. idle=4,random=4 (kinds: idle, random).")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it already exists.")] = False,
 ) -> None:
     """Generate a simulated pushing suite (scripted expert demos in MuJoCo) as a LeRobot v3 dataset."""
@@ -59,7 +60,8 @@ def synth(
     with _user_errors():
         from democheck.sim.suite import generate, load_recipe
 
-        recipe = load_recipe(suite).with_overrides(tasks=tasks, demos=demos, steps=steps, size=size, seed=seed)
+        recipe = load_recipe(suite).with_overrides(tasks=tasks, demos=demos, steps=steps, size=size, seed=seed,
+                                                   plant=_parse_counts(plant, "--plant") if plant else None)
         if workers < 1:
             raise DemocheckError("--workers must be at least 1")
         cols = (TextColumn("[bold]synth[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -76,6 +78,16 @@ def synth(
     table.add_row("demos kept successful", f"{ex['kept_success']:.1%}")
     table.add_row("speed", f"{summary['frames_per_s']:.0f} frames/s on {workers} worker(s), {summary['wall_s']:.1f} s")
     console.print(table)
+
+
+def _parse_counts(text: str, option: str) -> dict[str, int]:
+    out = {}
+    for part in text.split(","):
+        key, _, value = part.partition("=")
+        if not key.strip() or not value.strip().isdigit():
+            raise DemocheckError(f"{option} takes kind=count pairs separated by commas, e.g. idle=4,random=4; got {text!r}")
+        out[key.strip()] = int(value)
+    return out
 
 
 @app.command()
@@ -117,6 +129,7 @@ def train(
     lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 5e-4,
     kl_weight: Annotated[float, typer.Option(help="Weight of a KL term on the task posterior (0: the paper's loss).")] = 0.0,
     kl_target: Annotated[str, typer.Option(help="prior: KL to N(0, I); np: Neural-Process style, cue vs cue+target.")] = "prior",
+    contrastive_weight: Annotated[float, typer.Option(help="PETNet option: weight of a TecNets-style hinge loss on the normalised task means (0: the paper's loss).")] = 0.0,
     seed: Annotated[int, typer.Option(help="Seed for initialisation, sampling and noise.")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     val_every: Annotated[int, typer.Option(help="Validate on the val split every this many steps.")] = 500,
@@ -140,7 +153,7 @@ def train(
         from democheck.petnet.train import TrainConfig
 
         tc = TrainConfig(steps=steps, batch_tasks=batch_tasks, timesteps=timesteps, lr=lr, kl_weight=kl_weight,
-                         kl_target=kl_target, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
+                         kl_target=kl_target, contrastive_weight=contrastive_weight, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
         cols = (TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(),
                 TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
         with Progress(*cols, console=err_console) as bar:
@@ -167,6 +180,116 @@ def train(
         table.add_row(f"mean sigma: {name}", f"{v:.4f}")
     table.add_row("wall time", f"{result.metrics['wall_s'] / 60:.1f} min")
     console.print(table)
+
+
+@app.command()
+def audit(
+    dataset: Annotated[Path, typer.Argument(help="Dataset to audit: LeRobot v3.0/v2.1 folder or robomimic .hdf5 file.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Report folder: scores.parquet/.csv, summary.json, suspects.txt, report.rrd.")],
+    model: Annotated[Optional[Path], typer.Option(help="Model folder (default: the shipped models/petnet-push-v1).")] = None,
+    top: Annotated[int, typer.Option(help="How many top suspects to show and to record with their evidence.")] = 20,
+    fail_on: Annotated[Optional[int], typer.Option(help="Exit with status 3 when more than this many demos are flagged (for CI gates).")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON instead of a table.")] = False,
+    camera: Annotated[Optional[str], typer.Option(help="Image feature to use when there are several.")] = None,
+    task: Annotated[Optional[str], typer.Option(help="Task string for robomimic files that do not name their task.")] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
+) -> None:
+    """Score every demonstration by task uncertainty and consistency, rank the suspects, flag anomalies."""
+    import json
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    with _user_errors():
+        if top < 1:
+            raise DemocheckError("--top must be at least 1")
+        from democheck.workflows import audit_dataset
+
+        with Progress(TextColumn("[bold]audit[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("demos"),
+                      console=err_console, transient=True) as bar:
+            job = bar.add_task("audit", total=None)
+            summary = audit_dataset(dataset, out, model=model, top=top, camera=camera, task=task, device=device,
+                                    force=force, on_progress=lambda d, n: bar.update(job, completed=d, total=n))
+    if json_out:
+        console.print_json(json.dumps(summary))
+    else:
+        _print_audit(summary, out)
+    if fail_on is not None and summary["flagged"] > fail_on:
+        err_console.print(f"{summary['flagged']} demos flagged, more than --fail-on {fail_on}")
+        raise typer.Exit(3)
+
+
+def _print_audit(summary: dict, out: Path) -> None:
+    table = Table(title=f"top suspects of {summary['demos']} demos ({summary['flagged']} flagged by the one-class SVM)")
+    for col in ("rank", "episode", "task", "score", "consistency", "suspicion", "flag"):
+        table.add_column(col, justify="left" if col == "task" else "right", no_wrap=True,
+                         overflow="ellipsis", max_width=60 if col == "task" else None)
+    for r in summary["top_suspects"]:
+        cons = "n/a" if r["consistency"] is None else f"{r['consistency']:.2f}"
+        table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"], f"{r['score']:.4f}", cons,
+                      f"{r['suspicion']:.2f}", "[red]yes[/]" if r["is_anomaly"] else "")
+    console.print(table)
+    t = summary["timing"]
+    console.print(f"scored {summary['demos']} demos in {t['score_s']:.1f} s ({t['demos_per_s']:.0f}/s); "
+                  f"model load {t['model_load_s']:.1f} s, t-SNE {t['tsne_s']:.1f} s")
+    console.print(f"report: {out}/ (scores.parquet, scores.csv, summary.json, suspects.txt)")
+    console.print(f"look at it: democheck view {out}")
+
+
+@app.command()
+def view(
+    report: Annotated[Path, typer.Argument(help="A report folder written by audit (or an .rrd file).")],
+) -> None:
+    """Open the Rerun viewer on a report's recording (prints the command when there is no display)."""
+    import os
+    import shutil
+    import subprocess
+
+    with _user_errors():
+        rrd = report / "report.rrd" if report.is_dir() else report
+        if not rrd.is_file():
+            raise DemocheckError(f"{rrd}: no recording here; run democheck audit first")
+        viewer = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
+        has_display = sys.platform == "darwin" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+        if not has_display or not Path(viewer).exists():
+            console.print(f"no display here; on a machine with one (pip install rerun-sdk) run:\n  rerun {rrd}\n"
+                          f"or serve it to a browser from here:\n  rerun --web-viewer {rrd}")
+            return
+        subprocess.Popen([viewer, str(rrd)])
+        console.print(f"opened {rrd} in the Rerun viewer")
+
+
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the demo's dataset (data/) and report (report/).")] = Path("demo"),
+    model: Annotated[Optional[Path], typer.Option(help="Model folder (default: the shipped models/petnet-push-v1).")] = None,
+    workers: Annotated[int, typer.Option(help="Worker processes for generating the demos.")] = 2,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
+) -> None:
+    """The whole job, small: simulate push-mini with 8 planted bad demos, audit it, and show where they rank."""
+    import time
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    t0 = time.perf_counter()
+    with _user_errors():
+        from democheck.workflows import run_demo
+
+        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), console=err_console,
+                      transient=True) as bar:
+            job = bar.add_task("", total=None)
+            summary = run_demo(out, model=model, workers=workers, force=force,
+                               on_stage=lambda s: (bar.update(job, description=s, completed=0, total=None),
+                                                   err_console.print(s)),
+                               on_progress=lambda d, n: bar.update(job, completed=d, total=n))
+    _print_audit(summary, out / "report")
+    ranks = ", ".join(f"{r['label']} ep{r['episode_index']} #{r['rank']}" for r in sorted(summary["planted_ranks"], key=lambda r: r["rank"]))
+    console.print(f"planted demos rank: {ranks}")
+    det = summary["detection"]["suspicion"]
+    console.print("precision at k (k = number planted): " + ", ".join(
+        f"{kind} {d['p_at_k']:.2f}" for kind, d in det.items()) + f"; AUROC " + ", ".join(
+        f"{kind} {d['auroc']:.2f}" for kind, d in det.items()))
+    console.print(f"done in {time.perf_counter() - t0:.0f} s")
 
 
 def main() -> None:  # pragma: no cover - console-script entry point

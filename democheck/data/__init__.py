@@ -11,18 +11,24 @@ __all__ = ["Demo", "DemoSet", "open_dataset"]
 
 
 def open_dataset(path: str | Path, camera: str | None = None, state_key: str | None = None,
-                 action_key: str | None = None) -> DemoSet:
-    """Open a dataset folder, sniffing its format (LeRobot v3.0 or v2.1).
+                 action_key: str | None = None, task: str | None = None) -> DemoSet:
+    """Open a dataset, sniffing its format: a LeRobot v3.0/v2.1 folder or a robomimic HDF5 file.
 
     ``camera`` picks the image feature when there are several (full key or the
     part after ``observation.images.``); ``state_key``/``action_key`` override
-    the features found from ``meta/info.json``.
+    the features found in the metadata; ``task`` names the task of a robomimic
+    file that does not name it.
     """
     root = Path(path)
     if not root.exists():
         raise DatasetError(f"{root}: no such file or directory")
+    if root.is_file() and root.suffix.lower() in (".hdf5", ".h5"):
+        from democheck.data.robomimic import Robomimic
+
+        return DemoSet(Robomimic(root, camera=camera, state_key=state_key, action_key=action_key, task=task))
     if root.is_dir() and (root / "meta" / "info.json").exists():
         from democheck.data.lerobot import open_lerobot
 
         return DemoSet(open_lerobot(root, camera=camera, state_key=state_key, action_key=action_key))
-    raise DatasetError(f"{root}: not a dataset democheck knows (expected a LeRobot folder with meta/info.json)")
+    raise DatasetError(f"{root}: not a dataset democheck knows (a LeRobot folder with meta/info.json, "
+                       "or a robomimic .hdf5 file)")

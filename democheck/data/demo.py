@@ -120,6 +120,13 @@ class DemoSet:
         """First and last frame of one episode, uint8 [2, H, W, 3], without decoding the rest."""
         return self._src.cue_frames(int(episode_index))
 
+    def cue_frames_many(self, episode_indices: list[int]) -> np.ndarray:
+        """Cues of several episodes, uint8 [N, 2, H, W, 3]; opens each video file once where the format allows."""
+        many = getattr(self._src, "cues", None)
+        if many is not None:
+            return many([int(e) for e in episode_indices])
+        return np.stack([self._src.cue_frames(int(e)) for e in episode_indices])
+
     def by_task(self) -> dict[str, list[int]]:
         """Episode indices grouped by task string (demos with the same string are the same task)."""
         groups = self._src.episodes.groupby("task", sort=True).groups

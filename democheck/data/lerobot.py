@@ -442,6 +442,23 @@ class LeRobotV3(_LeRobotBase):
             frames = self._decode_images(entry, s, e, path)
         return self._make_demo(episode_index, frames, entry, s, e)
 
+    def cues(self, episode_indices: list[int]) -> np.ndarray:
+        """First and last frames of many episodes, decoding each video file in one pass."""
+        if self.camera_dtype != "video":
+            return np.stack([self.cue_frames(e) for e in episode_indices])
+        h, w, c = self.image_shape
+        out = np.empty((len(episode_indices), 2, h, w, c), np.uint8)
+        by_file: dict[Path, list[tuple[int, int, int]]] = {}
+        for i, e in enumerate(episode_indices):
+            vpath, start, stop = self._video_span(e)
+            by_file.setdefault(vpath, []).append((i, start, stop - 1))
+        for vpath, items in by_file.items():
+            wanted = sorted({f for _, a, b in items for f in (a, b)})
+            frames = dict(zip(wanted, video.read_frames(vpath, wanted, self.fps)))
+            for i, a, b in items:
+                out[i, 0], out[i, 1] = frames[a], frames[b]
+        return out
+
     def cue_frames(self, episode_index: int) -> np.ndarray:
         if self.camera_dtype == "video":
             vpath, start, stop = self._video_span(episode_index)

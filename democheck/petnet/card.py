@@ -49,7 +49,9 @@ def model_card(name: str, meta: dict[str, Any]) -> str:
         f"- commit `{meta.get('commit', 'unknown')}`, democheck {meta.get('democheck_version', '?')}, "
         f"torch {meta.get('torch_version', '?')}, device {meta.get('device', '?')}",
         f"- {m['steps']} steps of {tr['batch_tasks']} tasks x {tr['timesteps']} timesteps, Adam lr {tr['lr']}, "
-        f"seed {tr['seed']}, KL weight {tr['kl_weight']}" + (f" ({tr['kl_target']})" if tr['kl_weight'] else " (the paper's loss)"),
+        f"seed {tr['seed']}, KL weight {tr['kl_weight']}" + (f" ({tr['kl_target']})" if tr['kl_weight'] else "")
+        + (f", contrastive weight {tr['contrastive_weight']}" if tr.get('contrastive_weight') else "")
+        + ("" if tr['kl_weight'] or tr.get('contrastive_weight') else " (the paper's loss)"),
         f"- wall time {m['wall_s'] / 60:.1f} min",
         "",
         "## Results",

@@ -22,6 +22,7 @@ from typing import Any, Callable
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 
 from democheck.data.cache import EpisodeArrays
@@ -41,6 +42,9 @@ class TrainConfig:
     kl_target: str = "prior"  # "prior": KL(q(z|cue) || N(0, I)); "np": KL(q(z|cue, target) || q(z|cue))
     margin: float = 0.1  # TecNets hinge margin
     embed_weight: float = 1.0  # TecNets hinge loss weight
+    # PETNet option (0 = the paper's loss): the TecNets hinge loss on the normalised means, cue vs another demo of the
+    # same task, which makes the embedding carry the task from the first steps instead of waiting for the controller.
+    contrastive_weight: float = 0.0
     seed: int = 0
     val_every: int = 500
     ckpt_every: int = 1000
@@ -132,6 +136,9 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
             mu_s, var_s = mu, var
         z = mu_s + var_s.sqrt() * torch.randn_like(mu_s) if sample else mu_s
         out["sigma"] = var.sqrt().mean()
+        if tc.contrastive_weight > 0:
+            mu_t = model.encoder(cue_input(batch["traj_cue"]))[0]
+            out["embed"] = hinge_embedding_loss(F.normalize(mu, dim=-1), F.normalize(mu_t, dim=-1), tc.margin)
     else:
         z = model.encoder(cue)
         out["embed"] = hinge_embedding_loss(z, model.encoder(cue_input(batch["traj_cue"])), tc.margin)
@@ -142,7 +149,7 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
     if "kl" in out:
         total = total + tc.kl_weight * out["kl"]
     if "embed" in out:
-        total = total + tc.embed_weight * out["embed"]
+        total = total + (tc.embed_weight if cfg.model_type == "tecnet" else tc.contrastive_weight) * out["embed"]
     out["loss"] = total
     return out
 
@@ -202,13 +209,21 @@ def _load_state(work: Path, model, opt) -> tuple[int, np.random.Generator, dict[
 # ---------------------------------------------------------------------------
 
 @torch.no_grad()
-def task_sigma(model, cues: np.ndarray, device: torch.device, chunk: int = 256) -> np.ndarray:
-    """Per-cue task standard deviation vectors sqrt(var): [N, z] for uint8 cues [N, 2, H, W, 3]."""
-    out = []
+def task_posteriors(model, cues: np.ndarray, device: torch.device, chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Per-cue task posterior (mu, var), each [N, z], for uint8 cues [N, 2, H, W, 3]."""
+    mus, vars_ = [], []
     for s in range(0, len(cues), chunk):
-        _, var = model.encoder(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device)))
-        out.append(var.sqrt().cpu().numpy())
-    return np.concatenate(out) if out else np.zeros((0, model.cfg.z_dim), np.float32)
+        mu, var = model.encoder(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device)))
+        mus.append(mu.cpu().numpy())
+        vars_.append(var.cpu().numpy())
+    if not mus:
+        return np.zeros((0, model.cfg.z_dim), np.float32), np.zeros((0, model.cfg.z_dim), np.float32)
+    return np.concatenate(mus), np.concatenate(vars_)
+
+
+def task_sigma(model, cues: np.ndarray, device: torch.device) -> np.ndarray:
+    """Per-cue task standard deviation vectors sqrt(var): [N, z]."""
+    return np.sqrt(task_posteriors(model, cues, device)[1])
 
 
 def nonsense_cues(real: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -253,7 +268,8 @@ def _val_pairs(val: Batches, seed: int, per_task: int = 2, k: int = 10) -> dict[
             traj_rows.append(d)
     cue_rows, traj_rows = np.array(cue_rows, dtype=np.int64), np.array(traj_rows, dtype=np.int64)
     lengths = val.a.lengths[traj_rows] if len(traj_rows) else np.zeros(0, np.int64)
-    steps = (np.linspace(0, 1, k, endpoint=False)[None] * lengths[:, None]).astype(np.int64)
+    # Fixed draws from the same uniform distribution training samples from, so the two losses compare.
+    steps = (rng.random((len(traj_rows), k)) * lengths[:, None]).astype(np.int64)
     return {"cue_rows": cue_rows, "traj_rows": traj_rows, "steps": steps}
 
 
@@ -273,8 +289,13 @@ class TrainResult:
 def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "petnet", resume: bool = False,
           force: bool = False, meta: dict[str, Any] | None = None,
           on_progress: Callable[[int, int, dict[str, float]], None] | None = None,
-          card: Callable[[dict[str, Any]], str] | None = None, stop_after: int | None = None) -> TrainResult | None:
+          card: Callable[[dict[str, Any]], str] | None = None, stop_after: int | None = None,
+          reference: Callable[[np.ndarray, np.ndarray, np.ndarray], dict[str, Any]] | None = None
+          ) -> TrainResult | None:
     """Train and write the checkpoint folder ``out`` (atomically).
+
+    ``reference(mu, var, tasks)`` of the training demos, when given, is stored
+    in the checkpoint (the audit keeps its score scales and one-class SVM there).
 
     ``stop_after`` ends the run early after saving its state at that step, as
     an interruption would (used by tests of ``resume``); it then returns None.
@@ -360,6 +381,9 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
         metrics["task_sigma"] = sig
     meta = {**(meta or {}), "data": {**(meta or {}).get("data", {}), "fingerprint": arrays.fingerprint},
             "training": {**asdict(tc), "model_type": model_type}, "metrics": metrics, "history": history}
+    if reference is not None and cfg.model_type == "petnet":
+        mu, var = task_posteriors(model, arrays.cue(all_train), device)
+        meta["reference"] = reference(mu, var, arrays.episodes["task"].to_numpy()[all_train])
     with atomic_output_dir(out, force=True) as tmp:
         save_checkpoint(tmp, model, cfg, norm, meta, card(meta) if card else None)
     shutil.rmtree(work, ignore_errors=True)

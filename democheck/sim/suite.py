@@ -40,6 +40,8 @@ class Recipe:
     image_size: int = 64
     max_attempts: int = 5  # layouts the expert fails on are re-drawn, up to this many tries
     episodes_per_file: int = 50  # fixed, not tied to --workers: the encoder's output depends on the file's content
+    # Demos replaced by a bad policy, labelled with its kind: (("idle", 4), ("random", 4)).
+    plant: tuple[tuple[str, int], ...] = ()
     pix_fmt: str = "yuv444p"
     crf: int = 20
 
@@ -52,7 +54,8 @@ class Recipe:
         return self.n_tasks * self.demos_per_task
 
     def with_overrides(self, tasks: int | None = None, demos: int | None = None, steps: int | None = None,
-                       size: int | None = None, seed: int | None = None) -> "Recipe":
+                       size: int | None = None, seed: int | None = None,
+                       plant: dict[str, int] | None = None) -> "Recipe":
         """Command-line overrides; ``tasks`` is the total, split in the recipe's proportions."""
         r = self
         if tasks is not None:
@@ -66,6 +69,8 @@ class Recipe:
             r = replace(r, image_size=size)
         if seed is not None:
             r = replace(r, seed=seed)
+        if plant is not None:
+            r = replace(r, plant=tuple(sorted(plant.items())))
         r.validate()
         return r
 
@@ -81,6 +86,11 @@ class Recipe:
             problems.append("at least 2 steps per episode")
         if not 8 <= self.image_size <= 512:
             problems.append("an image size between 8 and 512")
+        unknown = [k for k, _ in self.plant if k not in PLANT_POLICIES]
+        if unknown:
+            problems.append(f"plant kinds among {', '.join(PLANT_POLICIES)} (not {', '.join(unknown)})")
+        if sum(n for _, n in self.plant) > self.n_episodes or any(n < 0 for _, n in self.plant):
+            problems.append("between 0 and as many planted demos as there are episodes")
         if self.episodes_per_file < 1:
             problems.append("at least one episode per file")
         if self.pix_fmt not in ("yuv444p", "yuv420p"):
@@ -134,6 +144,8 @@ def load_recipe(name_or_path: str) -> Recipe:
                 "episodes": {"demos_per_task": "demos_per_task", "steps": "steps", "image_size": "image_size",
                              "max_attempts": "max_attempts"},
                 "video": {"pix_fmt": "pix_fmt", "crf": "crf", "episodes_per_file": "episodes_per_file"}}
+    if "plant" in doc:
+        flat["plant"] = tuple(sorted((str(k), int(v)) for k, v in doc["plant"].items()))
     for section, fields in sections.items():
         for key, value in doc.get(section, {}).items():
             if key not in fields:
@@ -149,6 +161,42 @@ def load_recipe(name_or_path: str) -> Recipe:
 
 def episode_seed(seed: int, episode_index: int, attempt: int) -> int:
     return int(np.random.SeedSequence([seed, episode_index, attempt]).generate_state(1)[0])
+
+
+class IdlePolicy:
+    """A recording where the arm never moves: zero torque (the arm holds still, gravity compensated)."""
+
+    def __init__(self, env, seed: int):
+        self.action_dim = env.action_space.shape[0]
+
+    def act(self) -> np.ndarray:
+        return np.zeros(self.action_dim, np.float32)
+
+
+class RandomPolicy:
+    """Random torques, low-pass filtered so the arm flails like a confused operator rather than vibrating."""
+
+    def __init__(self, env, seed: int, smoothing: float = 0.85, scale: float = 0.6):
+        self.rng = np.random.default_rng(seed)
+        self.a = np.zeros(env.action_space.shape[0])
+        self.smoothing, self.scale = smoothing, scale
+
+    def act(self) -> np.ndarray:
+        self.a = self.smoothing * self.a + (1 - self.smoothing) * self.rng.normal(0, 3 * self.scale, self.a.shape)
+        return np.clip(self.a, -1.0, 1.0).astype(np.float32)
+
+
+PLANT_POLICIES = {"idle": IdlePolicy, "random": RandomPolicy}
+
+
+def planted_episodes(recipe: Recipe) -> dict[int, str]:
+    """Which episodes the recipe replaces by a bad policy, chosen by the recipe's seed."""
+    total = sum(n for _, n in recipe.plant)
+    if not total:
+        return {}
+    picks = np.random.default_rng([recipe.seed, 0xBAD]).choice(recipe.n_episodes, size=total, replace=False)
+    kinds = [k for k, n in recipe.plant for _ in range(n)]
+    return {int(e): k for e, k in zip(picks, kinds)}
 
 
 # ---------------------------------------------------------------------------
@@ -192,6 +240,7 @@ def _shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, Any]]:
     names = sorted({t.name for t in tasks})
     task_index = {n: i for i, n in enumerate(names)}
     demos, attempts_log = [], []
+    planted = planted_episodes(r)
     for episode_index, task_id in episodes:
         task = tasks[task_id]
         env = _W["env"]
@@ -199,22 +248,28 @@ def _shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, Any]]:
             env = _W["env"] = PushEnv(task, image_size=r.image_size)
         elif (env.target, env.distractor) != (task.target, task.distractor):
             env.set_task(task)
-        expert = ScriptedExpert(env)
-        # Re-draw layouts the expert fails on (only when episodes are long enough to succeed).
-        tries = r.max_attempts if r.steps >= EPISODE_STEPS else 1
-        for attempt in range(tries):
-            seed = episode_seed(r.seed, episode_index, attempt)
-            expert.reset()
-            rec = record_demo(env, expert.act, r.steps, seed=seed)
-            if rec["success"]:
-                break
+        kind = planted.get(episode_index)
+        if kind is None:
+            expert = ScriptedExpert(env)
+            # Re-draw layouts the expert fails on (only when episodes are long enough to succeed).
+            tries = r.max_attempts if r.steps >= EPISODE_STEPS else 1
+            for attempt in range(tries):
+                seed = episode_seed(r.seed, episode_index, attempt)
+                expert.reset()
+                rec = record_demo(env, expert.act, r.steps, seed=seed)
+                if rec["success"]:
+                    break
+        else:
+            attempt, seed = 0, episode_seed(r.seed, episode_index, 0)
+            rec = record_demo(env, PLANT_POLICIES[kind](env, seed).act, r.steps, seed=seed)
         attempts_log.append(attempt + 1)
         sim = {"suite": r.name, "catalog_version": CATALOG_VERSION, "scene_version": SCENE_VERSION,
                "target": task.target.key, "distractor": task.distractor.key, "seed": seed, "attempt": attempt,
-               "image_size": r.image_size, "steps": r.steps, "policy": "expert", "layout": rec["layout"].to_dict()}
+               "image_size": r.image_size, "steps": r.steps, "policy": kind or "expert",
+               "layout": rec["layout"].to_dict()}
         demos.append(Demo(episode_index=episode_index, task=task.name, frames=rec["frames"], state=rec["state"],
-                          actions=rec["actions"], success=rec["success"], label="clean", split=task.split, sim=sim,
-                          env_state=rec["env_state"]))
+                          actions=rec["actions"], success=rec["success"], label=kind or "clean", split=task.split,
+                          sim=sim, env_state=rec["env_state"]))
         if _W["progress"] is not None:
             _W["progress"].put(1)
     rows = write_shard(_W["root"], file_index, demos, task_index, first_index, FPS, VideoOptions(r.pix_fmt, r.crf))
@@ -275,9 +330,10 @@ def generate(recipe: Recipe, out: str | Path, workers: int = 2, force: bool = Fa
                 for part in pending.get():
                     rows += part
         wall = time.perf_counter() - t0
-        first_try = np.array([r["attempts"] == 1 for r in rows])
-        kept = np.array([bool(r["success"]) for r in rows])
-        splits = np.array([r["split"] for r in rows])
+        expert_rows = [r for r in rows if r["label"] == "clean"]
+        first_try = np.array([r["attempts"] == 1 for r in expert_rows])
+        kept = np.array([bool(r["success"]) for r in expert_rows])
+        splits = np.array([r["split"] for r in expert_rows])
         n_frames = int(sum(r["length"] for r in rows))
         summary = {
             "recipe": asdict(recipe),
@@ -285,6 +341,7 @@ def generate(recipe: Recipe, out: str | Path, workers: int = 2, force: bool = Fa
             "scene_version": SCENE_VERSION,
             "tasks": {s: sum(t.split == s for t in tasks) for s in ("train", "val", "test")},
             "episodes": len(rows),
+            "planted": {k: n for k, n in recipe.plant},
             "frames": n_frames,
             "expert": {
                 "first_attempt_success": float(first_try.mean()),

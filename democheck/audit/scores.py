@@ -1,0 +1,135 @@
+"""Scores: one number per demo, higher = more suspect, plus a flag.
+
+- ``score`` (task uncertainty, the paper): the mean over embedding dimensions
+  of the task standard deviation sqrt(var) of the demo's cue.
+- ``consistency``: how far the demo's ``mu`` lies from the product-of-Gaussians
+  posterior of the *other* demos of the same task, as the root-mean-square
+  over dimensions of (mu - m) / sqrt(v + var), where (m, v) is that posterior
+  and var the demo's own variance: the spread expected of a demo that says
+  the same as the others.  Variance catches cues that say nothing;
+  consistency catches cues that clearly say the wrong thing.  NaN for a task
+  with a single demo.
+- ``suspicion``: the larger of the two after robust standardisation against
+  the model's training demos (median and 1.4826 x MAD, stored with the
+  model; this dataset's own when the model has none): a demo extreme on
+  either count is suspect, and the two are in the same units.
+- ``is_anomaly``: the linear one-class SVM of the paper (nu = 1% by default),
+  fitted on the training demos' task uncertainty.  A linear one-class SVM
+  flags points on the origin's side of its hyperplane, so it is fitted on
+  precisions 1/sigma^2 (the product of Gaussians' currency): a demo is
+  flagged when its precision is low, i.e. its uncertainty high.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+
+def task_score(sigma: np.ndarray) -> np.ndarray:
+    """The paper's task uncertainty of each demo: mean task standard deviation, [N, z] -> [N]."""
+    return sigma.mean(axis=1)
+
+
+def consistency(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray) -> np.ndarray:
+    """Leave-one-out task consistency of each demo (see module docstring); NaN for single-demo tasks."""
+    out = np.full(len(mu), np.nan)
+    prec = 1.0 / var
+    for task in np.unique(tasks):
+        idx = np.flatnonzero(tasks == task)
+        if len(idx) < 2:
+            continue
+        p_all = prec[idx].sum(0)
+        pm_all = (prec[idx] * mu[idx]).sum(0)
+        p_rest = p_all[None] - prec[idx]  # precision of the others, per demo
+        m_rest = (pm_all[None] - prec[idx] * mu[idx]) / p_rest
+        z2 = (mu[idx] - m_rest) ** 2 / (1.0 / p_rest + var[idx])
+        out[idx] = np.sqrt(z2.mean(1))
+    return out
+
+
+def robust_stats(x: np.ndarray) -> dict[str, float]:
+    x = x[np.isfinite(x)]
+    if not len(x):
+        return {"median": 0.0, "scale": 1.0}
+    med = float(np.median(x))
+    return {"median": med, "scale": float(max(1.4826 * np.median(np.abs(x - med)), 1e-9))}
+
+
+def standardise(x: np.ndarray, stats: dict[str, float]) -> np.ndarray:
+    return (x - stats["median"]) / stats["scale"]
+
+
+def suspicion(score: np.ndarray, cons: np.ndarray, ref: dict[str, dict[str, float]]) -> np.ndarray:
+    zs = standardise(score, ref["score"])
+    zc = standardise(cons, ref["consistency"])
+    return np.where(np.isfinite(zc), np.maximum(zs, zc), zs)
+
+
+# ---------------------------------------------------------------------------
+# one-class SVM (stored as plain numbers in the model's config.json)
+# ---------------------------------------------------------------------------
+
+def ocsvm_features(sigma: np.ndarray) -> np.ndarray:
+    return 1.0 / np.maximum(sigma, 1e-6) ** 2
+
+
+def fit_ocsvm(sigma: np.ndarray, nu: float = 0.01) -> dict[str, Any]:
+    """Fit the linear one-class SVM on training demos' sigma vectors; returns JSON-able parameters."""
+    from sklearn.svm import OneClassSVM
+
+    x = ocsvm_features(sigma)
+    scale = x.mean(0)  # features are precisions in the 1e2..1e8 range: put them near 1 for the solver
+    svm = OneClassSVM(kernel="linear", nu=nu).fit(x / scale)
+    return {"kernel": "linear", "feature": "precision", "nu": nu, "scale": scale.tolist(),
+            "coef": svm.coef_.ravel().tolist(), "offset": float(svm.offset_[0]), "n_fit": int(len(x)),
+            "flagged_fraction_on_fit": float((svm.decision_function(x / scale) < 0).mean())}
+
+
+def ocsvm_margin(params: dict[str, Any], sigma: np.ndarray) -> np.ndarray:
+    """Signed distance-like margin: negative = on the anomalous side of the hyperplane."""
+    x = ocsvm_features(sigma) / np.asarray(params["scale"])
+    return x @ np.asarray(params["coef"]) - params["offset"]
+
+
+def reference(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray, nu: float = 0.01) -> dict[str, Any]:
+    """What an audit of new data needs from the training demos: score scales and the OCSVM."""
+    sigma = np.sqrt(var)
+    return {"score": robust_stats(task_score(sigma)), "consistency": robust_stats(consistency(mu, var, tasks)),
+            "ocsvm": fit_ocsvm(sigma, nu)}
+
+
+def score_table(episodes: pd.DataFrame, mu: np.ndarray, var: np.ndarray, ref: dict[str, Any] | None) -> pd.DataFrame:
+    """The ScoreTable: one row per demo, ranked by suspicion (rank 1 = most suspect)."""
+    sigma = np.sqrt(var)
+    tasks = episodes["task"].to_numpy()
+    score = task_score(sigma)
+    cons = consistency(mu, var, tasks)
+    if ref is None:
+        ref = {"score": robust_stats(score), "consistency": robust_stats(cons)}
+    susp = suspicion(score, cons, ref)
+    table = pd.DataFrame({
+        "episode_index": episodes["episode_index"].to_numpy(np.int64),
+        "task": tasks,
+        "score": score,
+        "consistency": cons,
+        "suspicion": susp,
+    })
+    if ref.get("ocsvm"):
+        margin = ocsvm_margin(ref["ocsvm"], sigma)
+        table["ocsvm_margin"] = margin
+        table["is_anomaly"] = margin < 0
+    else:
+        table["ocsvm_margin"] = np.nan
+        table["is_anomaly"] = False
+    table["sigma"] = list(sigma.astype(np.float32))
+    table["mu"] = list(mu.astype(np.float32))
+    for col in ("label", "split"):
+        if col in episodes:
+            table[col] = episodes[col].to_numpy()
+    order = np.lexsort((table["episode_index"].to_numpy(), -np.nan_to_num(susp, nan=-np.inf)))
+    table = table.iloc[order].reset_index(drop=True)
+    table.insert(2, "rank", np.arange(1, len(table) + 1))
+    return table

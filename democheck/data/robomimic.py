@@ -1,0 +1,118 @@
+"""Reader for robomimic HDF5 files.
+
+Layout: ``data/demo_N/actions`` [T, A], ``data/demo_N/obs/<key>`` (images
+uint8 [T, H, W, 3] and low-dimensional float arrays), ``mask/<filter>`` lists
+of demo names (``train``/``valid`` become democheck's train/val split), and
+``data.attrs["env_args"]`` (JSON).  One task per file, named by a ``task``
+attribute of the demo or of ``data``, by ``--task``, or else by the
+environment's name.  Frames are sliced from HDF5 directly, so a cue reads two
+frames, not the episode.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from democheck.data.demo import Demo
+from democheck.errors import DatasetError
+
+
+def _decode(x) -> str:
+    return x.decode() if isinstance(x, bytes) else str(x)
+
+
+class Robomimic:
+    format = "robomimic"
+
+    def __init__(self, path: Path, camera: str | None = None, state_key: str | None = None,
+                 action_key: str | None = None, task: str | None = None):
+        import h5py
+
+        self.root = path
+        self._h5 = h5py
+        try:
+            f = h5py.File(path, "r")
+        except OSError as exc:
+            raise DatasetError(f"{path}: not a readable HDF5 file ({exc})") from None
+        with f:
+            if "data" not in f or not isinstance(f["data"], h5py.Group):
+                raise DatasetError(f"{path}: no 'data' group; not a robomimic file")
+            data = f["data"]
+            names = sorted((k for k in data.keys() if re.fullmatch(r"demo_\d+", k)), key=lambda k: int(k[5:]))
+            if not names:
+                raise DatasetError(f"{path}: no data/demo_N groups")
+            first = data[names[0]]
+            if "obs" not in first:
+                raise DatasetError(f"{path}: {names[0]} has no obs group")
+            obs = first["obs"]
+            cams = sorted(k for k in obs if obs[k].ndim == 4 and obs[k].shape[-1] == 3)
+            if not cams:
+                raise DatasetError(f"{path}: no image observations (obs/<key> of shape [T, H, W, 3])")
+            if camera is None:
+                self.camera = cams[0]
+            else:
+                matches = [c for c in (camera, f"{camera}_image") if c in cams]
+                if not matches:
+                    raise DatasetError(f"{path}: no camera {camera!r}; choose one of {', '.join(cams)}")
+                self.camera = matches[0]
+            low = sorted(k for k in obs if obs[k].ndim == 2 and k not in cams)
+            if state_key is not None:
+                self.state_keys = [k.strip() for k in state_key.split(",")]
+                missing = [k for k in self.state_keys if k not in obs]
+                if missing:
+                    raise DatasetError(f"{path}: no obs key {missing[0]!r} (--state-key)")
+            else:
+                robot = [k for k in low if k.startswith("robot")]
+                self.state_keys = robot or low
+            self.action_key = action_key or "actions"
+            if self.action_key not in first:
+                raise DatasetError(f"{path}: {names[0]} has no {self.action_key!r}")
+            self.image_shape = tuple(int(v) for v in obs[self.camera].shape[1:])
+            self.state_dim = int(sum(obs[k].shape[1] for k in self.state_keys))
+            self.action_dim = int(first[self.action_key].shape[1])
+            try:
+                env_args = json.loads(_decode(data.attrs.get("env_args", "{}")))
+            except json.JSONDecodeError:
+                env_args = {}
+            self.fps = float(env_args.get("env_kwargs", {}).get("control_freq", 20))
+            default_task = task or _decode(data.attrs.get("task", "")) or env_args.get("env_name") or path.stem
+            split = {}
+            for mask, name in (("train", "train"), ("valid", "val"), ("val", "val"), ("test", "test")):
+                if "mask" in f and mask in f["mask"]:
+                    for d in f["mask"][mask][()]:
+                        split[_decode(d)] = name
+            rows = []
+            for n in names:
+                g = data[n]
+                t = _decode(g.attrs.get("task", "")) or default_task  # a demo naming its task wins
+                rows.append({"episode_index": int(n[5:]), "task": t, "length": int(g[self.action_key].shape[0]),
+                             "split": split.get(n), "name": n})
+        eps = pd.DataFrame(rows).set_index("episode_index")
+        if eps["split"].isna().all():
+            eps = eps.drop(columns="split")
+        self.episodes = eps
+
+    def _group(self, f, episode_index: int):
+        return f["data"][self.episodes.loc[episode_index, "name"]]
+
+    def load(self, episode_index: int) -> Demo:
+        with self._h5.File(self.root, "r") as f:
+            g = self._group(f, episode_index)
+            frames = np.asarray(g["obs"][self.camera][()], dtype=np.uint8)
+            state = np.concatenate([np.asarray(g["obs"][k][()], np.float32).reshape(len(frames), -1)
+                                    for k in self.state_keys], axis=1) if self.state_keys else np.zeros((len(frames), 0), np.float32)
+            actions = np.asarray(g[self.action_key][()], np.float32)
+        row = self.episodes.loc[episode_index]
+        split = row.get("split") if "split" in row else None
+        return Demo(episode_index=episode_index, task=str(row["task"]), frames=frames, state=state, actions=actions,
+                    split=split if isinstance(split, str) else None)
+
+    def cue_frames(self, episode_index: int) -> np.ndarray:
+        with self._h5.File(self.root, "r") as f:
+            img = self._group(f, episode_index)["obs"][self.camera]
+            return np.stack([img[0], img[img.shape[0] - 1]]).astype(np.uint8)

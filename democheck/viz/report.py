@@ -1,0 +1,134 @@
+"""The audit's Rerun recording: what a reviewer looks at.  The only module that imports ``rerun``.
+
+Entities:
+    suspects                      the ranked suspect list (markdown)
+    suspects/<rank>_ep<e>/video   the suspect's camera video on the ``frame`` timeline
+    suspects/<rank>_ep<e>/sigma   its task standard deviation per embedding dimension (bar chart)
+    suspects/<rank>_ep<e>/actions its actions, one series per joint
+    suspects/<rank>_ep<e>/state   its robot state, one series per dimension
+    map/demos                     2-D t-SNE map of every demo's task mean, size ~ sigma, colour = task
+    map/suspects                  the top suspects on that map, labelled
+    scores/score                  histogram of the task-uncertainty scores
+    scores/ocsvm_margin           histogram of the one-class SVM margin (below 0 = flagged)
+"""
+
+from __future__ import annotations
+
+import colorsys
+import tempfile
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import rerun as rr
+import rerun.blueprint as rrb
+
+from democheck.data.demo import Demo
+
+
+def _task_colours(tasks: np.ndarray) -> np.ndarray:
+    """A stable colour per task string."""
+    out = np.zeros((len(tasks), 3), np.uint8)
+    for i, t in enumerate(tasks):
+        h = (zlib.crc32(str(t).encode()) % 360) / 360.0
+        out[i] = np.array(colorsys.hsv_to_rgb(h, 0.75, 0.95)) * 255
+    return out
+
+
+def suspect_path(rank: int, episode_index: int) -> str:
+    return f"suspects/{rank:03d}_ep{episode_index}"
+
+
+def suspects_markdown(table: pd.DataFrame, top: int, title: str) -> str:
+    lines = [f"# {title}", "", "| rank | episode | task | score | consistency | suspicion | flagged |",
+             "|---:|---:|---|---:|---:|---:|:---:|"]
+    for r in table.head(top).itertuples():
+        cons = "n/a" if not np.isfinite(r.consistency) else f"{r.consistency:.2f}"
+        lines.append(f"| {r.rank} | {r.episode_index} | {r.task} | {r.score:.4f} | {cons} | {r.suspicion:.2f} | "
+                     f"{'yes' if r.is_anomaly else ''} |")
+    lines += ["", "score: mean task standard deviation; consistency: distance of the demo's task mean from the other "
+              "demos of its task; suspicion: the larger of the two, robustly standardised. flagged: one-class SVM."]
+    return "\n".join(lines)
+
+
+def _histogram(rec: rr.RecordingStream, path: str, values: np.ndarray, bins: int = 40) -> None:
+    values = values[np.isfinite(values)]
+    if not len(values):
+        return
+    counts, edges = np.histogram(values, bins=bins)
+    rec.log(path, rr.BarChart(counts, abscissa=(edges[:-1] + edges[1:]) / 2), static=True)
+
+
+def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray, fps: float) -> None:
+    from democheck.data.video import VideoWriter
+
+    t = np.arange(len(demo))
+    with tempfile.TemporaryDirectory() as tmp:
+        size = demo.frames.shape[1]
+        pix = "yuv420p" if size % 2 == 0 and demo.frames.shape[2] == size else "yuv444p"
+        if demo.frames.shape[1] == demo.frames.shape[2]:
+            with VideoWriter(Path(tmp) / "v.mp4", int(round(fps)), size, pix_fmt=pix, crf=18) as vw:
+                vw.write(demo.frames)
+            asset = rr.AssetVideo(contents=(Path(tmp) / "v.mp4").read_bytes(), media_type="video/mp4")
+            rec.log(f"{base}/video", asset, static=True)
+            stamps = asset.read_frame_timestamps_nanos()
+            rec.send_columns(f"{base}/video", indexes=[rr.TimeColumn("frame", sequence=t[:len(stamps)])],
+                             columns=rr.VideoFrameReference.columns_nanos(stamps))
+        else:  # non-square frames: plain images
+            for i, img in enumerate(demo.frames):
+                rec.set_time("frame", sequence=i)
+                rec.log(f"{base}/video", rr.Image(img))
+    rec.log(f"{base}/sigma", rr.BarChart(sigma), static=True)
+    frame = [rr.TimeColumn("frame", sequence=t)]
+    rec.send_columns(f"{base}/actions", indexes=frame, columns=rr.Scalars.columns(scalars=demo.actions))
+    rec.send_columns(f"{base}/state", indexes=frame, columns=rr.Scalars.columns(scalars=demo.state))
+
+
+def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embedding: np.ndarray,
+                     embedded_rows: np.ndarray, fps: float, title: str) -> None:
+    """One recording with a reviewer's blueprint: suspect list, suspects' evidence, embedding map, score histograms.
+
+    ``suspects`` are the top demos in rank order; ``embedding`` [M, 2] are t-SNE positions of ``table`` rows
+    ``embedded_rows``.
+    """
+    rec = rr.RecordingStream("democheck")
+    rec.save(str(path))
+    top = len(suspects)
+    rec.log("suspects", rr.TextDocument(suspects_markdown(table, max(top, 20), title),
+                                        media_type=rr.MediaType.MARKDOWN), static=True)
+    sigma = np.stack(table["sigma"].to_numpy()) if len(table) else np.zeros((0, 1))
+    score = table["score"].to_numpy()
+    if len(embedded_rows):
+        sub = table.iloc[embedded_rows]
+        s = score[embedded_rows]
+        radii = 0.3 + 1.7 * (s - s.min()) / max(s.max() - s.min(), 1e-9)  # point size ~ sigma
+        rec.log("map/demos", rr.Points2D(embedding, radii=radii, colors=_task_colours(sub["task"].to_numpy()),
+                                         class_ids=sub["rank"].to_numpy()), static=True)
+        is_top = sub["rank"].to_numpy() <= top
+        if is_top.any():
+            rec.log("map/suspects", rr.Points2D(embedding[is_top], radii=radii[is_top] + 0.5,
+                                                colors=[255, 40, 40],
+                                                labels=[f"#{r} ep{e}" for r, e in zip(sub["rank"][is_top],
+                                                                                      sub["episode_index"][is_top])]),
+                    static=True)
+    _histogram(rec, "scores/score", score)
+    _histogram(rec, "scores/ocsvm_margin", table["ocsvm_margin"].to_numpy(dtype=float))
+    tabs = []
+    for demo, row in zip(suspects, table.head(top).itertuples()):
+        base = suspect_path(row.rank, row.episode_index)
+        _log_demo(rec, base, demo, sigma[row.Index], fps)
+        tabs.append(rrb.Vertical(
+            rrb.Spatial2DView(origin=f"{base}/video", name="video"),
+            rrb.Horizontal(rrb.BarChartView(origin=f"{base}/sigma", name="sigma"),
+                           rrb.TimeSeriesView(origin=f"{base}/actions", name="actions"),
+                           rrb.TimeSeriesView(origin=f"{base}/state", name="state")),
+            name=f"#{row.rank} ep{row.episode_index}"))
+    left = rrb.Vertical(rrb.TextDocumentView(origin="suspects", name="ranked suspects"),
+                        rrb.Spatial2DView(origin="map", name="task embedding (t-SNE of mu)"),
+                        rrb.Horizontal(rrb.BarChartView(origin="scores/score", name="score histogram"),
+                                       rrb.BarChartView(origin="scores/ocsvm_margin",
+                                                        name="OCSVM margin (below 0 = flagged)")))
+    body = rrb.Horizontal(left, rrb.Tabs(*tabs, name="suspects")) if tabs else left
+    rec.send_blueprint(rrb.Blueprint(body, collapse_panels=True))
+    rec.flush()

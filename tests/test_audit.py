@@ -1,0 +1,219 @@
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from democheck.audit.metrics import detection, precision_at_k
+from democheck.audit.scores import consistency, fit_ocsvm, ocsvm_margin, reference, score_table
+from democheck.cli import app
+
+runner = CliRunner()
+
+
+def _episodes(n_tasks=5, per=6):
+    return pd.DataFrame({"episode_index": np.arange(n_tasks * per), "task": np.repeat([f"t{i}" for i in range(n_tasks)], per),
+                         "label": "clean"})
+
+
+def _posteriors(eps, rng, spread=0.05):
+    centres = {t: rng.normal(0, 1, 10) for t in eps["task"].unique()}
+    mu = np.stack([centres[t] + rng.normal(0, spread, 10) for t in eps["task"]])
+    var = np.full_like(mu, spread**2) * rng.uniform(0.8, 1.25, mu.shape)
+    return mu, var, centres
+
+
+def test_planted_uncertain_demo_ranks_first():
+    rng = np.random.default_rng(0)
+    eps = _episodes()
+    mu, var, _ = _posteriors(eps, rng)
+    var[17] *= 30  # a cue that says nothing
+    table = score_table(eps, mu, var, None)
+    assert table.iloc[0]["episode_index"] == 17 and table.iloc[0]["rank"] == 1
+    assert list(table["rank"]) == list(range(1, len(eps) + 1))
+
+
+def test_planted_wrong_task_demo_ranks_first_by_consistency():
+    rng = np.random.default_rng(1)
+    eps = _episodes()
+    mu, var, centres = _posteriors(eps, rng)
+    mu[8] = centres["t3"] + rng.normal(0, 0.05, 10)  # a t1 demo that clearly shows task t3
+    table = score_table(eps, mu, var, None)
+    assert table.iloc[0]["episode_index"] == 8
+    row = table.set_index("episode_index").loc[8]
+    assert row["consistency"] > 5 * table["consistency"].median()
+    # variance alone cannot see it
+    assert table.sort_values("score", ascending=False).iloc[0]["episode_index"] != 8
+
+
+def test_consistency_matches_brute_force_and_handles_singletons():
+    rng = np.random.default_rng(2)
+    mu, var = rng.normal(size=(4, 3)), rng.uniform(0.1, 1, (4, 3))
+    tasks = np.array(["a", "a", "a", "b"])
+    c = consistency(mu, var, tasks)
+    p = 1 / var[1:3]
+    m, v = (p * mu[1:3]).sum(0) / p.sum(0), 1 / p.sum(0)
+    assert np.isclose(c[0], np.sqrt(((mu[0] - m) ** 2 / (v + var[0])).mean()))
+    assert np.isnan(c[3])
+
+
+def test_ocsvm_flags_high_uncertainty():
+    rng = np.random.default_rng(3)
+    train_sigma = rng.uniform(0.05, 0.07, (500, 10))
+    params = fit_ocsvm(train_sigma, nu=0.01)
+    json.dumps(params)  # stored in config.json: plain numbers only
+    assert params["flagged_fraction_on_fit"] <= 0.05
+    new = np.vstack([rng.uniform(0.05, 0.07, (50, 10)), np.full((3, 10), 0.3)])
+    flags = ocsvm_margin(params, new) < 0
+    assert flags[-3:].all() and flags[:-3].mean() < 0.1
+
+
+def test_metrics():
+    bad = np.array([1, 1, 0, 0, 0], bool)
+    assert precision_at_k(bad, np.array([5, 1, 4, 0, 0])) == 0.5
+    d = detection(bad, np.array([5, 4, 1, 0, 0]))
+    assert d["auroc"] == 1.0 and d["p_at_k"] == 1.0 and d["n"] == 2
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tiny_dataset, tmp_path_factory):
+    from democheck.petnet.train import TrainConfig
+    from democheck.workflows import train_model
+
+    root, _ = tiny_dataset
+    out = tmp_path_factory.mktemp("model") / "m"
+    train_model(root, out, TrainConfig(steps=6, batch_tasks=2, timesteps=2, val_every=3, device="cpu"),
+                cache_dir=tmp_path_factory.mktemp("cache"))
+    return out
+
+
+def _read_rrd(path):
+    import rerun.chunk as rc
+
+    out = {}
+    for chunk in rc.RrdReader(str(path)).store().stream():
+        out.setdefault(chunk.entity_path, []).append(chunk.to_record_batch())
+    return out
+
+
+def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model, tmp_path):
+    root, _ = tiny_dataset
+    res = runner.invoke(app, ["audit", str(root), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
+                              "--top", "3", "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    table = pd.read_parquet(tmp_path / "r" / "scores.parquet")
+    for col in ("episode_index", "task", "score", "consistency", "suspicion", "rank", "is_anomaly", "sigma", "mu", "label"):
+        assert col in table
+    assert len(table) == 12 and list(table["rank"]) == list(range(1, 13))
+    assert (np.diff(table["suspicion"].to_numpy()) <= 1e-12).all()  # ranked by suspicion
+    assert len(table["sigma"][0]) == 10 and (np.stack(table["sigma"]) > 0).all()
+    csv = pd.read_csv(tmp_path / "r" / "scores.csv")
+    assert list(csv["episode_index"]) == list(table["episode_index"])
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert summary["demos"] == 12 and summary["model_trained_on_this_dataset"] is True
+    suspects = (tmp_path / "r" / "suspects.txt").read_text().split()
+    assert [int(e) for e in suspects] == table[table["is_anomaly"]]["episode_index"].tolist()
+
+    rrd = _read_rrd(tmp_path / "r" / "report.rrd")
+    text = rrd["/suspects"][0].column("TextDocument:text").to_pylist()[0][0]
+    top = table.iloc[0]
+    assert f"| 1 | {top['episode_index']} |" in text
+    base = f"/suspects/001_ep{top['episode_index']}"
+    blobs = [b for b in rrd[f"{base}/video"] if "AssetVideo:blob" in b.schema.names]
+    refs = sum(b.num_rows for b in rrd[f"{base}/video"] if "VideoFrameReference:timestamp" in b.schema.names)
+    assert len(blobs) == 1 and refs == 12  # one video frame reference per step of the suspect's episode
+    import io
+
+    import av
+
+    from democheck.data import open_dataset
+
+    blob = bytes(blobs[0].column("AssetVideo:blob").to_pylist()[0][0])
+    with av.open(io.BytesIO(blob)) as c:
+        logged = np.stack([f.to_ndarray(format="rgb24") for f in c.decode(video=0)])
+    truth = open_dataset(root)[int(top["episode_index"])].frames
+    assert logged.shape == truth.shape
+    assert np.abs(logged.astype(int) - truth.astype(int)).mean() < 12  # the suspect's own frames, re-encoded
+    sigma = rrd[f"{base}/sigma"][0].column("BarChart:values").to_pylist()[0]
+    assert sigma is not None
+    actions = [b for b in rrd[f"{base}/actions"] if "Scalars:scalars" in b.schema.names][0]
+    assert actions.num_rows == 12 and len(actions.column("Scalars:scalars").to_pylist()[0]) == 7
+    pts = rrd["/map/demos"][0].column("Points2D:positions").to_pylist()[0]
+    assert len(pts) == 12
+
+
+def _write_robomimic(path, n=6, T=8, size=16):
+    import h5py
+
+    rng = np.random.default_rng(0)
+    with h5py.File(path, "w") as f:
+        data = f.create_group("data")
+        data.attrs["env_args"] = json.dumps({"env_name": "PushTiny", "env_kwargs": {"control_freq": 20}})
+        for i in range(n):
+            g = data.create_group(f"demo_{i}")
+            g.create_dataset("actions", data=rng.uniform(-1, 1, (T, 7)).astype(np.float32))
+            g.create_dataset("obs/agentview_image", data=rng.integers(0, 255, (T, size, size, 3), dtype=np.uint8))
+            g.create_dataset("obs/robot0_eef_pos", data=rng.normal(size=(T, 3)))
+            g.create_dataset("obs/robot0_joint_pos", data=rng.normal(size=(T, 14)))
+            if i == 5:
+                g.attrs["task"] = "another task"
+        f.create_dataset("mask/train", data=np.array([b"demo_0", b"demo_1", b"demo_2", b"demo_5"]))
+        f.create_dataset("mask/valid", data=np.array([b"demo_3", b"demo_4"]))
+
+
+def test_robomimic_reader_and_audit(tiny_model, tmp_path):
+    from democheck.data import open_dataset
+
+    path = tmp_path / "demo.hdf5"
+    _write_robomimic(path)
+    ds = open_dataset(path)
+    assert ds.format == "robomimic" and len(ds) == 6 and ds.state_dim == 17 and ds.action_dim == 7
+    assert ds.by_task() == {"PushTiny": [0, 1, 2, 3, 4], "another task": [5]}
+    assert ds.split("val") == [3, 4]
+    demo = ds[2]
+    assert demo.frames.shape == (8, 16, 16, 3)
+    np.testing.assert_array_equal(ds.cue_frames(2), demo.frames[[0, -1]])
+    assert open_dataset(path, task="lift").tasks == ["another task", "lift"]
+    res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
+                              "--device", "cpu", "--json"])
+    assert res.exit_code == 0, res.output
+    table = pd.read_parquet(tmp_path / "r" / "scores.parquet")
+    assert np.isnan(table.set_index("episode_index").loc[5, "consistency"])  # a task with one demo
+
+
+def test_audit_mismatch_and_fail_on(tiny_dataset, tiny_model, tmp_path):
+    path = tmp_path / "big.hdf5"
+    _write_robomimic(path, size=32)
+    res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "r"), "--model", str(tiny_model)])
+    assert res.exit_code == 2 and "32x32x3" in res.output and "democheck train" in res.output
+    assert "Traceback" not in res.output and not (tmp_path / "r").exists()
+    res = runner.invoke(app, ["audit", str(tiny_dataset[0]), "--out", str(tmp_path / "r"), "--model",
+                              str(tmp_path / "nope")])
+    assert res.exit_code == 2 and "no such model folder" in res.output
+    root, _ = tiny_dataset
+    # --fail-on: status 3 when more demos are flagged than allowed, 0 otherwise.
+    res = runner.invoke(app, ["audit", str(root), "--out", str(tmp_path / "a"), "--model", str(tiny_model),
+                              "--fail-on", "12", "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    flagged = json.loads((tmp_path / "a" / "summary.json").read_text())["flagged"]
+    if flagged:
+        res = runner.invoke(app, ["audit", str(root), "--out", str(tmp_path / "b"), "--model", str(tiny_model),
+                                  "--fail-on", str(flagged - 1), "--device", "cpu"])
+        assert res.exit_code == 3
+
+
+def test_fail_on_exit_code_with_a_strict_svm(tiny_dataset, tiny_model, tmp_path):
+    """Make the stored OCSVM flag everything, and check the CI gate trips."""
+    import shutil
+
+    strict = tmp_path / "strict"
+    shutil.copytree(tiny_model, strict)
+    cfg = json.loads((strict / "config.json").read_text())
+    cfg["reference"]["ocsvm"]["offset"] = 1e12
+    (strict / "config.json").write_text(json.dumps(cfg))
+    root, _ = tiny_dataset
+    res = runner.invoke(app, ["audit", str(root), "--out", str(tmp_path / "r"), "--model", str(strict),
+                              "--fail-on", "3", "--device", "cpu"])
+    assert res.exit_code == 3 and "12 demos flagged" in res.output
+    assert len((tmp_path / "r" / "suspects.txt").read_text().split()) == 12
