@@ -43,8 +43,7 @@ $(VENV)/.installed: pyproject.toml | $(BIN)/activate
 setup: sysdeps $(VENV)/.installed
 
 demo: setup
-	$(BIN)/democheck synth push-mini --out data/push-mini --force
-	$(BIN)/democheck info data/push-mini
+	$(BIN)/democheck demo --out demo --force
 
 test: setup
 	$(BIN)/python -m pytest -q

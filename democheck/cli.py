@@ -129,7 +129,7 @@ def train(
     lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 5e-4,
     kl_weight: Annotated[float, typer.Option(help="Weight of a KL term on the task posterior (0: the paper's loss).")] = 0.0,
     kl_target: Annotated[str, typer.Option(help="prior: KL to N(0, I); np: Neural-Process style, cue vs cue+target.")] = "prior",
-    contrastive_weight: Annotated[float, typer.Option(help="PETNet option: weight of a TecNets-style hinge loss on the normalised task means (0: the paper's loss).")] = 0.0,
+    contrastive_weight: Annotated[float, typer.Option(help="PETNet option: weight of the task-matching loss, which trains mu and var to find a cue's task among others (0: the paper's loss).")] = 0.0,
     seed: Annotated[int, typer.Option(help="Seed for initialisation, sampling and noise.")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     val_every: Annotated[int, typer.Option(help="Validate on the val split every this many steps.")] = 500,

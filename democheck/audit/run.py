@@ -53,9 +53,10 @@ def posteriors(ds: DemoSet, model, device, batch: int = 256,
     return np.concatenate(mus), np.concatenate(vars_)
 
 
-def embed_2d(table: pd.DataFrame, top: int, max_points: int = 3000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def embed_2d(table: pd.DataFrame, top: int, max_points: int = 1500, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """t-SNE of the task means; above ``max_points`` demos, the suspects plus a random sample of the rest."""
     from sklearn.manifold import TSNE
+    from threadpoolctl import threadpool_limits
 
     n = len(table)
     rows = np.arange(n)
@@ -66,7 +67,10 @@ def embed_2d(table: pd.DataFrame, top: int, max_points: int = 3000, seed: int = 
     if len(rows) < 5:
         return np.zeros((len(rows), 2)), rows
     mu = np.stack(table["mu"].to_numpy()[rows]).astype(np.float64)
-    xy = TSNE(n_components=2, perplexity=min(30.0, (len(rows) - 1) / 3), init="pca", random_state=seed).fit_transform(mu)
+    # One thread: with torch's OpenMP pool in the same process, sklearn's threads spin against it (20x slower).
+    with threadpool_limits(1):
+        xy = TSNE(n_components=2, perplexity=min(30.0, (len(rows) - 1) / 3), init="pca",
+                  random_state=seed).fit_transform(mu)
     return xy, rows
 
 

@@ -42,8 +42,9 @@ class TrainConfig:
     kl_target: str = "prior"  # "prior": KL(q(z|cue) || N(0, I)); "np": KL(q(z|cue, target) || q(z|cue))
     margin: float = 0.1  # TecNets hinge margin
     embed_weight: float = 1.0  # TecNets hinge loss weight
-    # PETNet option (0 = the paper's loss): the TecNets hinge loss on the normalised means, cue vs another demo of the
-    # same task, which makes the embedding carry the task from the first steps instead of waiting for the controller.
+    # PETNet option (0 = the paper's loss): weight of the task-matching loss (see ``task_matching_loss``), which makes
+    # the embedding carry the task, and its variance say how well, from the first steps instead of waiting for the
+    # controller to need it.
     contrastive_weight: float = 0.0
     seed: int = 0
     val_every: int = 500
@@ -115,6 +116,19 @@ class Batches:
         }
 
 
+def task_matching_loss(mu_c: torch.Tensor, var_c: torch.Tensor, mu_t: torch.Tensor, var_t: torch.Tensor
+                       ) -> torch.Tensor:
+    """Cross-entropy of finding each cue's own task among the batch's tasks by Gaussian likelihood.
+
+    Candidate j's task mean is scored under cue i's posterior widened by j's own variance,
+    log N(mu_t_j; mu_c_i, var_c_i + var_t_j).  The variance gets a direct gradient: a cue whose mean lands
+    among the wrong tasks lowers its loss by widening, a cue that pins its task down by narrowing.
+    """
+    v = var_c[:, None] + var_t[None]  # [B, B, z]
+    logp = -0.5 * (((mu_c[:, None] - mu_t[None]) ** 2) / v + torch.log(v)).sum(-1)
+    return F.cross_entropy(logp, torch.arange(len(mu_c), device=mu_c.device))
+
+
 def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConfig, sample: bool = True
            ) -> dict[str, torch.Tensor]:
     """The training objective for either model type; ``sample=False`` uses z = mu (validation)."""
@@ -137,8 +151,8 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
         z = mu_s + var_s.sqrt() * torch.randn_like(mu_s) if sample else mu_s
         out["sigma"] = var.sqrt().mean()
         if tc.contrastive_weight > 0:
-            mu_t = model.encoder(cue_input(batch["traj_cue"]))[0]
-            out["embed"] = hinge_embedding_loss(F.normalize(mu, dim=-1), F.normalize(mu_t, dim=-1), tc.margin)
+            mu_t, var_t = model.encoder(cue_input(batch["traj_cue"]))
+            out["embed"] = task_matching_loss(mu, var, mu_t, var_t)
     else:
         z = model.encoder(cue)
         out["embed"] = hinge_embedding_loss(z, model.encoder(cue_input(batch["traj_cue"])), tc.margin)
