@@ -133,6 +133,14 @@ class Controller(nn.Module):
     def forward(self, frame: torch.Tensor, state: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         return self.head(torch.cat([self.conv(frame), state, z], dim=-1))
 
+    def act(self, frames: torch.Tensor, state: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """K steps of each of B trajectories under one task variable each: uint8 frames [B, K, H, W, 3],
+        state [B, K, S], z [B, D] -> actions [B, K, A]."""
+        b, k = frames.shape[:2]
+        zk = z[:, None].expand(b, k, z.shape[-1]).reshape(b * k, -1)
+        out = self(to_input(frames.reshape(b * k, *frames.shape[2:])), state.reshape(b * k, -1), zk)
+        return out.reshape(b, k, -1)
+
 
 def product_of_gaussians(mu: torch.Tensor, var: torch.Tensor, dim: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Combine Gaussians along ``dim``: 1/var = sum 1/var_i, mu = var * sum mu_i/var_i."""
@@ -166,10 +174,7 @@ class PETNet(nn.Module):
         """cue uint8 [B, 2, H, W, 3]; frames uint8 [B, K, H, W, 3]; state [B, K, S] -> (actions [B, K, A], mu, var)."""
         mu, var = self.encoder(cue_input(cue))
         z = mu + var.sqrt() * torch.randn_like(mu) if sample else mu
-        b, k = frames.shape[:2]
-        zk = z[:, None].expand(b, k, z.shape[-1]).reshape(b * k, -1)
-        act = self.controller(to_input(frames.reshape(b * k, *frames.shape[2:])), state.reshape(b * k, -1), zk)
-        return act.reshape(b, k, -1), mu, var
+        return self.controller.act(frames, state, z), mu, var
 
 
 class TecNet(nn.Module):
@@ -189,10 +194,7 @@ class TecNet(nn.Module):
 
     def forward(self, cue: torch.Tensor, frames: torch.Tensor, state: torch.Tensor, sample: bool = True):
         e = self.encoder(cue_input(cue))
-        b, k = frames.shape[:2]
-        ek = e[:, None].expand(b, k, e.shape[-1]).reshape(b * k, -1)
-        act = self.controller(to_input(frames.reshape(b * k, *frames.shape[2:])), state.reshape(b * k, -1), ek)
-        return act.reshape(b, k, -1), e, None
+        return self.controller.act(frames, state, e), e, None
 
 
 def hinge_embedding_loss(cue_emb: torch.Tensor, target_emb: torch.Tensor, margin: float = 0.1) -> torch.Tensor:

@@ -29,7 +29,7 @@ from democheck.data.cache import EpisodeArrays
 from democheck.errors import DemocheckError
 from democheck.petnet.checkpoint import Normalisation, save_checkpoint
 from democheck.petnet.model import (ModelConfig, build_model, cue_input, hinge_embedding_loss, kl_diag,
-                                    product_of_gaussians, to_input)
+                                    product_of_gaussians)
 
 
 @dataclass
@@ -135,7 +135,6 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
     cfg: ModelConfig = model.cfg
     cue = cue_input(batch["cue"])
     frames, state = batch["frames"], batch["state"]
-    b, k = frames.shape[:2]
     out: dict[str, torch.Tensor] = {}
     if cfg.model_type == "petnet":
         mu, var = model.encoder(cue)
@@ -156,9 +155,7 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
     else:
         z = model.encoder(cue)
         out["embed"] = hinge_embedding_loss(z, model.encoder(cue_input(batch["traj_cue"])), tc.margin)
-    zk = z[:, None].expand(b, k, z.shape[-1]).reshape(b * k, -1)
-    pred = model.controller(to_input(frames.reshape(b * k, *frames.shape[2:])), state.reshape(b * k, -1), zk)
-    out["mse"] = ((pred - batch["actions"].reshape(b * k, -1)) ** 2).mean()
+    out["mse"] = ((model.controller.act(frames, state, z) - batch["actions"]) ** 2).mean()
     total = out["mse"]
     if "kl" in out:
         total = total + tc.kl_weight * out["kl"]

@@ -1,0 +1,113 @@
+"""Audit speed and peak memory at two dataset sizes (the audit must stream, not load everything).
+
+Makes an N-times replica of a LeRobot v3 dataset (videos symlinked, episode
+tables and data files rewritten with new episode and frame indices: a valid
+dataset N times larger), then audits the original and the replica, each in
+its own process, and prints demos/s (model load and t-SNE reported apart)
+and peak resident memory.
+
+    python benchmarks/audit_scale.py data/push-v1 --times 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
+
+def replicate(src: Path, dst: Path, times: int) -> None:
+    info = json.loads((src / "meta/info.json").read_text())
+    eps = pd.read_parquet(src / "meta/episodes/chunk-000/file-000.parquet")
+    side = pd.read_parquet(src / "meta/democheck/episodes.parquet")
+    n_eps, n_frames = int(info["total_episodes"]), int(info["total_frames"])
+    n_files = int(eps["data/file_index"].max()) + 1
+    key = "observation.images.main"
+    (dst / "meta/episodes/chunk-000").mkdir(parents=True)
+    (dst / "meta/democheck").mkdir(parents=True)
+    shutil.copy(src / "meta/tasks.parquet", dst / "meta/tasks.parquet")
+    shutil.copy(src / "meta/stats.json", dst / "meta/stats.json")
+    all_eps, all_side = [], []
+    for c in range(times):
+        e = eps.copy()
+        e["episode_index"] += c * n_eps
+        e["dataset_from_index"] += c * n_frames
+        e["dataset_to_index"] += c * n_frames
+        for col in ("data/file_index", f"videos/{key}/file_index"):
+            e[col] += c * n_files
+        s = side.copy()
+        s["episode_index"] += c * n_eps
+        all_eps.append(e)
+        all_side.append(s)
+        for f in range(n_files):
+            new = f + c * n_files
+            chunk = new // 1000
+            vsrc = src / f"videos/{key}/chunk-{f // 1000:03d}/file-{f:03d}.mp4"
+            vdst = dst / f"videos/{key}/chunk-{chunk:03d}/file-{new:03d}.mp4"
+            vdst.parent.mkdir(parents=True, exist_ok=True)
+            os.symlink(vsrc.resolve(), vdst)
+            t = pq.read_table(src / f"data/chunk-{f // 1000:03d}/file-{f:03d}.parquet")
+            t = t.set_column(t.column_names.index("episode_index"), "episode_index",
+                             pc.add(t.column("episode_index"), pa.scalar(c * n_eps, pa.int64())))
+            t = t.set_column(t.column_names.index("index"), "index",
+                             pc.add(t.column("index"), pa.scalar(c * n_frames, pa.int64())))
+            ddst = dst / f"data/chunk-{chunk:03d}/file-{new:03d}.parquet"
+            ddst.parent.mkdir(parents=True, exist_ok=True)
+            pq.write_table(t, ddst)
+    pd.concat(all_eps).to_parquet(dst / "meta/episodes/chunk-000/file-000.parquet", index=False)
+    pd.concat(all_side).to_parquet(dst / "meta/democheck/episodes.parquet", index=False)
+    info["total_episodes"] = n_eps * times
+    info["total_frames"] = n_frames * times
+    info["splits"] = {"train": f"0:{n_eps * times}"}
+    (dst / "meta/info.json").write_text(json.dumps(info, indent=2))
+
+
+CHILD = """
+import json, resource, sys, time
+from democheck.workflows import audit_dataset
+s = audit_dataset(sys.argv[1], sys.argv[2], model=sys.argv[3] if sys.argv[3] != '-' else None, device='cpu', force=True)
+print(json.dumps({"demos": s["demos"], "timing": s["timing"],
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+
+def run_audit(dataset: Path, out: Path, model: str) -> dict:
+    res = subprocess.run([sys.executable, "-c", CHILD, str(dataset), str(out), model], capture_output=True, text=True)
+    if res.returncode:
+        raise SystemExit(res.stderr)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("--times", type=int, default=10)
+    ap.add_argument("--model", default="-")
+    ap.add_argument("--workdir", type=Path, default=None, help="where to put the replica (default: a temp folder)")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(dir=args.workdir) as tmp:
+        big = Path(tmp) / f"x{args.times}"
+        replicate(args.dataset, big, args.times)
+        rows = []
+        for name, ds in (("1x", args.dataset), (f"{args.times}x", big)):
+            r = run_audit(ds, Path(tmp) / f"report-{name}", args.model)
+            t = r["timing"]
+            rows.append((name, r["demos"], t["demos_per_s"], t["model_load_s"], t["tsne_s"], r["peak_rss_mb"]))
+            print(f"{name:>4}: {r['demos']:6d} demos, {t['demos_per_s']:7.0f} demos/s (scoring {t['score_s']:.1f} s; "
+                  f"model load {t['model_load_s']:.2f} s, t-SNE {t['tsne_s']:.1f} s, recording {t['rrd_s']:.1f} s), "
+                  f"peak memory {r['peak_rss_mb']:.0f} MB", flush=True)
+        print(f"peak memory ratio {args.times}x / 1x: {rows[1][5] / rows[0][5]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
