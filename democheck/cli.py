@@ -221,9 +221,10 @@ def audit(
 
 def _print_audit(summary: dict, out: Path) -> None:
     table = Table(title=f"top suspects of {summary['demos']} demos ({summary['flagged']} flagged by the one-class SVM)")
-    for col in ("rank", "episode", "task", "score", "consistency", "suspicion", "flag"):
+    # Short headers and a clipped task column keep the table readable in an 80-column terminal.
+    for col in ("rank", "ep", "task", "score", "cons.", "susp.", "flag"):
         table.add_column(col, justify="left" if col == "task" else "right", no_wrap=True,
-                         overflow="ellipsis", max_width=60 if col == "task" else None)
+                         overflow="ellipsis", max_width=28 if col == "task" else None)
     for r in summary["top_suspects"]:
         cons = "n/a" if r["consistency"] is None else f"{r['consistency']:.2f}"
         table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"], f"{r['score']:.4f}", cons,
