@@ -1,6 +1,6 @@
 """Audit speed and peak memory at two dataset sizes (the audit must stream, not load everything).
 
-Makes an N-times replica of a LeRobot v3 dataset (videos symlinked, episode
+Makes an N-times replica of a LeRobot v3 dataset (videos hard-linked, so --workdir must be on the same filesystem; episode
 tables and data files rewritten with new episode and frame indices: a valid
 dataset N times larger), then audits the original and the replica, each in
 its own process, and prints demos/s (model load and t-SNE reported apart)
@@ -43,8 +43,9 @@ def replicate(src: Path, dst: Path, times: int) -> None:
         e["episode_index"] += c * n_eps
         e["dataset_from_index"] += c * n_frames
         e["dataset_to_index"] += c * n_frames
-        for col in ("data/file_index", f"videos/{key}/file_index"):
-            e[col] += c * n_files
+        for kind in ("data", f"videos/{key}"):
+            e[f"{kind}/file_index"] += c * n_files
+            e[f"{kind}/chunk_index"] = e[f"{kind}/file_index"] // 1000
         s = side.copy()
         s["episode_index"] += c * n_eps
         all_eps.append(e)
@@ -55,7 +56,7 @@ def replicate(src: Path, dst: Path, times: int) -> None:
             vsrc = src / f"videos/{key}/chunk-{f // 1000:03d}/file-{f:03d}.mp4"
             vdst = dst / f"videos/{key}/chunk-{chunk:03d}/file-{new:03d}.mp4"
             vdst.parent.mkdir(parents=True, exist_ok=True)
-            os.symlink(vsrc.resolve(), vdst)
+            os.link(vsrc, vdst)  # hard link: a symlink out of the dataset is (rightly) refused by the reader
             t = pq.read_table(src / f"data/chunk-{f // 1000:03d}/file-{f:03d}.parquet")
             t = t.set_column(t.column_names.index("episode_index"), "episode_index",
                              pc.add(t.column("episode_index"), pa.scalar(c * n_eps, pa.int64())))
