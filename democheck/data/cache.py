@@ -54,12 +54,6 @@ class EpisodeArrays:
     episodes: pd.DataFrame  # index aligned with rows: episode_index, task, split (when known), label
     fingerprint: str
 
-    def row(self, episode_index: int) -> int:
-        return int(self._rows[episode_index])
-
-    def __post_init__(self) -> None:
-        self._rows = pd.Series(np.arange(len(self.episodes)), index=self.episodes["episode_index"].to_numpy())
-
     def cue(self, rows: np.ndarray) -> np.ndarray:
         """First and last frame of each row's episode: uint8 [len(rows), 2, H, W, 3]."""
         first = self.offsets[rows]

@@ -226,9 +226,10 @@ def _read_json(path: Path) -> Any:
         raise DatasetError(f"{path}: not valid JSON ({exc})") from None
 
 
-def _read_parquet(path: Path, columns: list[str] | None = None) -> pa.Table:
+def _read_parquet(path: Path, columns: list[str] | None = None, schema_only: bool = False):
+    """A parquet table (or only its column names), with unreadable files as one-line DatasetErrors."""
     try:
-        return pq.read_table(path, columns=columns)
+        return pq.read_schema(path).names if schema_only else pq.read_table(path, columns=columns)
     except FileNotFoundError:
         raise DatasetError(f"{path}: missing") from None
     except (pa.ArrowException, OSError, ValueError) as exc:
@@ -325,7 +326,7 @@ class _LeRobotBase:
             cols.append(ENV_STATE_KEY)
         if self.camera_dtype == "image":
             cols.append(self.camera)
-        schema = _read_parquet_schema(path)
+        schema = _read_parquet(path, schema_only=True)
         table = _read_parquet(path, [c for c in cols if c in schema])
         eps = table.column("episode_index").to_numpy() if "episode_index" in table.column_names else None
         if eps is None:
@@ -384,15 +385,6 @@ class _LeRobotBase:
             env_state=None if entry["env_state"] is None else entry["env_state"][s:e],
             source_episode=None if src is None or pd.isna(src) or int(src) < 0 else int(src),
         )
-
-
-def _read_parquet_schema(path: Path) -> list[str]:
-    try:
-        return pq.read_schema(path).names
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: missing") from None
-    except (pa.ArrowException, OSError, ValueError) as exc:
-        raise DatasetError(f"{path}: unreadable parquet ({str(exc).splitlines()[0]})") from None
 
 
 class LeRobotV3(_LeRobotBase):

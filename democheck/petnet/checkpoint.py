@@ -37,14 +37,11 @@ class Normalisation:
     action_mean: list[float]
     action_std: list[float]
 
-    def state(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - x.new_tensor(self.state_mean)) / x.new_tensor(self.state_std)
+    def state(self, x: np.ndarray) -> np.ndarray:
+        return (x - np.float32(self.state_mean)) / np.float32(self.state_std)
 
-    def action(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - x.new_tensor(self.action_mean)) / x.new_tensor(self.action_std)
-
-    def unaction(self, x: torch.Tensor) -> torch.Tensor:
-        return x * x.new_tensor(self.action_std) + x.new_tensor(self.action_mean)
+    def action(self, x: np.ndarray) -> np.ndarray:
+        return (x - np.float32(self.action_mean)) / np.float32(self.action_std)
 
     @classmethod
     def fit(cls, state: np.ndarray, actions: np.ndarray) -> "Normalisation":

@@ -80,6 +80,11 @@ def task_rows(arrays: EpisodeArrays, split: str, seed: int) -> dict[str, np.ndar
     return {t: sel.index.to_numpy()[pos] for t, pos in groups.items() if len(pos) >= 2}
 
 
+def uniform_steps(rng: np.random.Generator, lengths: np.ndarray, k: int) -> np.ndarray:
+    """k timesteps drawn uniformly from each trajectory of the given lengths: int64 [len(lengths), k]."""
+    return (rng.random((len(lengths), k)) * lengths[:, None]).astype(np.int64)
+
+
 class Batches:
     """Samples (cue, demonstrated trajectory) pairs of the same task."""
 
@@ -87,8 +92,7 @@ class Batches:
         self.a = arrays
         self.tasks = sorted(rows)
         self.rows = [rows[t] for t in self.tasks]
-        self.s_mean, self.s_std = np.float32(norm.state_mean), np.float32(norm.state_std)
-        self.a_mean, self.a_std = np.float32(norm.action_mean), np.float32(norm.action_std)
+        self.norm = norm
 
     def sample(self, rng: np.random.Generator, n_tasks: int, k: int) -> dict[str, np.ndarray]:
         picks = rng.choice(len(self.tasks), size=n_tasks, replace=len(self.tasks) < n_tasks)
@@ -104,15 +108,15 @@ class Batches:
         a = self.a
         lengths = a.lengths[traj_rows]
         if steps is None:
-            steps = (rng.random((len(traj_rows), k)) * lengths[:, None]).astype(np.int64)
+            steps = uniform_steps(rng, lengths, k)
         idx = a.offsets[traj_rows][:, None] + np.minimum(steps, lengths[:, None] - 1)
         flat = idx.reshape(-1)
         return {
             "cue": a.cue(cue_rows),
             "traj_cue": a.cue(traj_rows),
             "frames": a.frames[flat].reshape(*idx.shape, *a.frames.shape[1:]),
-            "state": ((a.state[flat] - self.s_mean) / self.s_std).reshape(*idx.shape, -1),
-            "actions": ((a.actions[flat] - self.a_mean) / self.a_std).reshape(*idx.shape, -1),
+            "state": self.norm.state(a.state[flat]).reshape(*idx.shape, -1),
+            "actions": self.norm.action(a.actions[flat]).reshape(*idx.shape, -1),
         }
 
 
@@ -280,7 +284,7 @@ def _val_pairs(val: Batches, seed: int, per_task: int = 2, k: int = 10) -> dict[
     cue_rows, traj_rows = np.array(cue_rows, dtype=np.int64), np.array(traj_rows, dtype=np.int64)
     lengths = val.a.lengths[traj_rows] if len(traj_rows) else np.zeros(0, np.int64)
     # Fixed draws from the same uniform distribution training samples from, so the two losses compare.
-    steps = (rng.random((len(traj_rows), k)) * lengths[:, None]).astype(np.int64)
+    steps = uniform_steps(rng, lengths, k)
     return {"cue_rows": cue_rows, "traj_rows": traj_rows, "steps": steps}
 
 

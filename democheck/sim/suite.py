@@ -207,7 +207,13 @@ _W: dict[str, Any] = {}
 
 
 def _worker_init(recipe: Recipe, root: str, progress: Any) -> None:
-    _W.update(recipe=recipe, root=Path(root), progress=progress, env=None)
+    from democheck.sim.catalog import make_tasks
+
+    tasks = make_tasks(recipe.train_tasks, recipe.val_tasks, recipe.test_tasks, recipe.seed,
+                       recipe.test_object_fraction)
+    names = sorted({t.name for t in tasks})
+    _W.update(recipe=recipe, root=Path(root), progress=progress, env=None, tasks=tasks,
+              task_index={n: i for i, n in enumerate(names)}, planted=planted_episodes(recipe))
 
 
 def record_demo(env, policy: Callable[[], np.ndarray], steps: int, seed: int | None = None,
@@ -229,18 +235,15 @@ def record_demo(env, policy: Callable[[], np.ndarray], steps: int, seed: int | N
 def _shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, Any]]:
     from democheck.data.demo import Demo
     from democheck.data.lerobot import VideoOptions, write_shard
-    from democheck.sim.catalog import CATALOG_VERSION, make_tasks
+    from democheck.sim.catalog import CATALOG_VERSION
     from democheck.sim.env import EPISODE_STEPS, PushEnv
     from democheck.sim.expert import ScriptedExpert
     from democheck.sim.scene import FPS, SCENE_VERSION
 
     file_index, first_index, episodes = job
     r: Recipe = _W["recipe"]
-    tasks = make_tasks(r.train_tasks, r.val_tasks, r.test_tasks, r.seed, r.test_object_fraction)
-    names = sorted({t.name for t in tasks})
-    task_index = {n: i for i, n in enumerate(names)}
+    tasks, task_index, planted = _W["tasks"], _W["task_index"], _W["planted"]
     demos, attempts_log = [], []
-    planted = planted_episodes(r)
     for episode_index, task_id in episodes:
         task = tasks[task_id]
         env = _W["env"]
