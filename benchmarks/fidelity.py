@@ -25,7 +25,7 @@ def main() -> None:
     from democheck.data import open_dataset
     from democheck.sim.catalog import OBJECTS
     from democheck.sim.env import PushEnv
-    from democheck.sim.suite import record_demo
+    from democheck.sim.variants import record_demo
 
     ds = open_dataset(args.dataset)
     rng = np.random.default_rng(args.seed)

@@ -23,11 +23,10 @@ def _bare(job):
     """Step and render ``episodes`` episodes of the given tasks; returns frames rendered."""
     import numpy as np
 
-    from democheck.sim.catalog import make_tasks
     from democheck.sim.env import PushEnv
 
     recipe, episodes = job
-    tasks = make_tasks(recipe.train_tasks, recipe.val_tasks, recipe.test_tasks, recipe.seed, recipe.test_object_fraction)
+    tasks = recipe.tasks()
     env, frames = None, 0
     rng = np.random.default_rng(0)
     for e, t in episodes:

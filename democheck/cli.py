@@ -51,33 +51,69 @@ def synth(
     size: Annotated[Optional[int], typer.Option(help="Square image size in pixels (64 default, 125 on request).")] = None,
     workers: Annotated[int, typer.Option(help="Parallel worker processes (each renders with its own GL context).")] = 2,
     seed: Annotated[Optional[int], typer.Option(help="Seed for tasks, layouts and arm noise; same seed, same dataset.")] = None,
-    plant: Annotated[Optional[str], typer.Option(help="Replace demos by bad ones, labelled: e.g. idle=4,random=4 (kinds: idle, random).")] = None,
+    defects: Annotated[Optional[str], typer.Option(help="Replace demos by bad ones, labelled with their kind: e.g. idle=4,wrong-object=10 (kinds: idle, random, wrong-object, both-objects, occluded, gave-up).")] = None,
+    defect_rate: Annotated[Optional[float], typer.Option(help="Replace this share of all demos by the four semantic defects (wrong-object, both-objects, occluded, gave-up) in equal parts.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it already exists.")] = False,
 ) -> None:
     """Generate a simulated pushing suite (scripted expert demos in MuJoCo) as a LeRobot v3 dataset."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
     with _user_errors():
         from democheck.sim.suite import generate, load_recipe
 
         recipe = load_recipe(suite).with_overrides(tasks=tasks, demos=demos, steps=steps, size=size, seed=seed,
-                                                   plant=_parse_counts(plant, "--plant") if plant else None)
+                                                   defects=_parse_counts(defects, "--defects") if defects else None,
+                                                   defect_rate=defect_rate)
         if workers < 1:
             raise DemocheckError("--workers must be at least 1")
-        cols = (TextColumn("[bold]synth[/] {task.description}"), BarColumn(), MofNCompleteColumn(),
-                TextColumn("episodes"), TimeRemainingColumn())
-        with Progress(*cols, console=err_console, transient=True) as bar:
-            job = bar.add_task(recipe.name, total=recipe.n_episodes)
-            summary = generate(recipe, out, workers=workers, force=force,
-                               on_progress=lambda done, total: bar.update(job, completed=done))
+        with _episode_bar(f"synth {recipe.name}", recipe.n_episodes) as on_progress:
+            summary = generate(recipe, out, workers=workers, force=force, on_progress=on_progress)
     table = Table(title=f"{recipe.name} -> {out}", show_header=False)
     ex = summary["expert"]
     table.add_row("tasks (train/val/test)", "/".join(str(summary["tasks"][s]) for s in ("train", "val", "test")))
     table.add_row("episodes x steps", f"{summary['episodes']} x {recipe.steps}  ({recipe.image_size}x{recipe.image_size} px)")
     table.add_row("expert success, first try", f"{ex['first_attempt_success']:.1%}")
     table.add_row("demos kept successful", f"{ex['kept_success']:.1%}")
+    if summary["defects"]:
+        table.add_row("defects (label)", ", ".join(f"{k}: {n}" for k, n in summary["defects"].items()))
     table.add_row("speed", f"{summary['frames_per_s']:.0f} frames/s on {workers} worker(s), {summary['wall_s']:.1f} s")
     console.print(table)
+
+
+@contextmanager
+def _episode_bar(label: str, total: int) -> Iterator:
+    """A progress bar over episodes; yields the ``on_progress(done, total)`` callback to feed it."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    cols = (TextColumn(f"[bold]{label}[/]"), BarColumn(), MofNCompleteColumn(), TextColumn("episodes"),
+            TimeRemainingColumn())
+    with Progress(*cols, console=err_console, transient=True) as bar:
+        job = bar.add_task(label, total=total)
+        yield lambda done, n: bar.update(job, completed=done, total=n)
+
+
+@app.command()
+def probe(
+    dataset: Annotated[Path, typer.Argument(help="Source dataset; probes re-simulate its demos from their sim records.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder for the probe dataset (LeRobot v3, label = kind).")],
+    kinds: Annotated[str, typer.Option(help="Comma-separated: no-action (arm still), random (random torques), no-objects (objects removed, actions replayed), hidden (squares cover the view). Without sim records only no-action and hidden.")] = "no-action,random,no-objects,hidden",
+    per_kind: Annotated[int, typer.Option(help="Probes per kind, each from a different clean source demo.")] = 50,
+    seed: Annotated[int, typer.Option(help="Seed for the choice of sources, random torques and squares.")] = 0,
+    workers: Annotated[int, typer.Option(help="Parallel worker processes.")] = 2,
+    camera: Annotated[Optional[str], typer.Option(help="Image feature to use when there are several.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out if it already exists.")] = False,
+) -> None:
+    """Make out-of-distribution probes from a dataset's demos: the labelled negatives `bench` measures detectors on."""
+    with _user_errors():
+        from democheck.sim.probes import make_probes
+
+        kind_list = [k.strip() for k in kinds.split(",") if k.strip()]
+        if workers < 1:
+            raise DemocheckError("--workers must be at least 1")
+        with _episode_bar("probe", per_kind * len(kind_list)) as on_progress:
+            summary = make_probes(dataset, out, kind_list, per_kind=per_kind, seed=seed, workers=workers,
+                                  camera=camera, force=force, on_progress=on_progress)
+    console.print(f"{summary['episodes']} probes ({', '.join(f'{k}: {n}' for k, n in summary['kinds'].items())}) "
+                  f"from {dataset} in {summary['wall_s']:.1f} s -> {out}")
+    console.print(f"measure detectors on them: democheck bench {dataset} {out} --out <dir>")
 
 
 def _parse_counts(text: str, option: str) -> dict[str, int]:
@@ -113,8 +149,8 @@ def info(
         for col in ("split", "label"):
             if col in eps:
                 table.add_row(col, ", ".join(f"{k}: {v}" for k, v in eps[col].value_counts().sort_index().items()))
-        if "success" in eps:
-            table.add_row("success", f"{eps['success'].astype(float).mean():.1%}")
+        if "success" in eps and eps["success"].notna().any():
+            table.add_row("success", f"{eps['success'].dropna().astype(float).mean():.1%}")
         console.print(table)
 
 
@@ -235,6 +271,42 @@ def _print_audit(summary: dict, out: Path) -> None:
                   f"model load {t['model_load_s']:.1f} s, t-SNE {t['tsne_s']:.1f} s")
     console.print(f"report: {out}/ (scores.parquet, scores.csv, summary.json, suspects.txt)")
     console.print(f"look at it: democheck view {out}")
+
+
+@app.command()
+def bench(
+    datasets: Annotated[list[Path], typer.Argument(help="One or more labelled datasets, pooled (e.g. a suite made with --defect-rate and the probes made from it).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for bench.json, bench.md, bench.rrd and scores.parquet.")],
+    model: Annotated[Optional[Path], typer.Option(help="PETNet model folder (default: the shipped models/petnet-push-v1).")] = None,
+    tecnet: Annotated[Optional[Path], typer.Option(help="TecNets model trained on the same data, for the kNN baseline (democheck train --model-type tecnet); left out if not given.")] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the random scorer and of Figure 5B's cue draws.")] = 0,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    camera: Annotated[Optional[str], typer.Option(help="Image feature to use when there are several.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
+) -> None:
+    """Measure every scorer (PETNet's and the baselines') on labelled bad demos: AUROC, AUPRC, precision at k."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    with _user_errors():
+        from democheck.audit.bench import bench as run_bench
+
+        with Progress(TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(), console=err_console,
+                      transient=True) as bar:
+            job = bar.add_task("bench", total=None)
+            summary = run_bench(datasets, out, model=model, tecnet=tecnet, device=device, seed=seed, force=force,
+                                camera=camera, on_progress=lambda stage, d, n: bar.update(job, description=stage,
+                                                                                          completed=d, total=n))
+    table = Table(title="AUROC, each kind versus clean (bench.md: AUPRC, precision at k, scorers explained)")
+    table.add_column("kind", no_wrap=True)
+    short = {"consistency": "consist.", "suspicion": "suspic.", "ocsvm_flag": "ocsvm", "tecnet_knn": "tecnet",
+             "heuristic": "heurist."}
+    for name in summary["scorers"]:
+        table.add_column(short.get(name, name), justify="right")
+    for kind in summary["kinds"]:
+        table.add_row(kind, *[f"{per[kind]['auroc']:.2f}" if per.get(kind, {}).get("auroc") is not None else "n/a"
+                              for per in summary["scorers"].values()])
+    console.print(table)
+    console.print(f"{out}/bench.md, bench.json, bench.rrd (Figures 5A and 5B), scores.parquet")
 
 
 @app.command()

@@ -79,7 +79,7 @@ def run_demo(out: str | Path, model: str | Path | None = None, workers: int = 2,
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not force:
         raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
-    recipe = load_recipe("push-mini").with_overrides(plant=DEMO_PLANT)
+    recipe = load_recipe("push-mini").with_overrides(defects=DEMO_PLANT)
     if on_stage:
         on_stage(f"generating {recipe.n_episodes} demos of push-mini ({sum(DEMO_PLANT.values())} planted bad ones)")
     synth = generate(recipe, out / "data", workers=workers, force=True, on_progress=on_progress)

@@ -15,7 +15,7 @@ import numpy as np
 from democheck.data import open_dataset
 from democheck.sim.catalog import OBJECTS
 from democheck.sim.env import PushEnv
-from democheck.sim.suite import record_demo
+from democheck.sim.variants import record_demo
 
 ap = argparse.ArgumentParser()
 ap.add_argument("dataset")

@@ -12,7 +12,7 @@ from democheck.errors import DatasetError
 from democheck.sim.catalog import OBJECTS
 from democheck.sim.env import PushEnv
 from democheck.sim.expert import ScriptedExpert
-from democheck.sim.suite import record_demo
+from democheck.sim.variants import record_demo
 
 
 def psnr(a, b):

@@ -225,10 +225,14 @@ def _load_state(work: Path, model, opt) -> tuple[int, np.random.Generator, dict[
 
 @torch.no_grad()
 def task_posteriors(model, cues: np.ndarray, device: torch.device, chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
-    """Per-cue task posterior (mu, var), each [N, z], for uint8 cues [N, 2, H, W, 3]."""
+    """Per-cue task posterior (mu, var), each [N, z], for uint8 cues [N, 2, H, W, 3].
+
+    A TecNets model has no variance: its embedding comes back as ``mu`` with ``var`` all zero.
+    """
     mus, vars_ = [], []
     for s in range(0, len(cues), chunk):
-        mu, var = model.encoder(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device)))
+        out = model.encoder(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device)))
+        mu, var = out if isinstance(out, tuple) else (out, torch.zeros_like(out))
         mus.append(mu.cpu().numpy())
         vars_.append(var.cpu().numpy())
     if not mus:

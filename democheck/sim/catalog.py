@@ -148,9 +148,13 @@ def _pairs(objs: list[ObjectSpec], rng: np.random.Generator, n: int) -> list[tup
     return [pairs[i] for i in idx]
 
 
-def make_tasks(n_train: int, n_val: int, n_test: int, seed: int, test_fraction: float = 0.2) -> list[Task]:
-    """The suite's tasks: train and val from meta-training objects, test from held-out ones."""
-    train_objs, test_objs = split_objects(seed, test_fraction)
+def make_tasks(n_train: int, n_val: int, n_test: int, seed: int, test_fraction: float = 0.2,
+               split_seed: int | None = None) -> list[Task]:
+    """The suite's tasks: train and val from meta-training objects, test from held-out ones.
+
+    ``split_seed`` (default ``seed``) draws which objects are held out; ``seed`` draws the pairs.
+    """
+    train_objs, test_objs = split_objects(seed if split_seed is None else split_seed, test_fraction)
     rng = np.random.default_rng([seed, 0x7A5C])
     meta_train = _pairs(train_objs, rng, n_train + n_val)
     meta_test = _pairs(test_objs, rng, n_test)

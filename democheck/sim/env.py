@@ -86,10 +86,12 @@ class PushEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": scene.FPS}
 
     def __init__(self, task: Task | tuple[ObjectSpec, ObjectSpec], image_size: int = 64,
-                 max_steps: int = EPISODE_STEPS, with_objects: bool = True, render_images: bool = True):
+                 max_steps: int = EPISODE_STEPS, with_objects: bool = True, render_images: bool = True,
+                 occluder: bool = False):
         self.image_size = int(image_size)
         self.max_steps = int(max_steps)
         self.with_objects = with_objects
+        self.occluder = occluder and with_objects
         self.render_images = render_images
         self.render_mode = "rgb_array"
         self.observation_space = gym.spaces.Dict({
@@ -106,7 +108,7 @@ class PushEnv(gym.Env):
         target, distractor = (task.target, task.distractor) if isinstance(task, Task) else task
         self.target, self.distractor = target, distractor
         spec = scene.build_spec(target if self.with_objects else None, distractor if self.with_objects else None,
-                                self.image_size)
+                                self.image_size, occluder=self.occluder)
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
         m = self.model
@@ -140,6 +142,7 @@ class PushEnv(gym.Env):
             self.data.qpos[self._obj_qadr["target"]] = layout.target
             self.data.qpos[self._obj_qadr["distractor"]] = layout.distractor
         mujoco.mj_forward(self.model, self.data)
+        self._follow_target()
         self.t = 0
         self.steps_in_goal = 0
         return self._observation(), self._info()
@@ -148,6 +151,7 @@ class PushEnv(gym.Env):
         a = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
         self.data.ctrl[:] = a * scene.TORQUE_LIMIT
         mujoco.mj_step(self.model, self.data, nstep=scene.FRAME_SKIP)
+        self._follow_target()
         self.t += 1
         dist = self.target_to_goal()
         if dist < scene.GOAL_RADIUS:
@@ -167,6 +171,12 @@ class PushEnv(gym.Env):
             self._renderer = None
 
     # -- helpers -----------------------------------------------------------
+    def _follow_target(self) -> None:
+        """Keep the occluder (when the scene has one) between the camera and the target."""
+        if self.occluder:
+            self.data.mocap_pos[0] = scene.occluder_pos(self.data.xpos[self.model.body("target").id])
+            mujoco.mj_kinematics(self.model, self.data)  # so the frame rendered next shows it there
+
     def state(self) -> np.ndarray:
         d = self.data
         return np.concatenate([d.qpos[self._arm_qadr], d.qvel[self._arm_vadr], d.site_xpos[self._tip]]).astype(np.float32)

@@ -50,11 +50,9 @@ CAMERA_POS = np.array([0.56, -0.50, 0.78])
 CAMERA_LOOKAT = np.array([0.54, 0.02, 0.0])
 
 
-@dataclass(frozen=True)
-class SceneOptions:
-    """What to put in the scene; probes drop the objects."""
-
-    with_objects: bool = True
+OCCLUDER_HALF = (0.075, 0.075, 0.004)  # a grey card, large enough to hide any catalog object from the camera
+OCCLUDER_RGBA = (0.42, 0.42, 0.45, 1.0)
+OCCLUDER_FRACTION = 0.3  # where on the camera ray it hovers: this share of the way from the target to the camera
 
 
 def _xyaxes(pos: np.ndarray, lookat: np.ndarray) -> list[float]:
@@ -149,8 +147,25 @@ def add_camera(spec: mujoco.MjSpec) -> None:
                              castshadow=False)
 
 
-def build_spec(target: ObjectSpec | None, distractor: ObjectSpec | None, image_size: int = 64) -> mujoco.MjSpec:
-    """The whole scene; pass ``None`` objects to build it empty (the No-Objects probe)."""
+def add_occluder(spec: mujoco.MjSpec) -> None:
+    """A visual-only card on a mocap body, facing the camera; the env keeps it on the target's camera ray."""
+    body = spec.worldbody.add_body(name="occluder", mocap=True, pos=[0.0, 0.0, 1.0],
+                                   xyaxes=_xyaxes(CAMERA_POS, CAMERA_LOOKAT))  # parallel to the image plane
+    body.add_geom(name="occluder", type=mujoco.mjtGeom.mjGEOM_BOX, size=list(OCCLUDER_HALF), rgba=list(OCCLUDER_RGBA),
+                  contype=0, conaffinity=0)
+
+
+def occluder_pos(target_xyz: np.ndarray) -> np.ndarray:
+    """The occluder's position for a target at ``target_xyz``: between it and the camera."""
+    return target_xyz + OCCLUDER_FRACTION * (CAMERA_POS - target_xyz)
+
+
+def build_spec(target: ObjectSpec | None, distractor: ObjectSpec | None, image_size: int = 64,
+               occluder: bool = False) -> mujoco.MjSpec:
+    """The whole scene; pass ``None`` objects to build it empty (the No-Objects probe).
+
+    ``occluder`` adds a card that hides the target from the camera (the occluded defect).
+    """
     spec = mujoco.MjSpec()
     spec.modelname = "democheck_push"
     spec.compiler.degree = False  # every angle in this file is in radians
@@ -172,5 +187,7 @@ def build_spec(target: ObjectSpec | None, distractor: ObjectSpec | None, image_s
         add_object(spec, "target", target)
     if distractor is not None:
         add_object(spec, "distractor", distractor)
+    if occluder:
+        add_occluder(spec)
     add_camera(spec)
     return spec

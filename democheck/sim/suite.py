@@ -20,6 +20,7 @@ from typing import Any, Callable
 import numpy as np
 
 from democheck.errors import RecipeError
+from democheck.sim.variants import DEFECTS, PLANT_KINDS
 
 SYNTH_DIR = Path(__file__).resolve().parents[2] / "synth"
 
@@ -35,13 +36,18 @@ class Recipe:
     val_tasks: int = 40
     test_tasks: int = 64
     test_object_fraction: float = 0.2
+    # Seed of the train/test object split; None: ``seed``.  A fresh meta-test set for a model trained on
+    # another suite keeps that suite's split seed (its held-out objects) and changes ``seed``.
+    split_seed: int | None = None
     demos_per_task: int = 12
     steps: int = 100
     image_size: int = 64
     max_attempts: int = 5  # layouts the expert fails on are re-drawn, up to this many tries
     episodes_per_file: int = 50  # fixed, not tied to --workers: the encoder's output depends on the file's content
-    # Demos replaced by a bad policy, labelled with its kind: (("idle", 4), ("random", 4)).
-    plant: tuple[tuple[str, int], ...] = ()
+    # Demos replaced by a bad operator or a semantic defect, labelled with its kind: (("idle", 4), ("random", 4)).
+    defects: tuple[tuple[str, int], ...] = ()
+    # And this share of all episodes replaced by the four semantic defects in equal parts.
+    defect_rate: float = 0.0
     pix_fmt: str = "yuv444p"
     crf: int = 20
 
@@ -53,9 +59,25 @@ class Recipe:
     def n_episodes(self) -> int:
         return self.n_tasks * self.demos_per_task
 
+    def tasks(self) -> list:
+        """The suite's tasks (``democheck.sim.catalog.Task``), train, then val, then test."""
+        from democheck.sim.catalog import make_tasks
+
+        return make_tasks(self.train_tasks, self.val_tasks, self.test_tasks, self.seed, self.test_object_fraction,
+                          split_seed=self.split_seed)
+
+    def defect_counts(self) -> dict[str, int]:
+        """How many episodes each kind replaces: the explicit counts plus ``defect_rate`` over the semantic ones."""
+        counts = dict(self.defects)
+        n_rate = int(round(self.defect_rate * self.n_episodes))
+        if n_rate:
+            for kind, n in zip(DEFECTS, _apportion(n_rate, [1] * len(DEFECTS), keep_all=False)):
+                counts[kind] = counts.get(kind, 0) + n
+        return {k: n for k, n in sorted(counts.items()) if n}
+
     def with_overrides(self, tasks: int | None = None, demos: int | None = None, steps: int | None = None,
                        size: int | None = None, seed: int | None = None,
-                       plant: dict[str, int] | None = None) -> "Recipe":
+                       defects: dict[str, int] | None = None, defect_rate: float | None = None) -> "Recipe":
         """Command-line overrides; ``tasks`` is the total, split in the recipe's proportions."""
         r = self
         if tasks is not None:
@@ -69,15 +91,17 @@ class Recipe:
             r = replace(r, image_size=size)
         if seed is not None:
             r = replace(r, seed=seed)
-        if plant is not None:
-            r = replace(r, plant=tuple(sorted(plant.items())))
+        if defects is not None:
+            r = replace(r, defects=tuple(sorted(defects.items())))
+        if defect_rate is not None:
+            r = replace(r, defect_rate=float(defect_rate))
         r.validate()
         return r
 
     def validate(self) -> None:
         problems = []
-        if self.train_tasks < 1:
-            problems.append("at least one training task")
+        if self.train_tasks < 0 or self.n_tasks < 1:
+            problems.append("at least one task")
         if min(self.val_tasks, self.test_tasks) < 0:
             problems.append("non-negative val/test task counts")
         if self.demos_per_task < 1:
@@ -86,11 +110,14 @@ class Recipe:
             problems.append("at least 2 steps per episode")
         if not 8 <= self.image_size <= 512:
             problems.append("an image size between 8 and 512")
-        unknown = [k for k, _ in self.plant if k not in PLANT_POLICIES]
+        unknown = [k for k, _ in self.defects if k not in PLANT_KINDS]
         if unknown:
-            problems.append(f"plant kinds among {', '.join(PLANT_POLICIES)} (not {', '.join(unknown)})")
-        if sum(n for _, n in self.plant) > self.n_episodes or any(n < 0 for _, n in self.plant):
-            problems.append("between 0 and as many planted demos as there are episodes")
+            problems.append(f"defect kinds among {', '.join(PLANT_KINDS)} (not {', '.join(unknown)})")
+        if not 0.0 <= self.defect_rate <= 1.0:
+            problems.append("a defect rate between 0 and 1")
+        counts = self.defect_counts() if not unknown else {}
+        if sum(counts.values()) > self.n_episodes or any(n < 0 for n in counts.values()):
+            problems.append("between 0 and as many defective demos as there are episodes")
         if self.episodes_per_file < 1:
             problems.append("at least one episode per file")
         if self.pix_fmt not in ("yuv444p", "yuv420p"):
@@ -101,8 +128,8 @@ class Recipe:
             raise RecipeError(f"recipe {self.name!r} needs " + "; ".join(problems))
 
 
-def _apportion(total: int, weights: list[int]) -> list[int]:
-    """Split ``total`` in proportion to ``weights`` (largest remainder), each non-empty share at least 1."""
+def _apportion(total: int, weights: list[int], keep_all: bool = True) -> list[int]:
+    """Split ``total`` in proportion to ``weights`` (largest remainder); with ``keep_all`` each share at least 1."""
     if total < 1:
         raise RecipeError("--tasks must be at least 1")
     w = np.asarray(weights, dtype=float)
@@ -111,7 +138,7 @@ def _apportion(total: int, weights: list[int]) -> list[int]:
     for i in np.argsort(-(raw - out))[: total - out.sum()]:
         out[i] += 1
     # Keep every split that the recipe has, when there are enough tasks to go round.
-    for i in range(len(out)):
+    for i in range(len(out) if keep_all else 0):
         if w[i] > 0 and out[i] == 0 and total >= int((w > 0).sum()):
             j = int(np.argmax(out))
             out[j] -= 1
@@ -140,12 +167,15 @@ def load_recipe(name_or_path: str) -> Recipe:
         if key in doc:
             flat[key] = doc[key]
     sections = {"tasks": {"train": "train_tasks", "val": "val_tasks", "test": "test_tasks",
-                          "test_object_fraction": "test_object_fraction"},
+                          "test_object_fraction": "test_object_fraction", "split_seed": "split_seed"},
                 "episodes": {"demos_per_task": "demos_per_task", "steps": "steps", "image_size": "image_size",
                              "max_attempts": "max_attempts"},
                 "video": {"pix_fmt": "pix_fmt", "crf": "crf", "episodes_per_file": "episodes_per_file"}}
-    if "plant" in doc:
-        flat["plant"] = tuple(sorted((str(k), int(v)) for k, v in doc["plant"].items()))
+    defects = dict(doc.get("defects", {}))
+    if "rate" in defects:
+        flat["defect_rate"] = float(defects.pop("rate"))
+    if defects:
+        flat["defects"] = tuple(sorted((str(k), int(v)) for k, v in defects.items()))
     for section, fields in sections.items():
         for key, value in doc.get(section, {}).items():
             if key not in fields:
@@ -163,39 +193,14 @@ def episode_seed(seed: int, episode_index: int, attempt: int) -> int:
     return int(np.random.SeedSequence([seed, episode_index, attempt]).generate_state(1)[0])
 
 
-class IdlePolicy:
-    """A recording where the arm never moves: zero torque (the arm holds still, gravity compensated)."""
-
-    def __init__(self, env, seed: int):
-        self.action_dim = env.action_space.shape[0]
-
-    def act(self) -> np.ndarray:
-        return np.zeros(self.action_dim, np.float32)
-
-
-class RandomPolicy:
-    """Random torques, low-pass filtered so the arm flails like a confused operator rather than vibrating."""
-
-    def __init__(self, env, seed: int, smoothing: float = 0.85, scale: float = 0.6):
-        self.rng = np.random.default_rng(seed)
-        self.a = np.zeros(env.action_space.shape[0])
-        self.smoothing, self.scale = smoothing, scale
-
-    def act(self) -> np.ndarray:
-        self.a = self.smoothing * self.a + (1 - self.smoothing) * self.rng.normal(0, 3 * self.scale, self.a.shape)
-        return np.clip(self.a, -1.0, 1.0).astype(np.float32)
-
-
-PLANT_POLICIES = {"idle": IdlePolicy, "random": RandomPolicy}
-
-
 def planted_episodes(recipe: Recipe) -> dict[int, str]:
-    """Which episodes the recipe replaces by a bad policy, chosen by the recipe's seed."""
-    total = sum(n for _, n in recipe.plant)
+    """Which episodes the recipe replaces by a bad operator or a defect, chosen by the recipe's seed."""
+    counts = recipe.defect_counts()
+    total = sum(counts.values())
     if not total:
         return {}
     picks = np.random.default_rng([recipe.seed, 0xBAD]).choice(recipe.n_episodes, size=total, replace=False)
-    kinds = [k for k, n in recipe.plant for _ in range(n)]
+    kinds = [k for k, n in counts.items() for _ in range(n)]
     return {int(e): k for e, k in zip(picks, kinds)}
 
 
@@ -206,39 +211,65 @@ def planted_episodes(recipe: Recipe) -> dict[int, str]:
 _W: dict[str, Any] = {}
 
 
-def _worker_init(recipe: Recipe, root: str, progress: Any) -> None:
-    from democheck.sim.catalog import make_tasks
+def _init_worker(progress: Any, init: Callable[..., None], args: tuple) -> None:
+    _W.clear()
+    _W["progress"] = progress
+    init(*args)
 
-    tasks = make_tasks(recipe.train_tasks, recipe.val_tasks, recipe.test_tasks, recipe.seed,
-                       recipe.test_object_fraction)
+
+def tick() -> None:
+    """One episode done (reported to the parent's progress bar)."""
+    if _W.get("progress") is not None:
+        _W["progress"].put(1)
+
+
+def run_shards(jobs: list, shard: Callable[[Any], list[dict[str, Any]]], init: Callable[..., None], args: tuple,
+               workers: int, total: int, on_progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
+    """Run ``shard(job)`` for every job in ``workers`` spawned processes (each first calls ``init(*args)``).
+
+    Each shard writes its own files and returns its metadata rows; the rows of all shards are returned.
+    """
+    rows: list[dict[str, Any]] = []
+    done = 0
+    if workers <= 1:
+        _init_worker(None, init, args)
+        for job in jobs:
+            rows += shard(job)
+            done += len(job[2])
+            if on_progress:
+                on_progress(done, total)
+        return rows
+    ctx = mp.get_context("spawn")  # never fork a process that may hold a GL context
+    progress_q = ctx.Queue()
+    with ctx.Pool(workers, initializer=_init_worker, initargs=(progress_q, init, args)) as pool:
+        pending = pool.map_async(shard, jobs, chunksize=1)
+        while not pending.ready() or not progress_q.empty():
+            try:
+                done += progress_q.get(timeout=0.2)
+                if on_progress:
+                    on_progress(done, total)
+            except queue_mod.Empty:
+                pass
+        for part in pending.get():
+            rows += part
+    return rows
+
+
+def _suite_init(recipe: Recipe, root: str) -> None:
+    from democheck.sim.variants import EnvCache
+
+    tasks = recipe.tasks()
     names = sorted({t.name for t in tasks})
-    _W.update(recipe=recipe, root=Path(root), progress=progress, env=None, tasks=tasks,
+    _W.update(recipe=recipe, root=Path(root), envs=EnvCache(recipe.image_size), tasks=tasks,
               task_index={n: i for i, n in enumerate(names)}, planted=planted_episodes(recipe))
 
 
-def record_demo(env, policy: Callable[[], np.ndarray], steps: int, seed: int | None = None,
-                layout: Any = None) -> dict[str, Any]:
-    """Roll one episode out: observation t, then action t, for ``steps`` steps."""
-    obs, info = env.reset(seed=seed, options={"layout": layout} if layout is not None else None)
-    frames = np.empty((steps, env.image_size, env.image_size, 3), np.uint8)
-    state = np.empty((steps, obs["state"].shape[0]), np.float32)
-    env_state = np.empty((steps, 6), np.float32)
-    actions = np.empty((steps, env.action_space.shape[0]), np.float32)
-    for t in range(steps):
-        frames[t], state[t], env_state[t] = obs["image"], obs["state"], env.object_state()
-        actions[t] = policy()
-        obs, _, _, _, info = env.step(actions[t])
-    return {"frames": frames, "state": state, "env_state": env_state, "actions": actions,
-            "success": bool(info["success"]), "layout": env.layout}
-
-
-def _shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, Any]]:
+def _suite_shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, Any]]:
     from democheck.data.demo import Demo
     from democheck.data.lerobot import VideoOptions, write_shard
-    from democheck.sim.catalog import CATALOG_VERSION
-    from democheck.sim.env import EPISODE_STEPS, PushEnv
-    from democheck.sim.expert import ScriptedExpert
-    from democheck.sim.scene import FPS, SCENE_VERSION
+    from democheck.sim.env import EPISODE_STEPS
+    from democheck.sim.scene import FPS
+    from democheck.sim.variants import make_policy, record_demo, sim_record
 
     file_index, first_index, episodes = job
     r: Recipe = _W["recipe"]
@@ -246,35 +277,22 @@ def _shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, Any]]:
     demos, attempts_log = [], []
     for episode_index, task_id in episodes:
         task = tasks[task_id]
-        env = _W["env"]
-        if env is None:
-            env = _W["env"] = PushEnv(task, image_size=r.image_size)
-        elif (env.target, env.distractor) != (task.target, task.distractor):
-            env.set_task(task)
-        kind = planted.get(episode_index)
-        if kind is None:
-            expert = ScriptedExpert(env)
-            # Re-draw layouts the expert fails on (only when episodes are long enough to succeed).
-            tries = r.max_attempts if r.steps >= EPISODE_STEPS else 1
-            for attempt in range(tries):
-                seed = episode_seed(r.seed, episode_index, attempt)
-                expert.reset()
-                rec = record_demo(env, expert.act, r.steps, seed=seed)
-                if rec["success"]:
-                    break
-        else:
-            attempt, seed = 0, episode_seed(r.seed, episode_index, 0)
-            rec = record_demo(env, PLANT_POLICIES[kind](env, seed).act, r.steps, seed=seed)
+        kind = planted.get(episode_index, "expert")
+        env = _W["envs"].get(task.target, task.distractor, kind)
+        # Re-draw layouts the expert fails on (only when episodes are long enough to succeed).
+        tries = r.max_attempts if kind in ("expert", "occluded") and r.steps >= EPISODE_STEPS else 1
+        for attempt in range(tries):
+            seed = episode_seed(r.seed, episode_index, attempt)
+            rec = record_demo(env, make_policy(kind, env, seed).act, r.steps, seed=seed)
+            if rec["success"]:
+                break
         attempts_log.append(attempt + 1)
-        sim = {"suite": r.name, "catalog_version": CATALOG_VERSION, "scene_version": SCENE_VERSION,
-               "target": task.target.key, "distractor": task.distractor.key, "seed": seed, "attempt": attempt,
-               "image_size": r.image_size, "steps": r.steps, "policy": kind or "expert",
-               "layout": rec["layout"].to_dict()}
+        sim = sim_record(r.name, task, kind, seed, rec["layout"], r.image_size, r.steps, attempt=attempt)
+        label = "clean" if kind == "expert" else kind
         demos.append(Demo(episode_index=episode_index, task=task.name, frames=rec["frames"], state=rec["state"],
-                          actions=rec["actions"], success=rec["success"], label=kind or "clean", split=task.split,
+                          actions=rec["actions"], success=rec["success"], label=label, split=task.split,
                           sim=sim, env_state=rec["env_state"]))
-        if _W["progress"] is not None:
-            _W["progress"].put(1)
+        tick()
     rows = write_shard(_W["root"], file_index, demos, task_index, first_index, FPS, VideoOptions(r.pix_fmt, r.crf))
     for row, n in zip(rows, attempts_log):
         row["attempts"] = n
@@ -297,41 +315,17 @@ def generate(recipe: Recipe, out: str | Path, workers: int = 2, force: bool = Fa
     """Write the suite as a LeRobot v3 dataset under ``out`` (atomically); returns the summary."""
     from democheck.data.lerobot import VideoOptions, write_meta
     from democheck.fsutil import atomic_output_dir
-    from democheck.sim.catalog import CATALOG_VERSION, make_tasks
+    from democheck.sim.catalog import CATALOG_VERSION
     from democheck.sim.env import ACTION_NAMES, ENV_STATE_NAMES, STATE_NAMES
     from democheck.sim.scene import FPS, SCENE_VERSION
 
     recipe.validate()
-    tasks = make_tasks(recipe.train_tasks, recipe.val_tasks, recipe.test_tasks, recipe.seed,
-                       recipe.test_object_fraction)
+    tasks = recipe.tasks()
     jobs = plan_shards(recipe)
     t0 = time.perf_counter()
     with atomic_output_dir(out, force=force) as tmp:
-        rows: list[dict[str, Any]] = []
-        ctx = mp.get_context("spawn")  # never fork a process that may hold a GL context
-        progress_q = ctx.Queue() if on_progress else None
-        done = 0
-        if workers <= 1:
-            _worker_init(recipe, str(tmp), None)
-            for job in jobs:
-                rows += _shard(job)
-                done += len(job[2])
-                if on_progress:
-                    on_progress(done, recipe.n_episodes)
-        else:
-            with ctx.Pool(workers, initializer=_worker_init, initargs=(recipe, str(tmp), progress_q)) as pool:
-                pending = pool.map_async(_shard, jobs, chunksize=1)
-                while not pending.ready() or (progress_q is not None and not progress_q.empty()):
-                    try:
-                        done += progress_q.get(timeout=0.2) if progress_q is not None else 0
-                        if on_progress:
-                            on_progress(done, recipe.n_episodes)
-                    except queue_mod.Empty:
-                        pass
-                    if progress_q is None:
-                        pending.wait(0.2)
-                for part in pending.get():
-                    rows += part
+        rows = run_shards(jobs, _suite_shard, _suite_init, (recipe, str(tmp)), workers, recipe.n_episodes,
+                          on_progress)
         wall = time.perf_counter() - t0
         expert_rows = [r for r in rows if r["label"] == "clean"]
         first_try = np.array([r["attempts"] == 1 for r in expert_rows])
@@ -344,7 +338,7 @@ def generate(recipe: Recipe, out: str | Path, workers: int = 2, force: bool = Fa
             "scene_version": SCENE_VERSION,
             "tasks": {s: sum(t.split == s for t in tasks) for s in ("train", "val", "test")},
             "episodes": len(rows),
-            "planted": {k: n for k, n in recipe.plant},
+            "defects": recipe.defect_counts(),
             "frames": n_frames,
             "expert": {
                 "first_attempt_success": float(first_try.mean()),

@@ -10,6 +10,11 @@ Entities:
     map/suspects                  the top suspects on that map, labelled
     scores/score                  histogram of the task-uncertainty scores
     scores/ocsvm_margin           histogram of the one-class SVM margin (below 0 = flagged)
+
+The bench's recording (``write_bench_rrd``):
+    bench                         the AUROC table and the verdicts (markdown)
+    figure_5a/mean, figure_5a/std task standard deviation per kind (bar charts, kinds in the order of ``kinds``)
+    figure_5b/mean_sigma          task standard deviation vs number of cues, on the ``cues`` timeline
 """
 
 from __future__ import annotations
@@ -131,4 +136,31 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
                                                         name="OCSVM margin (below 0 = flagged)")))
     body = rrb.Horizontal(left, rrb.Tabs(*tabs, name="suspects")) if tabs else left
     rec.send_blueprint(rrb.Blueprint(body, collapse_panels=True))
+    rec.flush()
+
+
+def write_bench_rrd(path: Path, summary: dict) -> None:
+    """The bench's figures: 5A (sigma per kind) as bar charts, 5B (sigma vs number of cues) as a curve."""
+    rec = rr.RecordingStream("democheck_bench")
+    rec.save(str(path))
+    fig_a = summary["figure_5a"]
+    kinds = list(fig_a)
+    lines = ["# democheck bench", "", "| scorer | " + " | ".join(summary["kinds"]) + " |",
+             "|---|" + "---:|" * len(summary["kinds"])]
+    for name, per in summary["scorers"].items():
+        cells = [f"{per[k]['auroc']:.3f}" if per.get(k, {}).get("auroc") is not None else "n/a" for k in summary["kinds"]]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += ["", "AUROC of each kind versus clean.", "", "Figure 5A bars, left to right: " + ", ".join(kinds)]
+    rec.log("bench", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
+    rec.log("figure_5a/mean", rr.BarChart([fig_a[k]["mean"] for k in kinds]), static=True)
+    rec.log("figure_5a/std", rr.BarChart([fig_a[k]["std"] for k in kinds]), static=True)
+    curve = summary["figure_5b"]
+    if curve:
+        rec.send_columns("figure_5b/mean_sigma", indexes=[rr.TimeColumn("cues", sequence=[c["cues"] for c in curve])],
+                         columns=rr.Scalars.columns(scalars=[c["mean_sigma"] for c in curve]))
+    rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(
+        rrb.TextDocumentView(origin="bench", name="AUROC"),
+        rrb.Vertical(rrb.BarChartView(origin="figure_5a/mean", name="Figure 5A: mean sigma per kind"),
+                     rrb.BarChartView(origin="figure_5a/std", name="Figure 5A: spread (std) per kind")),
+        rrb.TimeSeriesView(origin="figure_5b", name="Figure 5B: sigma vs number of cues")), collapse_panels=True))
     rec.flush()

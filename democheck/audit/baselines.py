@@ -1,0 +1,70 @@
+"""Scorers people would use instead of PETNet, for ``democheck bench``; higher = more suspect, like ours.
+
+- ``heuristic``: what rule-based dataset linters check, from actions and
+  state alone: the share of idle steps, the action energy and the jerk, each
+  as a robust z-score against the benchmarked demos' median (both tails: a
+  demo that never moves and one that flails are both odd); the score is the
+  largest absolute z.
+- ``tecnet_knn``: distance in a TecNets embedding (deterministic, unit norm)
+  to the demo's nearest other demos of the same task: the mean of the k
+  smallest Euclidean distances.  It is the deterministic counterpart of our
+  task consistency.
+- ``random``: a uniform draw, the floor every detector must clear.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from democheck.audit.scores import robust_stats, standardise
+
+# An arm that moves less than this share of its median per-step motion is idle at that step.
+IDLE_FRACTION_OF_MEDIAN = 0.05
+HEURISTIC_FEATURES = ("idle_fraction", "action_energy", "jerk")
+
+
+def motion_features(state: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """(per-step state motion [T-1], action energy, jerk) of one demo; motion is returned for the idle rule."""
+    motion = np.linalg.norm(np.diff(state.astype(np.float64), axis=0), axis=1)
+    energy = float(np.mean(np.sum(actions.astype(np.float64) ** 2, axis=1)))
+    third = np.diff(state.astype(np.float64), n=3, axis=0)
+    jerk = float(np.mean(np.sum(third**2, axis=1))) if len(third) else 0.0
+    return motion, energy, jerk
+
+
+def heuristic_table(demos) -> np.ndarray:
+    """[N, 3] idle fraction, action energy and jerk of each demo (an iterable of Demos)."""
+    motions, rest = [], []
+    for d in demos:
+        m, e, j = motion_features(d.state, d.actions)
+        motions.append(m)
+        rest.append((e, j))
+    typical = float(np.median(np.concatenate(motions))) if motions else 0.0
+    idle = [float(np.mean(m < IDLE_FRACTION_OF_MEDIAN * typical)) if len(m) else 1.0 for m in motions]
+    return np.column_stack([idle, np.asarray(rest).reshape(-1, 2)]) if motions else np.zeros((0, 3))
+
+
+def heuristic_score(features: np.ndarray) -> np.ndarray:
+    """Largest absolute robust z-score over the features, each standardised against all demos given."""
+    z = np.column_stack([np.abs(standardise(features[:, i], robust_stats(features[:, i])))
+                         for i in range(features.shape[1])])
+    return z.max(axis=1)
+
+
+def knn_same_task(emb: np.ndarray, tasks: np.ndarray, k: int = 5) -> np.ndarray:
+    """Mean distance to the k nearest other demos of the same task (NaN for a task's only demo)."""
+    out = np.full(len(emb), np.nan)
+    for task in np.unique(tasks):
+        idx = np.flatnonzero(tasks == task)
+        if len(idx) < 2:
+            continue
+        e = emb[idx].astype(np.float64)
+        d = np.linalg.norm(e[:, None] - e[None], axis=-1)
+        np.fill_diagonal(d, np.inf)
+        kk = min(k, len(idx) - 1)
+        out[idx] = np.sort(d, axis=1)[:, :kk].mean(1)
+    return out
+
+
+def random_score(n: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng([seed, 0x4A4D]).uniform(size=n)

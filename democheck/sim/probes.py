@@ -1,0 +1,165 @@
+"""Out-of-distribution probes of a dataset, written as a labelled LeRobot dataset (``democheck probe``).
+
+Each probe is made from one *source* demo and keeps its task, split and a link
+to it (``source_episode``); its ``label`` is the probe kind:
+
+- ``no-action``: the source's scene, the arm never moves (re-simulated from the
+  source's sim record; without one, the first frame and state held);
+- ``random``: the source's scene, smoothed random torques (needs the sim record);
+- ``no-objects``: the source's actions replayed in the scene without objects
+  (needs the sim record);
+- ``hidden``: the source's frames with opaque squares over a large share of the
+  view, the same squares all episode (works on any dataset).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from democheck.errors import DatasetError, DemocheckError
+from democheck.sim.variants import IMAGE_PROBES, PROBES
+
+EPISODES_PER_FILE = 50
+HIDDEN_COVER = (0.5, 0.7)  # share of the image the squares cover, drawn per probe
+HIDDEN_SIDE = (0.25, 0.5)  # side of each square, as a share of the image side
+
+
+def hide(frames: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, list[list[int]]]:
+    """Cover ``frames`` [T,H,W,3] with random solid squares until a drawn share of the view is hidden.
+
+    Returns the covered frames and the squares as [row, col, side, r, g, b].
+    """
+    T, H, W, _ = frames.shape
+    goal = rng.uniform(*HIDDEN_COVER)
+    mask = np.zeros((H, W), bool)
+    out = frames.copy()
+    squares = []
+    while mask.mean() < goal:
+        side = max(1, int(round(rng.uniform(*HIDDEN_SIDE) * min(H, W))))
+        r, c = int(rng.integers(0, H - side + 1)), int(rng.integers(0, W - side + 1))
+        colour = rng.integers(0, 256, size=3)
+        out[:, r:r + side, c:c + side] = colour.astype(np.uint8)
+        mask[r:r + side, c:c + side] = True
+        squares.append([r, c, side, *(int(v) for v in colour)])
+    return out, squares
+
+
+def pick_sources(episodes: Any, kinds: list[str], per_kind: int, seed: int) -> list[tuple[str, int]]:
+    """(kind, source episode) for every probe: ``per_kind`` clean demos per kind, drawn by ``seed``."""
+    pool = episodes.index
+    if "label" in episodes:
+        pool = episodes.index[episodes["label"].fillna("clean") == "clean"]
+    pool = np.asarray(sorted(int(e) for e in pool))
+    if not len(pool):
+        raise DatasetError("no clean demos to make probes from")
+    rng = np.random.default_rng([seed, 0x960BE])
+    picks = []
+    for kind in kinds:
+        chosen = rng.choice(pool, size=min(per_kind, len(pool)), replace=False)
+        picks += [(kind, int(e)) for e in sorted(chosen)]
+    return picks
+
+
+def _probe_init(source: str, camera: str | None, root: str, context: dict[str, Any]) -> None:
+    from democheck.data import open_dataset
+    from democheck.sim.suite import _W
+    from democheck.sim.variants import EnvCache
+
+    ds = open_dataset(source, camera=camera)
+    _W.update(ds=ds, root=Path(root), envs=EnvCache(ds.image_shape[0]), **context)
+
+
+def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[dict[str, Any]]:
+    from democheck.data.demo import Demo
+    from democheck.data.lerobot import VideoOptions, write_shard
+    from democheck.sim.env import ENV_STATE_DIM
+    from democheck.sim.suite import _W, tick
+    from democheck.sim.variants import resimulate
+
+    file_index, first_index, episodes = job
+    ds = _W["ds"]
+    demos = []
+    for episode_index, kind, src, probe_seed in episodes:
+        source = ds[src]
+        T = len(source)
+        rng = np.random.default_rng(probe_seed)
+        probe = {"kind": kind, "source_episode": src, "seed": probe_seed}
+        sim = None
+        if kind == "hidden":
+            frames, probe["squares"] = hide(source.frames, rng)
+            state, actions, env_state = source.state, source.actions, source.env_state
+            sim = source.sim
+        elif source.sim is None:  # image-level no-action: the first frame and state held
+            frames = np.repeat(source.frames[:1], T, 0)
+            state, actions, env_state = np.repeat(source.state[:1], T, 0), np.zeros_like(source.actions), None
+        else:
+            rec = resimulate(_W["envs"], source.sim, kind, seed=probe_seed,
+                             actions=source.actions if kind == "no-objects" else None)
+            frames, state, actions, env_state = rec["frames"], rec["state"], rec["actions"], rec["env_state"]
+            sim = {**source.sim, "policy": kind, "seed": probe_seed}
+        if env_state is None:
+            env_state = np.full((T, ENV_STATE_DIM), np.nan, np.float32)
+        sim = {**(sim or {}), "probe": probe}
+        demos.append(Demo(episode_index=episode_index, task=source.task, frames=frames, state=state, actions=actions,
+                          success=None, label=kind, split=source.split, sim=sim, env_state=env_state,
+                          source_episode=src))
+        tick()
+    return write_shard(_W["root"], file_index, demos, _W["task_index"], first_index, _W["fps"],
+                       VideoOptions(_W["pix_fmt"], _W["crf"]))
+
+
+def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = None, per_kind: int = 50,
+                seed: int = 0, workers: int = 2, camera: str | None = None, force: bool = False,
+                on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """Write a probe dataset made from ``source`` under ``out`` (atomically); returns its summary."""
+    from democheck.data import open_dataset
+    from democheck.data.lerobot import VideoOptions, write_meta
+    from democheck.data.video import DEFAULT_CRF, DEFAULT_PIX_FMT
+    from democheck.fsutil import atomic_output_dir
+    from democheck.sim.env import ACTION_NAMES, ENV_STATE_NAMES, STATE_NAMES
+    from democheck.sim.suite import run_shards
+
+    kinds = list(kinds or PROBES)
+    unknown = [k for k in kinds if k not in PROBES]
+    if unknown:
+        raise DemocheckError(f"unknown probe kind {', '.join(unknown)}; kinds: {', '.join(PROBES)}")
+    if per_kind < 1:
+        raise DemocheckError("--per-kind must be at least 1")
+    ds = open_dataset(source, camera=camera)
+    h, w, _ = ds.image_shape
+    if h != w:
+        raise DatasetError(f"{ds.root}: probes are written as square videos; this camera is {h}x{w}")
+    picks = pick_sources(ds.episodes, kinds, per_kind, seed)
+    has_sim = "sim" in ds.episodes and bool(ds.episodes["sim"].fillna("").astype(str).str.len().gt(0).all())
+    need_sim = sorted({k for k, _ in picks if k not in IMAGE_PROBES})
+    if need_sim and not has_sim:
+        raise DatasetError(f"{ds.root}: {', '.join(need_sim)} probes re-simulate each demo and this dataset has no "
+                           f"sim records (it was not made by democheck synth); use --kinds {','.join(IMAGE_PROBES)}")
+    lengths = ds.episodes["length"]
+    episodes = [(i, kind, src, int(np.random.SeedSequence([seed, i]).generate_state(1)[0]))
+                for i, (kind, src) in enumerate(picks)]
+    jobs, frame = [], 0
+    for f, s in enumerate(range(0, len(episodes), EPISODES_PER_FILE)):
+        chunk = episodes[s:s + EPISODES_PER_FILE]
+        jobs.append((f, frame, chunk))
+        frame += int(sum(lengths[src] for _, _, src, _ in chunk))
+    tasks = sorted({str(ds.episodes.loc[src, "task"]) for _, src in picks})
+    context = {"task_index": {t: i for i, t in enumerate(tasks)}, "fps": int(round(ds.fps)),
+               "pix_fmt": DEFAULT_PIX_FMT, "crf": DEFAULT_CRF}
+    t0 = time.perf_counter()
+    with atomic_output_dir(out, force=force) as tmp:
+        rows = run_shards(jobs, _probe_shard, _probe_init, (str(ds.root), camera, str(tmp), context), workers,
+                          len(episodes), on_progress)
+        sim_layout = ds.state_dim == len(STATE_NAMES) and ds.action_dim == len(ACTION_NAMES)
+        state_names = STATE_NAMES if sim_layout else [f"state.{i}" for i in range(ds.state_dim)]
+        action_names = ACTION_NAMES if sim_layout else [f"action.{i}" for i in range(ds.action_dim)]
+        summary = {"source": str(ds.root), "kinds": {k: sum(kk == k for kk, _ in picks) for k in kinds},
+                   "per_kind": per_kind, "seed": seed, "episodes": len(episodes),
+                   "wall_s": round(time.perf_counter() - t0, 3)}
+        write_meta(tmp, rows, tasks, context["fps"], h, state_names, action_names, ENV_STATE_NAMES,
+                   VideoOptions(DEFAULT_PIX_FMT, DEFAULT_CRF), suite={"probes": summary})
+    return summary
