@@ -309,6 +309,45 @@ def bench(
     console.print(f"{out}/bench.md, bench.json, bench.rrd (Figures 5A and 5B), scores.parquet")
 
 
+@app.command(name="eval")
+def eval_(
+    model: Annotated[Optional[Path], typer.Argument(help="Model folder (default: the shipped models/petnet-push-v1).")] = None,
+    data: Annotated[Path, typer.Option(help="Suite to draw cue demos and tasks from (made by democheck synth; e.g. democheck synth push-v1 --out data/push-v1).")] = Path("data/push-v1"),
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for eval.json, eval.md, trials.parquet, eval.rrd.")] = Path("runs/eval"),
+    split: Annotated[str, typer.Option(help="Which tasks: test (meta-test, held-out objects), val or train.")] = "test",
+    trials: Annotated[int, typer.Option(help="Rollouts per task, each on a new layout with its own cue draw.")] = 6,
+    shots: Annotated[int, typer.Option(help="Cue demos per trial (combined by product of Gaussians).")] = 1,
+    workers: Annotated[int, typer.Option(help="Parallel rollout processes.")] = 2,
+    seed: Annotated[int, typer.Option(help="Seed for cue draws and layouts.")] = 0,
+    device: Annotated[str, typer.Option(help="Device for inferring z from the cues (rollouts run on CPU).")] = "auto",
+    force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
+) -> None:
+    """Closed-loop meta-test: one-shot success on held-out tasks, and success by cue uncertainty."""
+    with _user_errors():
+        from democheck.evaluate.meta_test import evaluate
+
+        if not data.exists():
+            raise DemocheckError(f"{data}: no such dataset; generate it: democheck synth push-v1 --out {data}")
+        with _episode_bar("eval", 0) as on_progress:
+            s = evaluate(model, data, out, split=split, trials=trials, shots=shots, workers=workers, seed=seed,
+                         device=device, force=force, on_progress=on_progress)
+    table = Table(title=f"{s['model']} on {s['tasks']} {split} tasks, {shots}-shot, {trials} trials each",
+                  show_header=False)
+
+    def pct(r):
+        return f"{100 * r['success_rate']:.1f}%  (95% CI {100 * r['ci95'][0]:.1f}-{100 * r['ci95'][1]:.1f}, n={r['n']})"
+
+    table.add_row("model success", pct(s["model_success"]))
+    table.add_row("expert, same layouts", pct(s["expert"]))
+    if s.get("flagged"):
+        table.add_row("cues flagged (OCSVM)", pct(s["flagged"]) if s["flagged"]["n"] else "none flagged")
+        table.add_row("cues not flagged", pct(s["unflagged"]))
+    for q in s.get("sigma_quartiles", []):
+        table.add_row(f"sigma quartile {q['quartile']}", pct(q))
+    console.print(table)
+    console.print(f"{out}/eval.md, eval.json, trials.parquet, eval.rrd ({s['rollouts_per_s']:.1f} rollouts/s)")
+
+
 @app.command()
 def view(
     report: Annotated[Path, typer.Argument(help="A report folder written by audit (or an .rrd file).")],

@@ -17,3 +17,15 @@ def tiny_dataset(tmp_path_factory):
     out = tmp_path_factory.mktemp("ds") / "tiny"
     summary = generate(TINY, out, workers=1)
     return out, summary
+
+
+@pytest.fixture(scope="session")
+def tiny_model(tiny_dataset, tmp_path_factory):
+    from democheck.petnet.train import TrainConfig
+    from democheck.workflows import train_model
+
+    root, _ = tiny_dataset
+    out = tmp_path_factory.mktemp("model") / "m"
+    train_model(root, out, TrainConfig(steps=6, batch_tasks=2, timesteps=2, val_every=3, device="cpu"),
+                cache_dir=tmp_path_factory.mktemp("cache"))
+    return out

@@ -76,18 +76,6 @@ def test_metrics():
     assert d["auroc"] == 1.0 and d["p_at_k"] == 1.0 and d["n"] == 2
 
 
-@pytest.fixture(scope="module")
-def tiny_model(tiny_dataset, tmp_path_factory):
-    from democheck.petnet.train import TrainConfig
-    from democheck.workflows import train_model
-
-    root, _ = tiny_dataset
-    out = tmp_path_factory.mktemp("model") / "m"
-    train_model(root, out, TrainConfig(steps=6, batch_tasks=2, timesteps=2, val_every=3, device="cpu"),
-                cache_dir=tmp_path_factory.mktemp("cache"))
-    return out
-
-
 def _read_rrd(path):
     import rerun.chunk as rc
 

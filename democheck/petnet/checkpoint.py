@@ -43,6 +43,10 @@ class Normalisation:
     def action(self, x: np.ndarray) -> np.ndarray:
         return (x - np.float32(self.action_mean)) / np.float32(self.action_std)
 
+    def unaction(self, y: np.ndarray) -> np.ndarray:
+        """The controller's normalised output back in the dataset's action units (inverse of ``action``)."""
+        return y * np.float32(self.action_std) + np.float32(self.action_mean)
+
     @classmethod
     def fit(cls, state: np.ndarray, actions: np.ndarray) -> "Normalisation":
         def std(x):

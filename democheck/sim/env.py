@@ -208,7 +208,8 @@ class PushEnv(gym.Env):
 
     def _observation(self) -> dict[str, np.ndarray]:
         image = self.render() if self.render_images else np.zeros((self.image_size,) * 2 + (3,), np.uint8)
-        return {"image": image, "state": self.state()}
+        self.last_obs = {"image": image, "state": self.state()}  # what a closed-loop policy acts on
+        return self.last_obs
 
     def _info(self, dist: float | None = None) -> dict[str, Any]:
         return {"success": self.steps_in_goal >= SUCCESS_STEPS, "steps_in_goal": self.steps_in_goal,

@@ -15,6 +15,10 @@ The bench's recording (``write_bench_rrd``):
     bench                         the AUROC table and the verdicts (markdown)
     figure_5a/mean, figure_5a/std task standard deviation per kind (bar charts, kinds in the order of ``kinds``)
     figure_5b/mean_sigma          task standard deviation vs number of cues, on the ``cues`` timeline
+
+The meta-test's recording (``write_eval_rrd``):
+    eval                          success rates (markdown)
+    rollouts/<outcome>/<task>_t<k>/video, actions, state, sigma   a few rollouts per outcome
 """
 
 from __future__ import annotations
@@ -163,4 +167,35 @@ def write_bench_rrd(path: Path, summary: dict) -> None:
         rrb.Vertical(rrb.BarChartView(origin="figure_5a/mean", name="Figure 5A: mean sigma per kind"),
                      rrb.BarChartView(origin="figure_5a/std", name="Figure 5A: spread (std) per kind")),
         rrb.TimeSeriesView(origin="figure_5b", name="Figure 5B: sigma vs number of cues")), collapse_panels=True))
+    rec.flush()
+
+
+def write_eval_rrd(path: Path, summary: dict, rollouts: list, fps: float, per_outcome: int = 3) -> None:
+    """A few closed-loop rollouts per outcome (success/failure) with the cue's sigma, and the success rates."""
+    rec = rr.RecordingStream("democheck_eval")
+    rec.save(str(path))
+    m, e = summary["model_success"], summary["expert"]
+    lines = ["# democheck eval", "", f"model {summary['model']}: success {100 * m['success_rate']:.1f}% "
+             f"(95% CI {100 * m['ci95'][0]:.1f}..{100 * m['ci95'][1]:.1f}, n = {m['n']}); "
+             f"expert on the same layouts {100 * e['success_rate']:.1f}%"]
+    if summary.get("flagged"):
+        lines.append(f"cues flagged by the OCSVM: {summary['flagged']['success_rate']} (n = {summary['flagged']['n']}); "
+                     f"not flagged: {summary['unflagged']['success_rate']} (n = {summary['unflagged']['n']})")
+    rec.log("eval", rr.TextDocument("\n\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
+    tabs, shown = [], {"success": 0, "failure": 0}
+    for trial, row in rollouts:
+        outcome = "success" if row["success"] else "failure"
+        if shown[outcome] >= per_outcome:
+            continue
+        shown[outcome] += 1
+        base = f"rollouts/{outcome}/{trial.task.replace(' ', '_')}_t{trial.trial}"
+        demo = Demo(episode_index=-1, task=trial.task, frames=row["frames"], state=row["state"], actions=row["actions"])
+        sigma = np.asarray(trial.sigma_vec if trial.sigma_vec else [np.nan], np.float32)
+        _log_demo(rec, base, demo, sigma, fps)
+        tabs.append(rrb.Vertical(rrb.Spatial2DView(origin=f"{base}/video", name="video"),
+                                 rrb.Horizontal(rrb.BarChartView(origin=f"{base}/sigma", name="cue sigma"),
+                                                rrb.TimeSeriesView(origin=f"{base}/actions", name="actions")),
+                                 name=f"{outcome}: {trial.task[:24]}"))
+    body = rrb.Horizontal(rrb.TextDocumentView(origin="eval", name="success"), *( [rrb.Tabs(*tabs)] if tabs else []))
+    rec.send_blueprint(rrb.Blueprint(body, collapse_panels=True))
     rec.flush()

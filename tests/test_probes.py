@@ -1,0 +1,280 @@
+"""Probes, injected defects and the detection benchmark (democheck probe, synth --defects, bench)."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pandas as pd
+import pytest
+from sklearn.metrics import average_precision_score, roc_auc_score
+from typer.testing import CliRunner
+
+from democheck.cli import app
+from democheck.data import open_dataset
+from democheck.sim import scene
+from democheck.sim.catalog import make_tasks, split_objects
+from democheck.sim.env import PushEnv
+from democheck.sim.variants import DEFECTS, EnvCache, make_policy, record_demo, resimulate
+
+from tests.conftest import TINY
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def probes(tiny_dataset, tmp_path_factory):
+    from democheck.sim.probes import make_probes
+
+    root, _ = tiny_dataset
+    out = tmp_path_factory.mktemp("probes") / "p"
+    summary = make_probes(root, out, per_kind=2, seed=5, workers=1)
+    return root, out, summary
+
+
+def _pairs(src_root, probe_root):
+    src, pr = open_dataset(src_root), open_dataset(probe_root)
+    return [(pr[e], src[pr[e].source_episode]) for e in pr.episode_indices]
+
+
+def test_probe_dataset_labels_and_links(probes):
+    root, out, summary = probes
+    ds = open_dataset(out)
+    assert summary["kinds"] == {"no-action": 2, "random": 2, "no-objects": 2, "hidden": 2}
+    eps = ds.episodes
+    assert sorted(eps["label"].value_counts().items()) == [("hidden", 2), ("no-action", 2), ("no-objects", 2),
+                                                          ("random", 2)]
+    src = open_dataset(root)
+    for e in ds.episode_indices:
+        d = ds[e]
+        s = src[d.source_episode]
+        assert d.task == s.task and d.split == s.split and d.sim["probe"]["source_episode"] == s.episode_index
+
+
+def test_each_probe_kind_differs_from_its_source_as_defined(probes):
+    root, out, _ = probes
+    for probe, source in _pairs(root, out):
+        kind = probe.label
+        arm_q = probe.state[:, :7]
+        if kind == "no-action":
+            assert np.abs(arm_q - arm_q[0]).max() < 1e-3  # the arm never moves
+            assert np.abs(probe.actions).max() == 0
+            np.testing.assert_allclose(probe.env_state, np.repeat(source.env_state[:1], len(probe), 0), atol=1e-6)
+        elif kind == "random":
+            assert np.abs(arm_q - arm_q[0]).max() > 0.05  # it moves, and not as the source did
+            assert not np.allclose(probe.actions, source.actions)
+        elif kind == "no-objects":
+            assert np.isnan(probe.env_state).all()  # no objects in the scene
+            np.testing.assert_array_equal(probe.actions, source.actions)  # the source's motion replayed
+            np.testing.assert_array_equal(probe.state[0], source.state[0])
+            # Only the objects' pixels change at the first frame: a small, non-empty region.
+            diff = np.abs(probe.frames[0].astype(int) - source.frames[0].astype(int)).max(-1) > 40
+            assert 0 < diff.mean() < 0.25
+        elif kind == "hidden":
+            squares = probe.sim["probe"]["squares"]
+            covered = np.zeros(probe.frames.shape[1:3], bool)
+            for r, c, side, *rgb in squares:
+                covered[r:r + side, c:c + side] = True
+            assert covered.mean() >= 0.5
+            last = squares[-1]  # the last square drawn is on top everywhere it lies
+            patch = probe.frames[:, last[0]:last[0] + last[2], last[1]:last[1] + last[2]].astype(int)
+            err = np.abs(patch - np.array(last[3:]))
+            assert err.mean() < 4 and err.max() <= 24  # a solid colour, up to video compression at its edges
+            outside = ~covered
+            if outside.any():
+                err = np.abs(probe.frames[:, outside].astype(int) - source.frames[:, outside].astype(int))
+                assert err.mean() < 4
+        else:  # pragma: no cover
+            raise AssertionError(kind)
+
+
+def test_resimulating_a_clean_demo_reproduces_it_exactly(tiny_dataset):
+    root, _ = tiny_dataset
+    ds = open_dataset(root)
+    envs = EnvCache(TINY.image_size)
+    for e in ds.episode_indices[:3]:
+        demo = ds[e]
+        rec = resimulate(envs, demo.sim)
+        np.testing.assert_array_equal(rec["state"], demo.state)
+        np.testing.assert_array_equal(rec["actions"], demo.actions)
+        np.testing.assert_array_equal(rec["env_state"], demo.env_state)
+        assert rec["success"] == demo.success
+
+
+def test_image_level_probes_for_a_dataset_without_sim_records(tiny_dataset, tmp_path):
+    import shutil
+
+    from democheck.errors import DatasetError
+    from democheck.sim.probes import make_probes
+
+    root, _ = tiny_dataset
+    plain = tmp_path / "plain"
+    shutil.copytree(root, plain)
+    (plain / "meta/democheck/episodes.parquet").unlink()  # a user's dataset: no sidecar, no sim records
+    with pytest.raises(DatasetError, match="no sim records"):
+        make_probes(plain, tmp_path / "p1", ["no-objects"], per_kind=1, workers=1)
+    assert not (tmp_path / "p1").exists()
+    make_probes(plain, tmp_path / "p2", ["no-action", "hidden"], per_kind=2, workers=1)
+    ds = open_dataset(tmp_path / "p2")
+    held = [ds[e] for e in ds.episode_indices if ds[e].label == "no-action"]
+    for d in held:
+        err = np.abs(d.frames.astype(int) - d.frames[:1].astype(int))
+        assert err.mean() < 2 and err.max() <= 32  # the first frame held, up to video compression
+        assert (d.state == d.state[0]).all() and (d.actions == 0).all()
+
+
+def test_defects_behave_as_labelled():
+    """Full-length episodes without rendering: each defect does what its name says."""
+    task = make_tasks(3, 0, 0, seed=0)[1]
+    env = PushEnv(task, render_images=False)
+    ends = {}
+    for kind in ("expert",) + DEFECTS:
+        env.occluder = kind == "occluded"
+        env.set_task(task)
+        rec = record_demo(env, make_policy(kind, env, 11).act, 100, seed=11)
+        to_goal = lambda xy: np.hypot(*(xy - scene.GOAL_XY))  # noqa: E731
+        ends[kind] = (to_goal(rec["env_state"][0, :2]), to_goal(rec["env_state"][-1, :2]),
+                      to_goal(rec["env_state"][0, 3:5]), to_goal(rec["env_state"][-1, 3:5]), rec["success"])
+    t0, t1, d0, d1, ok = ends["expert"]
+    assert ok and t1 < scene.GOAL_RADIUS
+    t0, t1, d0, d1, ok = ends["wrong-object"]
+    assert not ok and d1 < scene.GOAL_RADIUS and abs(t1 - t0) < 0.01  # the distractor pushed, the target left
+    t0, t1, d0, d1, ok = ends["both-objects"]
+    assert d1 < d0 - 0.05 and t1 < t0 - 0.05  # both moved towards the goal
+    t0, t1, d0, d1, ok = ends["gave-up"]
+    assert not ok and scene.GOAL_RADIUS < t1 < t0  # stopped on the way
+    assert ends["occluded"][4]  # the expert's push, only hidden from the camera
+
+
+def test_occluder_hides_the_target_from_the_camera():
+    task = make_tasks(3, 0, 0, seed=0)[0]
+    envs = EnvCache(64)
+    frames = {}
+    for kind in ("expert", "occluded"):
+        env = envs.get(task.target, task.distractor, kind)
+        obs, _ = env.reset(seed=4)
+        frames[kind] = obs["image"].astype(int)
+    # Without the target: what the camera sees where the target is.
+    env = envs.get(task.target, task.distractor, "expert")
+    env.reset(seed=4)
+    env.data.qpos[env._obj_qadr["target"][:2]] = [0.0, 0.9]  # out of view
+    import mujoco
+
+    mujoco.mj_forward(env.model, env.data)
+    no_target = env.render().astype(int)
+    target_px = np.abs(frames["expert"] - no_target).max(-1) > 30
+    assert target_px.sum() > 5
+    # Every pixel that showed the target now shows one flat grey card instead.
+    seen = frames["occluded"][target_px]
+    assert np.abs(seen - seen.mean(0)).max() < 40 and np.ptp(seen.mean(0)) < 20
+    assert np.abs(seen - frames["expert"][target_px]).max(-1).mean() > 30
+
+
+def test_recipe_defects_and_rate(tmp_path):
+    from democheck.sim.suite import load_recipe, planted_episodes
+
+    r = load_recipe("push-mini").with_overrides(defect_rate=0.25, defects={"idle": 3})
+    counts = r.defect_counts()
+    assert counts["idle"] == 3 and sum(counts[k] for k in DEFECTS) == round(0.25 * r.n_episodes)
+    assert max(counts[k] for k in DEFECTS) - min(counts[k] for k in DEFECTS) <= 1
+    assert len(planted_episodes(r)) == sum(counts.values())
+    toml = tmp_path / "r.toml"
+    toml.write_text('name = "x"\n[defects]\nrate = 0.1\nwrong-object = 2\n')
+    r2 = load_recipe(str(toml))
+    assert r2.defect_rate == 0.1 and dict(r2.defects) == {"wrong-object": 2}
+    from democheck.errors import RecipeError
+
+    with pytest.raises(RecipeError, match="defect kinds"):
+        load_recipe("push-mini").with_overrides(defects={"sneeze": 1})
+
+
+def test_fresh_meta_test_recipe_keeps_push_v1_held_out_objects():
+    from democheck.sim.suite import load_recipe
+
+    test = load_recipe("push-v1-test")
+    v1 = load_recipe("push-v1")
+    _, held = split_objects(v1.seed, v1.test_object_fraction)
+    held = {o.key for o in held}
+    tasks = test.tasks()
+    assert tasks and all(t.split == "test" for t in tasks)
+    assert all(t.target.key in held and t.distractor.key in held for t in tasks)
+    v1_pairs = {(t.target.key, t.distractor.key) for t in v1.tasks() if t.split == "test"}
+    new_pairs = {(t.target.key, t.distractor.key) for t in tasks}
+    assert len(new_pairs - v1_pairs) > len(new_pairs) // 2  # mostly new tasks
+
+
+@pytest.fixture(scope="module")
+def defect_dataset(tmp_path_factory):
+    from democheck.sim.suite import generate
+
+    out = tmp_path_factory.mktemp("defects") / "d"
+    recipe = replace(TINY, seed=9, defects=(("idle", 1), ("random", 1), ("wrong-object", 1)))
+    generate(recipe, out, workers=1)
+    return out
+
+
+def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny_model, tmp_path):
+    from democheck.petnet.train import TrainConfig
+    from democheck.workflows import train_model
+
+    _, probe_root, _ = probes
+    tec = tmp_path / "tec"
+    train_model(defect_dataset, tec, TrainConfig(steps=4, batch_tasks=2, timesteps=2, val_every=2, device="cpu"),
+                model_type="tecnet", cache_dir=tmp_path / "cache")
+    out = tmp_path / "bench"
+    res = runner.invoke(app, ["bench", str(defect_dataset), str(probe_root), "--out", str(out), "--model",
+                              str(tiny_model), "--tecnet", str(tec)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "bench.json").read_text())
+    kinds = {"idle", "random", "wrong-object", "no-action", "no-objects", "hidden"}
+    assert kinds <= set(doc["kinds"])
+    assert set(doc["scorers"]) == {"sigma", "consistency", "suspicion", "ocsvm_flag", "tecnet_knn", "heuristic",
+                                   "random"}
+    for name, per in doc["scorers"].items():
+        for kind in kinds:
+            assert set(per[kind]) == {"auroc", "auprc", "p_at_k", "n"}
+    # Every figure is what scikit-learn says on the pooled scores.
+    table = pd.read_parquet(out / "scores.parquet")
+    assert len(table) == len(open_dataset(defect_dataset)) + len(open_dataset(probe_root))
+    for name in ("sigma", "heuristic", "tecnet_knn"):
+        for kind in ("idle", "hidden"):
+            keep = table["label"].isin([kind, "clean"])
+            y, s = (table["label"][keep] == kind).to_numpy(), table[name][keep].to_numpy()
+            s = np.nan_to_num(s, nan=np.nanmin(s))
+            assert doc["scorers"][name][kind]["auroc"] == pytest.approx(roc_auc_score(y, s))
+            assert doc["scorers"][name][kind]["auprc"] == pytest.approx(average_precision_score(y, s))
+    curve = [c["mean_sigma"] for c in doc["figure_5b"]]
+    assert all(b < a for a, b in zip(curve, curve[1:]))  # more cues, less uncertainty
+    assert set(doc["figure_5a"]) >= kinds | {"clean"}
+    md = (out / "bench.md").read_text()
+    assert "AUROC" in md and "Figure 5A" in md and "Figure 5B" in md
+    from tests.test_audit import _read_rrd
+
+    ents = _read_rrd(out / "bench.rrd")
+    assert {"/bench", "/figure_5a/mean", "/figure_5a/std", "/figure_5b/mean_sigma"} <= set(ents)
+
+
+def test_heuristic_scorer_catches_an_idle_demo():
+    from democheck.audit.baselines import heuristic_score, heuristic_table
+    from democheck.data.demo import Demo
+
+    rng = np.random.default_rng(0)
+    demos = []
+    for i in range(10):
+        state = np.cumsum(rng.normal(0, 0.05, (20, 4)), 0).astype(np.float32)
+        demos.append(Demo(i, "t", np.zeros((20, 2, 2, 3), np.uint8), state, rng.normal(0, 0.3, (20, 3)).astype(np.float32)))
+    demos[4].state[:] = demos[4].state[0]
+    demos[4].actions[:] = 0
+    score = heuristic_score(heuristic_table(demos))
+    assert int(np.argmax(score)) == 4
+
+
+def test_bench_refuses_unlabelled_data(tiny_model, tmp_path, tiny_dataset):
+    import shutil
+
+    root, _ = tiny_dataset
+    plain = tmp_path / "plain"
+    shutil.copytree(root, plain)
+    (plain / "meta/democheck/episodes.parquet").unlink()
+    res = runner.invoke(app, ["bench", str(plain), "--out", str(tmp_path / "b"), "--model", str(tiny_model)])
+    assert res.exit_code == 2 and "no labels" in res.output
+    assert not (tmp_path / "b").exists()
