@@ -166,6 +166,7 @@ def train(
     kl_weight: Annotated[float, typer.Option(help="Weight of a KL term on the task posterior (0: the paper's loss).")] = 0.0,
     kl_target: Annotated[str, typer.Option(help="prior: KL to N(0, I); np: Neural-Process style, cue vs cue+target.")] = "prior",
     contrastive_weight: Annotated[float, typer.Option(help="PETNet option: weight of the task-matching loss, which trains mu and var to find a cue's task among others (0: the paper's loss).")] = 0.0,
+    keypoints: Annotated[bool, typer.Option("--keypoints", help="Controller: last two conv layers at stride 1 and a spatial softmax (expected x, y per channel) instead of a flattened 4x4 map.")] = False,
     seed: Annotated[int, typer.Option(help="Seed for initialisation, sampling and noise.")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     val_every: Annotated[int, typer.Option(help="Validate on the val split every this many steps.")] = 500,
@@ -189,10 +190,10 @@ def train(
         from democheck.petnet.train import TrainConfig
 
         tc = TrainConfig(steps=steps, batch_tasks=batch_tasks, timesteps=timesteps, lr=lr, kl_weight=kl_weight,
-                         kl_target=kl_target, contrastive_weight=contrastive_weight, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
+                         kl_target=kl_target, contrastive_weight=contrastive_weight, keypoints=keypoints, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
         cols = (TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(),
                 TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
-        with Progress(*cols, console=err_console) as bar:
+        with Progress(*cols, console=err_console, transient=True) as bar:
             job = bar.add_task("decode", total=None, info="")
 
             def on_decode(done: int, total: int) -> None:
@@ -334,13 +335,12 @@ def eval_(
     table = Table(title=f"{s['model']} on {s['tasks']} {split} tasks, {shots}-shot, {trials} trials each",
                   show_header=False)
 
-    def pct(r):
-        return f"{100 * r['success_rate']:.1f}%  (95% CI {100 * r['ci95'][0]:.1f}-{100 * r['ci95'][1]:.1f}, n={r['n']})"
+    from democheck.evaluate.meta_test import fmt_rate as pct
 
     table.add_row("model success", pct(s["model_success"]))
     table.add_row("expert, same layouts", pct(s["expert"]))
     if s.get("flagged"):
-        table.add_row("cues flagged (OCSVM)", pct(s["flagged"]) if s["flagged"]["n"] else "none flagged")
+        table.add_row("cues flagged (OCSVM)", pct(s["flagged"]))
         table.add_row("cues not flagged", pct(s["unflagged"]))
     for q in s.get("sigma_quartiles", []):
         table.add_row(f"sigma quartile {q['quartile']}", pct(q))

@@ -25,10 +25,14 @@ def train_model(dataset: str | Path, out: str | Path, tc, model_type: str = "pet
     from democheck.audit.scores import reference
     from democheck.data import open_dataset
     from democheck.data.cache import build_cache
+    from democheck.errors import DatasetError
     from democheck.petnet.card import git_commit, model_card
     from democheck.petnet.train import resolve_device, train
 
     ds = open_dataset(dataset, camera=camera)
+    if ds.episodes.groupby("task").size().max() < 2:
+        raise DatasetError(f"{ds.root}: every task has a single demo; training needs two or more per task (a cue and "
+                           "a trajectory to imitate); democheck audit can still score these demos with a trained model")
     arrays = build_cache(ds, cache_dir, on_progress=on_decode)
     data: dict[str, Any] = {"path": str(dataset), "episodes": len(ds), "tasks": len(ds.tasks), "camera": ds.camera,
                             "fps": ds.fps, "format": ds.format}

@@ -26,6 +26,8 @@ def open_dataset(path: str | Path, camera: str | None = None, state_key: str | N
         from democheck.data.robomimic import Robomimic
 
         return DemoSet(Robomimic(root, camera=camera, state_key=state_key, action_key=action_key, task=task))
+    if root.is_dir() and (root / "meta").is_dir() and not (root / "meta" / "info.json").exists():
+        raise DatasetError(f"{root / 'meta' / 'info.json'}: missing; a LeRobot dataset describes itself there")
     if root.is_dir() and (root / "meta" / "info.json").exists():
         from democheck.data.lerobot import open_lerobot
 

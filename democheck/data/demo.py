@@ -14,6 +14,8 @@ from typing import Any, Iterator, Protocol
 import numpy as np
 import pandas as pd
 
+from democheck.errors import DatasetError
+
 
 @dataclass
 class Demo:
@@ -34,6 +36,30 @@ class Demo:
 
     def __len__(self) -> int:
         return len(self.actions)
+
+
+def check_arrays(where: str | Path, key: str, x: np.ndarray, dim: int, episode: np.ndarray | None = None) -> None:
+    """One clear line when a state/action matrix has the wrong width or holds NaN or infinite values."""
+    if x.ndim != 2 or x.shape[1] != dim:
+        raise DatasetError(f"{where}: {key!r} has {x.shape[1] if x.ndim == 2 else x.shape} values per frame, "
+                           f"the metadata says {dim}")
+    bad = ~np.isfinite(x).all(axis=1)
+    if bad.any():
+        row = int(np.argmax(bad))
+        ep = f" (episode {int(episode[row])})" if episode is not None else ""
+        raise DatasetError(f"{where}: NaN or infinite values in {key!r} at row {row}{ep}")
+
+
+def check_episodes(where: str | Path, episodes: pd.DataFrame) -> None:
+    """A dataset must have episodes, each at least one frame long."""
+    if not len(episodes):
+        raise DatasetError(f"{where}: the dataset has no episodes")
+    if not episodes.index.is_unique:
+        dup = episodes.index[episodes.index.duplicated()][0]
+        raise DatasetError(f"{where}: episode {dup} is listed more than once")
+    short = episodes.index[episodes["length"].to_numpy() < 1]
+    if len(short):
+        raise DatasetError(f"{where}: episode {int(short[0])} has no frames (length 0)")
 
 
 class DemoSource(Protocol):

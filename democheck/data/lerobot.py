@@ -29,7 +29,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from democheck.data import video
-from democheck.data.demo import Demo
+from democheck.data.demo import Demo, check_arrays, check_episodes
 from democheck.errors import DatasetError
 
 CODEBASE_VERSION = "v3.0"
@@ -236,6 +236,26 @@ def _read_parquet(path: Path, columns: list[str] | None = None, schema_only: boo
         raise DatasetError(f"{path}: unreadable parquet ({str(exc).splitlines()[0]})") from None
 
 
+def _frame(path: Path) -> pd.DataFrame:
+    """A whole (small, metadata) parquet file as a DataFrame of plain Python values, decoded now, not on access."""
+    table = _read_parquet(path)
+    try:
+        return pd.DataFrame({c: table.column(c).to_pylist() for c in table.column_names})
+    except (pa.ArrowException, UnicodeDecodeError, ValueError, OverflowError) as exc:
+        raise DatasetError(f"{path}: unreadable values ({str(exc).splitlines()[0][:80]})") from None
+
+
+def _template(info: dict[str, Any], key: str, default: str | None, root: Path, **fields: Any) -> str:
+    """A file path from one of info.json's path templates, with a malformed template as a DatasetError."""
+    tpl = info.get(key, default)
+    try:
+        if not isinstance(tpl, str):
+            raise TypeError(type(tpl).__name__)
+        return tpl.format(**fields)
+    except (KeyError, IndexError, ValueError, TypeError, AttributeError) as exc:
+        raise DatasetError(f"{root / 'meta/info.json'}: {key} {tpl!r:.60} is not a usable path template ({exc})") from None
+
+
 def _inside(root: Path, rel: str) -> Path:
     """A path from the dataset's metadata, refused if it escapes the dataset folder."""
     path = (root / rel).resolve()
@@ -248,13 +268,16 @@ def _column_matrix(table: pa.Table, key: str, path: Path) -> np.ndarray:
     if key not in table.column_names:
         raise DatasetError(f"{path}: no column {key!r}")
     col = table.column(key).combine_chunks()
-    if pa.types.is_fixed_size_list(col.type) or pa.types.is_list(col.type) or pa.types.is_large_list(col.type):
-        flat = col.flatten().to_numpy(zero_copy_only=False)
-        n = len(col)
-        if n and flat.size % n:
-            raise DatasetError(f"{path}: column {key!r} has rows of different lengths")
-        return flat.reshape(n, -1 if n else 0).astype(np.float32)
-    return col.to_numpy(zero_copy_only=False).astype(np.float32).reshape(len(col), -1)
+    try:
+        if pa.types.is_fixed_size_list(col.type) or pa.types.is_list(col.type) or pa.types.is_large_list(col.type):
+            flat = col.flatten().to_numpy(zero_copy_only=False)
+            n = len(col)
+            if n and flat.size % n:
+                raise DatasetError(f"{path}: column {key!r} has rows of different lengths")
+            return flat.reshape(n, -1 if n else 0).astype(np.float32)
+        return col.to_numpy(zero_copy_only=False).astype(np.float32).reshape(len(col), -1)
+    except (ValueError, TypeError, pa.ArrowException):
+        raise DatasetError(f"{path}: column {key!r} is {col.type}, not numbers") from None
 
 
 class _LeRobotBase:
@@ -271,6 +294,8 @@ class _LeRobotBase:
             self.features: dict[str, Any] = dict(info["features"])
         except (KeyError, TypeError, ValueError):
             raise DatasetError(f"{root / 'meta/info.json'}: needs 'fps' and 'features'") from None
+        if not (np.isfinite(self.fps) and self.fps > 0):
+            raise DatasetError(f"{root / 'meta/info.json'}: fps must be a positive number, not {info['fps']!r}")
         self.camera = self._pick_camera(camera)
         feat = self.features[self.camera]
         self.camera_dtype = feat.get("dtype")
@@ -312,7 +337,12 @@ class _LeRobotBase:
     def _attach_sidecar(self, episodes: pd.DataFrame) -> pd.DataFrame:
         path = self.root / SIDECAR_PATH
         if path.exists():
-            side = _read_parquet(path).to_pandas().set_index("episode_index")
+            side = _frame(path)
+            if "episode_index" not in side:
+                raise DatasetError(f"{path}: no column 'episode_index'")
+            side = side.set_index("episode_index")
+            if not side.index.is_unique:
+                raise DatasetError(f"{path}: an episode is listed more than once")
             episodes = episodes.join(side, how="left")
         return episodes
 
@@ -333,9 +363,13 @@ class _LeRobotBase:
             raise DatasetError(f"{path}: no column 'episode_index'")
         order = np.argsort(eps, kind="stable")
         uniq, starts, counts = np.unique(eps[order], return_index=True, return_counts=True)
+        state = _column_matrix(table, self.state_key, path)[order]
+        actions = _column_matrix(table, self.action_key, path)[order]
+        check_arrays(path, self.state_key, state, self.state_dim, eps[order])
+        check_arrays(path, self.action_key, actions, self.action_dim, eps[order])
         entry = {
-            "state": _column_matrix(table, self.state_key, path)[order],
-            "actions": _column_matrix(table, self.action_key, path)[order],
+            "state": state,
+            "actions": actions,
             "env_state": _column_matrix(table, ENV_STATE_KEY, path)[order] if ENV_STATE_KEY in table.column_names else None,
             "images": table.column(self.camera).to_pylist() if self.camera_dtype == "image" else None,
             "order": order,
@@ -381,10 +415,22 @@ class _LeRobotBase:
             success=None if success is None or pd.isna(success) else bool(success),
             label=row.get("label") if "label" in row and isinstance(row.get("label"), str) else None,
             split=row.get("split") if "split" in row and isinstance(row.get("split"), str) else None,
-            sim=json.loads(sim) if isinstance(sim, str) and sim else None,
+            sim=_sim_record(sim, self.root, episode_index),
             env_state=None if entry["env_state"] is None else entry["env_state"][s:e],
             source_episode=None if src is None or pd.isna(src) or int(src) < 0 else int(src),
         )
+
+
+def _sim_record(text: Any, root: Path, episode_index: int) -> dict[str, Any] | None:
+    if not isinstance(text, str) or not text:
+        return None
+    try:
+        sim = json.loads(text)
+    except json.JSONDecodeError:
+        sim = None
+    if not isinstance(sim, dict):
+        raise DatasetError(f"{root / SIDECAR_PATH}: episode {episode_index}: malformed sim record")
+    return sim
 
 
 class LeRobotV3(_LeRobotBase):
@@ -398,7 +444,7 @@ class LeRobotV3(_LeRobotBase):
         files = sorted(ep_dir.glob("chunk-*/file-*.parquet"))
         if not files:
             raise DatasetError(f"{ep_dir}: no episode metadata files")
-        eps = pd.concat([_read_parquet(f).to_pandas() for f in files], ignore_index=True)
+        eps = pd.concat([_frame(f) for f in files], ignore_index=True)
         need = ["episode_index", "tasks", "length", "data/chunk_index", "data/file_index"]
         missing = [c for c in need if c not in eps.columns]
         if missing:
@@ -406,19 +452,20 @@ class LeRobotV3(_LeRobotBase):
         eps["task"] = [t[0] if len(t) else "" for t in eps["tasks"]]
         self._eps = eps.set_index("episode_index", drop=False)
         self.episodes = self._attach_sidecar(eps.set_index("episode_index")[["task", "length"]])
+        check_episodes(files[0], self.episodes)
 
     def _data_path(self, episode_index: int) -> Path:
         r = self._eps.loc[episode_index]
-        rel = self.info.get("data_path", DATA_PATH).format(chunk_index=int(r["data/chunk_index"]),
-                                                           file_index=int(r["data/file_index"]))
+        rel = _template(self.info, "data_path", DATA_PATH, self.root, chunk_index=int(r["data/chunk_index"]),
+                        file_index=int(r["data/file_index"]))
         return _inside(self.root, rel)
 
     def _video_span(self, episode_index: int) -> tuple[Path, int, int]:
         r = self._eps.loc[episode_index]
         pre = f"videos/{self.camera}/"
         try:
-            rel = self.info.get("video_path", VIDEO_PATH).format(
-                video_key=self.camera, chunk_index=int(r[pre + "chunk_index"]), file_index=int(r[pre + "file_index"]))
+            rel = _template(self.info, "video_path", VIDEO_PATH, self.root, video_key=self.camera,
+                            chunk_index=int(r[pre + "chunk_index"]), file_index=int(r[pre + "file_index"]))
             start = int(round(float(r[pre + "from_timestamp"]) * self.fps))
         except KeyError as exc:
             raise DatasetError(f"{self.root / 'meta/episodes'}: no {exc} for camera {self.camera!r}") from None
@@ -481,10 +528,12 @@ class LeRobotV21(_LeRobotBase):
         if not rows:
             raise DatasetError(f"{ep_path}: no episodes")
         self.episodes = self._attach_sidecar(pd.DataFrame(rows).set_index("episode_index"))
+        check_episodes(root / "meta/episodes.jsonl", self.episodes)
 
     def _path(self, template_key: str, episode_index: int) -> Path:
         chunk = episode_index // self.chunks_size
-        rel = self.info[template_key].format(episode_chunk=chunk, episode_index=episode_index, video_key=self.camera)
+        rel = _template(self.info, template_key, None, self.root, episode_chunk=chunk, episode_index=episode_index,
+                        video_key=self.camera)
         return _inside(self.root, rel)
 
     def load(self, episode_index: int) -> Demo:

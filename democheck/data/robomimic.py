@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from democheck.data.demo import Demo
+from democheck.data.demo import Demo, check_arrays, check_episodes
 from democheck.errors import DatasetError
 
 
@@ -96,6 +96,7 @@ class Robomimic:
         if eps["split"].isna().all():
             eps = eps.drop(columns="split")
         self.episodes = eps
+        check_episodes(path, eps)
 
     def _group(self, f, episode_index: int):
         return f["data"][self.episodes.loc[episode_index, "name"]]
@@ -107,6 +108,9 @@ class Robomimic:
             state = np.concatenate([np.asarray(g["obs"][k][()], np.float32).reshape(len(frames), -1)
                                     for k in self.state_keys], axis=1) if self.state_keys else np.zeros((len(frames), 0), np.float32)
             actions = np.asarray(g[self.action_key][()], np.float32)
+        where = f"{self.root}: data/{self.episodes.loc[episode_index, 'name']}"
+        check_arrays(where, "obs (state keys)", state, self.state_dim)
+        check_arrays(where, self.action_key, actions, self.action_dim)
         row = self.episodes.loc[episode_index]
         split = row.get("split") if "split" in row else None
         return Demo(episode_index=episode_index, task=str(row["task"]), frames=frames, state=state, actions=actions,

@@ -177,12 +177,17 @@ def sigma_quartiles(sigma: np.ndarray, success: np.ndarray) -> list[dict[str, An
             for i in range(4)]
 
 
+def fmt_rate(r: dict[str, Any]) -> str:
+    """``71.4% [66.7, 75.7] (n = 384)``; ``n/a (n = 0)`` for an empty group."""
+    if not r["n"] or r["success_rate"] is None:
+        return "n/a (n = 0)"
+    lo, hi = r["ci95"]
+    return f"{100 * r['success_rate']:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}] (n = {r['n']})"
+
+
 def markdown(summary: dict[str, Any]) -> str:
     s = summary
-
-    def pct(r):
-        lo, hi = r["ci95"]
-        return f"{100 * r['success_rate']:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}] (n = {r['n']})"
+    pct = fmt_rate
 
     lines = ["# democheck eval", "", f"model: {s['model']} ({s['model_type']})  ", f"cues from: {s['dataset']}, "
              f"split {s['split']}, {s['shots']}-shot, {s['trials']} trials per task, {s['tasks']} tasks, seed {s['seed']}",

@@ -40,6 +40,9 @@ class ModelConfig:
     fc_units: int = 200
     fc_layers: int = 3
     var_floor: float = 1e-4
+    # Controller only: last two conv layers at stride 1 and a spatial softmax (expected x, y of each channel)
+    # instead of flattening a 4x4 map, so object and fingertip positions survive to the FC layers.
+    keypoints: bool = False
 
     @property
     def embed_dim(self) -> int:
@@ -49,21 +52,41 @@ class ModelConfig:
         return asdict(self)
 
 
-def conv_stack(in_ch: int, cfg: ModelConfig) -> nn.Sequential:
-    """4 conv layers, 5x5, 16 channels, stride 2, ReLU (no normalisation: a demo's score must not depend on its batch)."""
+class SpatialSoftmax(nn.Module):
+    """[B, C, H, W] -> [B, 2C]: the expected (x, y) in [-1, 1] of each channel's softmax over the image."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, c, h, w = x.shape
+        p = F.softmax(x.reshape(b, c, h * w), dim=-1).reshape(b, c, h, w)
+        xs = torch.linspace(-1.0, 1.0, w, device=x.device, dtype=x.dtype)
+        ys = torch.linspace(-1.0, 1.0, h, device=x.device, dtype=x.dtype)
+        return torch.cat([(p.sum(2) * xs).sum(-1), (p.sum(3) * ys).sum(-1)], dim=-1)
+
+
+def _strides(cfg: ModelConfig, keypoints: bool) -> list[int]:
+    return [2 if i < 2 or not keypoints else 1 for i in range(cfg.conv_layers)]
+
+
+def conv_stack(in_ch: int, cfg: ModelConfig, keypoints: bool = False) -> nn.Sequential:
+    """4 conv layers, 5x5, 16 channels, stride 2, ReLU (no normalisation: a demo's score must not depend on its batch).
+
+    ``keypoints``: the last two layers at stride 1, then a spatial softmax instead of flattening.
+    """
     layers: list[nn.Module] = []
     ch = in_ch
-    for _ in range(cfg.conv_layers):
-        layers += [nn.Conv2d(ch, cfg.conv_channels, cfg.kernel, stride=2, padding=cfg.kernel // 2), nn.ReLU()]
+    for stride in _strides(cfg, keypoints):
+        layers += [nn.Conv2d(ch, cfg.conv_channels, cfg.kernel, stride=stride, padding=cfg.kernel // 2), nn.ReLU()]
         ch = cfg.conv_channels
-    layers.append(nn.Flatten())
+    layers.append(SpatialSoftmax() if keypoints else nn.Flatten())
     return nn.Sequential(*layers)
 
 
-def conv_out_dim(cfg: ModelConfig) -> int:
+def conv_out_dim(cfg: ModelConfig, keypoints: bool = False) -> int:
+    if keypoints:
+        return 2 * cfg.conv_channels
     side = cfg.image_size
-    for _ in range(cfg.conv_layers):
-        side = (side + 2 * (cfg.kernel // 2) - cfg.kernel) // 2 + 1
+    for stride in _strides(cfg, False):
+        side = (side + 2 * (cfg.kernel // 2) - cfg.kernel) // stride + 1
     return cfg.conv_channels * side * side
 
 
@@ -127,8 +150,8 @@ class Controller(nn.Module):
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
-        self.conv = conv_stack(3, cfg)
-        self.head = mlp(conv_out_dim(cfg) + cfg.state_dim + cfg.embed_dim, cfg.action_dim, cfg)
+        self.conv = conv_stack(3, cfg, keypoints=cfg.keypoints)
+        self.head = mlp(conv_out_dim(cfg, cfg.keypoints) + cfg.state_dim + cfg.embed_dim, cfg.action_dim, cfg)
 
     def forward(self, frame: torch.Tensor, state: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         return self.head(torch.cat([self.conv(frame), state, z], dim=-1))

@@ -46,6 +46,7 @@ class TrainConfig:
     # the embedding carry the task, and its variance say how well, from the first steps instead of waiting for the
     # controller to need it.
     contrastive_weight: float = 0.0
+    keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
     seed: int = 0
     val_every: int = 500
     ckpt_every: int = 1000
@@ -343,7 +344,7 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
     norm = Normalisation.fit(arrays.state[spans], arrays.actions[spans])
     h = arrays.frames.shape[1]
     cfg = ModelConfig(model_type=model_type, image_size=h, state_dim=arrays.state.shape[1],
-                      action_dim=arrays.actions.shape[1])
+                      action_dim=arrays.actions.shape[1], keypoints=tc.keypoints)
     model = build_model(cfg).to(device)
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=tc.lr)

@@ -65,7 +65,10 @@ def _histogram(rec: rr.RecordingStream, path: str, values: np.ndarray, bins: int
     values = values[np.isfinite(values)]
     if not len(values):
         return
-    counts, edges = np.histogram(values, bins=bins)
+    try:
+        counts, edges = np.histogram(values, bins=bins)
+    except ValueError:  # all values (nearly) equal: too narrow a range for that many bins, so one bar
+        counts, edges = np.histogram(values, bins=1, range=(values.min() - 0.5, values.max() + 0.5))
     rec.log(path, rr.BarChart(counts, abscissa=(edges[:-1] + edges[1:]) / 2), static=True)
 
 
@@ -174,13 +177,13 @@ def write_eval_rrd(path: Path, summary: dict, rollouts: list, fps: float, per_ou
     """A few closed-loop rollouts per outcome (success/failure) with the cue's sigma, and the success rates."""
     rec = rr.RecordingStream("democheck_eval")
     rec.save(str(path))
-    m, e = summary["model_success"], summary["expert"]
-    lines = ["# democheck eval", "", f"model {summary['model']}: success {100 * m['success_rate']:.1f}% "
-             f"(95% CI {100 * m['ci95'][0]:.1f}..{100 * m['ci95'][1]:.1f}, n = {m['n']}); "
-             f"expert on the same layouts {100 * e['success_rate']:.1f}%"]
+    from democheck.evaluate.meta_test import fmt_rate
+
+    lines = ["# democheck eval", "", f"model {summary['model']}: success {fmt_rate(summary['model_success'])}; "
+             f"scripted expert on the same layouts {fmt_rate(summary['expert'])}"]
     if summary.get("flagged"):
-        lines.append(f"cues flagged by the OCSVM: {summary['flagged']['success_rate']} (n = {summary['flagged']['n']}); "
-                     f"not flagged: {summary['unflagged']['success_rate']} (n = {summary['unflagged']['n']})")
+        lines.append(f"cues flagged by the OCSVM: {fmt_rate(summary['flagged'])}; "
+                     f"not flagged: {fmt_rate(summary['unflagged'])}")
     rec.log("eval", rr.TextDocument("\n\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
     tabs, shown = [], {"success": 0, "failure": 0}
     for trial, row in rollouts:
