@@ -76,17 +76,44 @@ def replicate(src: Path, dst: Path, times: int) -> None:
 CHILD = """
 import json, resource, sys, time
 from democheck.workflows import audit_dataset
-s = audit_dataset(sys.argv[1], sys.argv[2], model=sys.argv[3] if sys.argv[3] != '-' else None, device='cpu', force=True)
+s = audit_dataset(sys.argv[1], sys.argv[2], model=sys.argv[3] if sys.argv[3] != '-' else None, device=sys.argv[4],
+                  force=True)
 print(json.dumps({"demos": s["demos"], "timing": s["timing"],
                   "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
 
-def run_audit(dataset: Path, out: Path, model: str) -> dict:
-    res = subprocess.run([sys.executable, "-c", CHILD, str(dataset), str(out), model], capture_output=True, text=True)
+def run_audit(dataset: Path, out: Path, model: str, device: str = "cpu") -> dict:
+    res = subprocess.run([sys.executable, "-c", CHILD, str(dataset), str(out), model, device], capture_output=True,
+                         text=True)
     if res.returncode:
         raise SystemExit(res.stderr)
     return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def measure(dataset: Path, times: int = 10, model: str = "-", repeats: int = 1, workdir: Path | None = None,
+            device: str = "cpu", verbose: bool = False) -> dict:
+    """Audit ``dataset`` and its ``times``-fold replica, each ``repeats`` times in a fresh process; medians."""
+    import statistics
+
+    out = {}
+    with tempfile.TemporaryDirectory(dir=workdir) as tmp:
+        big = Path(tmp) / f"x{times}"
+        replicate(dataset, big, times)
+        for name, ds in (("1x", dataset), (f"{times}x", big)):
+            runs = [run_audit(ds, Path(tmp) / f"report-{name}-{i}", model, device) for i in range(repeats)]
+            med = lambda f: statistics.median(f(r) for r in runs)  # noqa: E731
+            out[name] = {"demos": runs[0]["demos"], "demos_per_s": med(lambda r: r["timing"]["demos_per_s"]),
+                         "model_load_s": med(lambda r: r["timing"]["model_load_s"]),
+                         "tsne_s": med(lambda r: r["timing"]["tsne_s"]), "peak_rss_mb": med(lambda r: r["peak_rss_mb"])}
+            if verbose:
+                o = out[name]
+                print(f"{name:>4}: {o['demos']:6d} demos, {o['demos_per_s']:7.0f} demos/s (model load "
+                      f"{o['model_load_s']:.2f} s, t-SNE {o['tsne_s']:.1f} s), peak memory {o['peak_rss_mb']:.0f} MB",
+                      flush=True)
+    out["memory_ratio"] = out[f"{times}x"]["peak_rss_mb"] / out["1x"]["peak_rss_mb"]
+    out["device"], out["repeats"] = device, repeats
+    return out
 
 
 def main() -> None:
@@ -94,20 +121,11 @@ def main() -> None:
     ap.add_argument("dataset", type=Path)
     ap.add_argument("--times", type=int, default=10)
     ap.add_argument("--model", default="-")
+    ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--workdir", type=Path, default=None, help="where to put the replica (default: a temp folder)")
     args = ap.parse_args()
-    with tempfile.TemporaryDirectory(dir=args.workdir) as tmp:
-        big = Path(tmp) / f"x{args.times}"
-        replicate(args.dataset, big, args.times)
-        rows = []
-        for name, ds in (("1x", args.dataset), (f"{args.times}x", big)):
-            r = run_audit(ds, Path(tmp) / f"report-{name}", args.model)
-            t = r["timing"]
-            rows.append((name, r["demos"], t["demos_per_s"], t["model_load_s"], t["tsne_s"], r["peak_rss_mb"]))
-            print(f"{name:>4}: {r['demos']:6d} demos, {t['demos_per_s']:7.0f} demos/s (scoring {t['score_s']:.1f} s; "
-                  f"model load {t['model_load_s']:.2f} s, t-SNE {t['tsne_s']:.1f} s, recording {t['rrd_s']:.1f} s), "
-                  f"peak memory {r['peak_rss_mb']:.0f} MB", flush=True)
-        print(f"peak memory ratio {args.times}x / 1x: {rows[1][5] / rows[0][5]:.2f}")
+    res = measure(args.dataset, args.times, args.model, args.repeats, args.workdir, verbose=True)
+    print(f"peak memory ratio {args.times}x / 1x: {res['memory_ratio']:.2f}")
 
 
 if __name__ == "__main__":

@@ -61,6 +61,23 @@ def synth(recipe, workers: int) -> float:
         return summary["frames"] / (time.perf_counter() - t0)
 
 
+def measure(recipe, workers: int = 2, repeats: int = 3, verbose: bool = False) -> dict:
+    """Median frames/s of the bare step+render loop and of ``generate``, interleaved, and their ratio."""
+    bare, gen, ratio = [], [], []
+    for i in range(repeats):
+        # Interleave the two so that machine noise hits both alike.
+        b = bare_loop(recipe, workers)
+        g = synth(recipe, workers)
+        bare.append(b)
+        gen.append(g)
+        ratio.append(g / b)
+        if verbose:
+            print(f"run {i + 1}: bare {b:7.0f} frames/s   synth {g:7.0f} frames/s   ratio {g / b:.2f}", flush=True)
+    return {"suite": recipe.name, "episodes": recipe.n_episodes, "steps": recipe.steps, "size": recipe.image_size,
+            "workers": workers, "bare_fps": statistics.median(bare), "synth_fps": statistics.median(gen),
+            "ratio": statistics.median(ratio), "repeats": repeats}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--suite", default="push-mini")
@@ -75,18 +92,7 @@ def main() -> None:
     from democheck.sim.suite import load_recipe
 
     recipe = load_recipe(args.suite).with_overrides(tasks=args.tasks, demos=args.demos, size=args.size)
-    bare, gen, ratio = [], [], []
-    for i in range(args.repeats):
-        # Interleave the two so that machine noise hits both alike.
-        b = bare_loop(recipe, args.workers)
-        g = synth(recipe, args.workers)
-        bare.append(b)
-        gen.append(g)
-        ratio.append(g / b)
-        print(f"run {i + 1}: bare {b:7.0f} frames/s   synth {g:7.0f} frames/s   ratio {g / b:.2f}", flush=True)
-    res = {"suite": recipe.name, "episodes": recipe.n_episodes, "steps": recipe.steps, "size": recipe.image_size,
-           "workers": args.workers, "bare_fps": statistics.median(bare), "synth_fps": statistics.median(gen),
-           "ratio": statistics.median(ratio)}
+    res = measure(recipe, args.workers, args.repeats, verbose=True)
     print(f"median of {args.repeats}: bare loop {res['bare_fps']:.0f} frames/s, synth {res['synth_fps']:.0f} frames/s, "
           f"ratio {res['ratio']:.2f} ({recipe.n_episodes} episodes x {recipe.steps} steps, {recipe.image_size}px, "
           f"{args.workers} workers)")

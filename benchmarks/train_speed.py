@@ -32,7 +32,18 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--device", default="auto")
     args = ap.parse_args()
+    res = measure(args.dataset, args.steps, args.warmup, args.batch_tasks, args.timesteps, args.repeats, args.device,
+                  verbose=True)
+    print(f"median of {args.repeats} on {res['device']} ({res['threads']} threads), batch {args.batch_tasks} tasks x "
+          f"{args.timesteps} timesteps: bare {res['bare_samples_per_s']:.0f} samples/s, democheck "
+          f"{res['train_samples_per_s']:.0f} samples/s, ratio {res['ratio']:.2f}")
 
+
+def measure(dataset: str, steps: int = 60, warmup: int = 5, batch_tasks: int = 16, timesteps: int = 8,
+            repeats: int = 3, device_name: str = "auto", verbose: bool = False) -> dict:
+    """Median samples/s of the bare loop and of ``train`` over ``repeats`` interleaved runs, and their ratio."""
+    args = argparse.Namespace(steps=steps, warmup=warmup, batch_tasks=batch_tasks, timesteps=timesteps,
+                              repeats=repeats, device=device_name)
     from democheck.data import open_dataset
     from democheck.data.cache import build_cache
     from democheck.petnet.checkpoint import Normalisation
@@ -90,10 +101,10 @@ def main() -> None:
         bare.append(b)
         real.append(r)
         ratio.append(r / b)
-        print(f"run {i + 1}: bare {b:7.0f} samples/s   democheck {r:7.0f} samples/s   ratio {r / b:.2f}", flush=True)
-    print(f"median of {args.repeats} on {device} ({torch.get_num_threads()} threads), batch {args.batch_tasks} tasks x "
-          f"{args.timesteps} timesteps: bare {statistics.median(bare):.0f} samples/s, democheck "
-          f"{statistics.median(real):.0f} samples/s, ratio {statistics.median(ratio):.2f}")
+        if verbose:
+            print(f"run {i + 1}: bare {b:7.0f} samples/s   democheck {r:7.0f} samples/s   ratio {r / b:.2f}", flush=True)
+    return {"device": str(device), "threads": torch.get_num_threads(), "bare_samples_per_s": statistics.median(bare),
+            "train_samples_per_s": statistics.median(real), "ratio": statistics.median(ratio), "repeats": repeats}
 
 
 if __name__ == "__main__":

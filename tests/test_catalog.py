@@ -43,3 +43,13 @@ def test_task_override_keeps_proportions():
     r = load_recipe("push-v1").with_overrides(tasks=25, demos=4)
     assert r.n_tasks == 25 and r.n_episodes == 100
     assert r.train_tasks > r.test_tasks >= 1 and r.val_tasks >= 1
+
+
+def test_every_pair_is_used_in_both_orders_within_its_split():
+    """The scene alone must not give the task away: (A, B) and (B, A) are both tasks, in the same split."""
+    tasks = make_tasks(400, 40, 64, seed=0)
+    by_split = {}
+    for t in tasks:
+        by_split.setdefault(t.split, set()).add((t.target.key, t.distractor.key))
+    for split, pairs in by_split.items():
+        assert all((b, a) in pairs for a, b in pairs), split

@@ -52,7 +52,7 @@ def wilson(successes: int, n: int, z: float = 1.96) -> list[float]:
     den = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / den
     half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return [float(centre - half), float(centre + half)]
+    return [max(0.0, float(centre - half)), min(1.0, float(centre + half))]
 
 
 def rate(success: np.ndarray) -> dict[str, Any]:

@@ -1,7 +1,7 @@
 """Object catalog and the task list of the pushing suite.
 
 An object is a (shape family, colour, size) triple.  A task is an ordered
-(target, distractor) pair.  The meta-test split holds out whole *objects*:
+(target, distractor) pair; every pair is used in both orders (see ``_pairs``).  The meta-test split holds out whole *objects*:
 a meta-test task is built only from objects that appear in no meta-training
 (train or val) task, so success there measures generalisation to unseen
 objects, as in the MIL sim-push benchmark.
@@ -140,12 +140,23 @@ def split_objects(seed: int, test_fraction: float = 0.2) -> tuple[list[ObjectSpe
 
 
 def _pairs(objs: list[ObjectSpec], rng: np.random.Generator, n: int) -> list[tuple[ObjectSpec, ObjectSpec]]:
-    # Target and distractor always differ in colour so the cue can tell them apart.
-    pairs = [(a, b) for a in objs for b in objs if a.colour != b.colour]
-    if n > len(pairs):
-        raise ValueError(f"asked for {n} tasks but only {len(pairs)} object pairs exist")
-    idx = rng.choice(len(pairs), size=n, replace=False)
-    return [pairs[i] for i in idx]
+    """``n`` ordered (target, distractor) pairs, drawn as unordered pairs each used in both orders, adjacent.
+
+    Both orders of a pair make the scene alone say nothing about the task: the
+    same two objects appear in (A, B) and (B, A), so only *which one reached
+    the goal* tells them apart.  A task encoder must then read the outcome of
+    the cue, which is what makes a cue showing the wrong object pushed, or no
+    push at all, stand out.  Target and distractor always differ in colour.
+    """
+    unordered = [(a, b) for i, a in enumerate(objs) for b in objs[i + 1:] if a.colour != b.colour]
+    half = (n + 1) // 2
+    if half > len(unordered):
+        raise ValueError(f"asked for {n} tasks but only {2 * len(unordered)} object pairs exist")
+    out = []
+    for i in rng.choice(len(unordered), size=half, replace=False):
+        a, b = unordered[i]
+        out += [(a, b), (b, a)]
+    return out[:n]
 
 
 def make_tasks(n_train: int, n_val: int, n_test: int, seed: int, test_fraction: float = 0.2,
