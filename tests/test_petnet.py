@@ -65,7 +65,7 @@ def test_hinge_loss_is_zero_when_tasks_are_separated():
 
 
 def test_loss_falls_on_a_tiny_dataset(arrays, tmp_path):
-    tc = TrainConfig(steps=50, lr=2e-3, seed=0, **FAST)
+    tc = TrainConfig(steps=100, lr=2e-3, seed=0, **FAST)
     torch.manual_seed(tc.seed)
     result = train(arrays, tmp_path / "m", tc)
     batches = Batches(arrays, task_rows(arrays, "train", 0), result.norm)
