@@ -81,7 +81,11 @@ def test_eval_cli_end_to_end_on_a_tiny_suite(tiny_dataset, tiny_model, tmp_path)
     assert len(trials) == doc["n_trials"] and trials["sigma"].gt(0).all()
     assert doc["success_rate"] == pytest.approx(trials["success"].mean())
     assert "democheck eval" in (out / "eval.md").read_text()
-    assert (out / "eval.rrd").stat().st_size > 0
+    from tests.test_audit import _read_rrd
+
+    ents = _read_rrd(out / "eval.rrd")
+    kept = [e for e in ents if e.startswith("/rollouts/")]
+    assert "/eval" in ents and any(e.endswith("/video") for e in kept) and any(e.endswith("/actions") for e in kept)
     # Same seed, same trials: the cues and layouts are drawn from the seed.
     out2 = tmp_path / "eval2"
     runner.invoke(app, ["eval", str(tiny_model), "--data", str(root), "--out", str(out2), "--split", "train",

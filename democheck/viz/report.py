@@ -18,7 +18,7 @@ The bench's recording (``write_bench_rrd``):
 
 The meta-test's recording (``write_eval_rrd``):
     eval                          success rates (markdown)
-    rollouts/<outcome>/<task>_t<k>/video, actions, state, sigma   a few rollouts per outcome
+    rollouts/<outcome>/<n>/video, actions, state, sigma   a few rollouts per outcome (listed in ``eval``)
 """
 
 from __future__ import annotations
@@ -184,21 +184,23 @@ def write_eval_rrd(path: Path, summary: dict, rollouts: list, fps: float, per_ou
     if summary.get("flagged"):
         lines.append(f"cues flagged by the OCSVM: {fmt_rate(summary['flagged'])}; "
                      f"not flagged: {fmt_rate(summary['unflagged'])}")
-    rec.log("eval", rr.TextDocument("\n\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
     tabs, shown = [], {"success": 0, "failure": 0}
+    lines.append("Rollouts shown:")
     for trial, row in rollouts:
         outcome = "success" if row["success"] else "failure"
         if shown[outcome] >= per_outcome:
             continue
         shown[outcome] += 1
-        base = f"rollouts/{outcome}/{trial.task.replace(' ', '_')}_t{trial.trial}"
+        base = f"rollouts/{outcome}/{shown[outcome]}"
+        lines.append(f"- `{base}`: {trial.task}, trial {trial.trial}, cue sigma {trial.sigma:.4f}")
         demo = Demo(episode_index=-1, task=trial.task, frames=row["frames"], state=row["state"], actions=row["actions"])
         sigma = np.asarray(trial.sigma_vec if trial.sigma_vec else [np.nan], np.float32)
         _log_demo(rec, base, demo, sigma, fps)
         tabs.append(rrb.Vertical(rrb.Spatial2DView(origin=f"{base}/video", name="video"),
                                  rrb.Horizontal(rrb.BarChartView(origin=f"{base}/sigma", name="cue sigma"),
                                                 rrb.TimeSeriesView(origin=f"{base}/actions", name="actions")),
-                                 name=f"{outcome}: {trial.task[:24]}"))
-    body = rrb.Horizontal(rrb.TextDocumentView(origin="eval", name="success"), *( [rrb.Tabs(*tabs)] if tabs else []))
+                                 name=f"{outcome} {shown[outcome]}"))
+    rec.log("eval", rr.TextDocument("\n\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
+    body = rrb.Horizontal(rrb.TextDocumentView(origin="eval", name="success"), *([rrb.Tabs(*tabs)] if tabs else []))
     rec.send_blueprint(rrb.Blueprint(body, collapse_panels=True))
     rec.flush()
