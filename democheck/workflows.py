@@ -44,7 +44,22 @@ def train_model(dataset: str | Path, out: str | Path, tc, model_type: str = "pet
             "torch_version": torch.__version__, "device": str(resolve_device(tc.device))}
     return train(arrays, Path(out), tc, model_type=model_type, resume=resume, force=force, meta=meta,
                  on_progress=on_step, card=lambda m: model_card(Path(out).name, m), stop_after=stop_after,
-                 reference=reference)
+                 reference=reference, task_groups=object_pair_groups(ds))
+
+
+def object_pair_groups(ds) -> dict[str, str]:
+    """Task -> its unordered object pair, from a democheck suite's sim records (empty for other datasets)."""
+    eps = ds.episodes
+    if "sim" not in eps:
+        return {}
+    out = {}
+    for task, sim in eps.groupby("task")["sim"].first().items():
+        try:
+            rec = json.loads(sim)
+            out[str(task)] = "|".join(sorted((rec["target"], rec["distractor"])))
+        except (TypeError, ValueError, KeyError):
+            continue
+    return out
 
 
 def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None = None, top: int = 20,

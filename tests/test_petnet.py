@@ -141,3 +141,20 @@ def test_train_cli(tiny_dataset, tmp_path, monkeypatch):
     assert "democheck" in card and "Intended use" in card and "fingerprint" in card
     res = CliRunner().invoke(app, ["train", str(root), "--out", str(tmp_path / "m2"), "--model-type", "mlp"])
     assert res.exit_code == 2 and "petnet or tecnet" in res.output
+
+
+def test_hard_negative_batches_hold_both_orders_of_an_object_pair(tiny_dataset, arrays):
+    from democheck.workflows import object_pair_groups
+
+    root, _ = tiny_dataset
+    groups = object_pair_groups(open_dataset(root))
+    assert groups and all(len(v.split("|")) == 2 for v in groups.values())
+    rows = task_rows(arrays, "train", 0)
+    batches = Batches(arrays, rows, None, groups)
+    assert batches.groups  # the tiny suite's two train tasks are one pair in both orders
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        picks = batches._pick_tasks(rng, 2)
+        assert len(set(groups[batches.tasks[i]] for i in picks)) == 1 and len(set(picks)) == 2
+    plain = Batches(arrays, rows, None)
+    assert not plain.groups and len(plain._pick_tasks(rng, 2)) == 2

@@ -46,6 +46,8 @@ class TrainConfig:
     # the embedding carry the task, and its variance say how well, from the first steps instead of waiting for the
     # controller to need it.
     contrastive_weight: float = 0.0
+    # Batches of look-alike tasks (see ``Batches``), when the data says which tasks look alike (democheck suites).
+    hard_negatives: bool = False
     keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
     seed: int = 0
     val_every: int = 500
@@ -87,16 +89,41 @@ def uniform_steps(rng: np.random.Generator, lengths: np.ndarray, k: int) -> np.n
 
 
 class Batches:
-    """Samples (cue, demonstrated trajectory) pairs of the same task."""
+    """Samples (cue, demonstrated trajectory) pairs of the same task.
 
-    def __init__(self, arrays: EpisodeArrays, rows: dict[str, np.ndarray], norm: Normalisation):
+    ``groups`` (task -> group key) marks tasks that are easy to confuse, e.g.
+    the two orders of one object pair in a democheck suite; with it, a batch
+    is made of whole groups where it can be, so the embedding losses must tell
+    a task from its look-alikes, not only from random others.
+    """
+
+    def __init__(self, arrays: EpisodeArrays, rows: dict[str, np.ndarray], norm: Normalisation,
+                 groups: dict[str, str] | None = None):
         self.a = arrays
         self.tasks = sorted(rows)
         self.rows = [rows[t] for t in self.tasks]
         self.norm = norm
+        members: dict[str, list[int]] = {}
+        for i, t in enumerate(self.tasks):
+            if groups and t in groups:
+                members.setdefault(groups[t], []).append(i)
+        self.groups = [m for _, m in sorted(members.items()) if len(m) > 1]
+
+    def _pick_tasks(self, rng: np.random.Generator, n_tasks: int) -> np.ndarray:
+        if not self.groups:
+            return rng.choice(len(self.tasks), size=n_tasks, replace=len(self.tasks) < n_tasks)
+        picks: list[int] = []
+        for g in rng.permutation(len(self.groups)):
+            if len(picks) + 2 > n_tasks:
+                break
+            picks += list(rng.choice(self.groups[g], size=2, replace=False))
+        rest = np.setdiff1d(np.arange(len(self.tasks)), picks)
+        if len(picks) < n_tasks and len(rest):
+            picks += list(rng.choice(rest, size=min(n_tasks - len(picks), len(rest)), replace=False))
+        return np.asarray(picks[:n_tasks])
 
     def sample(self, rng: np.random.Generator, n_tasks: int, k: int) -> dict[str, np.ndarray]:
-        picks = rng.choice(len(self.tasks), size=n_tasks, replace=len(self.tasks) < n_tasks)
+        picks = self._pick_tasks(rng, n_tasks)
         cue_rows, traj_rows = [], []
         for t in picks:
             c, d = rng.choice(self.rows[t], size=2, replace=False)
@@ -310,8 +337,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
           force: bool = False, meta: dict[str, Any] | None = None,
           on_progress: Callable[[int, int, dict[str, float]], None] | None = None,
           card: Callable[[dict[str, Any]], str] | None = None, stop_after: int | None = None,
-          reference: Callable[[np.ndarray, np.ndarray, np.ndarray], dict[str, Any]] | None = None
-          ) -> TrainResult | None:
+          reference: Callable[[np.ndarray, np.ndarray, np.ndarray], dict[str, Any]] | None = None,
+          task_groups: dict[str, str] | None = None) -> TrainResult | None:
     """Train and write the checkpoint folder ``out`` (atomically).
 
     ``reference(mu, var, tasks)`` of the training demos, when given, is stored
@@ -348,7 +375,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
     model = build_model(cfg).to(device)
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=tc.lr)
-    batches, val = Batches(arrays, train_rows, norm), Batches(arrays, val_rows, norm)
+    groups = task_groups if tc.hard_negatives else None
+    batches, val = Batches(arrays, train_rows, norm, groups), Batches(arrays, val_rows, norm)
     pairs = _val_pairs(val, tc.seed) if val_rows else None
 
     step, history, wall_before = 0, [], 0.0
