@@ -130,3 +130,20 @@ def test_arbitrary_json_values_in_info_json_raise_only_democheck_errors(pristine
         _exercise(root)
     except DemocheckError as exc:
         assert "\n" not in str(exc)
+
+
+def test_atomic_output_leaves_nothing_on_failure_and_clears_what_killed_runs_left(tmp_path):
+    from democheck.fsutil import atomic_output_dir
+
+    out = tmp_path / "report"
+    with pytest.raises(RuntimeError):
+        with atomic_output_dir(out) as tmp:
+            (tmp / "half.txt").write_text("half")
+            raise RuntimeError("interrupted")
+    assert not out.exists() and not list(tmp_path.iterdir())
+    dead = tmp_path / ".report.tmp-999999999"  # what a SIGKILLed run leaves: a hidden folder of a gone process
+    dead.mkdir()
+    with atomic_output_dir(out) as tmp:
+        (tmp / "done.txt").write_text("done")
+    assert (out / "done.txt").read_text() == "done" and not dead.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["report"]
