@@ -152,18 +152,18 @@ def bench(datasets: list[str | Path], out: str | Path, model: str | Path | None 
                                  "democheck probe)")
     t0 = time.perf_counter()
     parts, mus, vars_, feats, embs = [], [], [], [], []
-    for i, ds in enumerate(sets):
-        report = (lambda stage: (lambda d, n: on_progress(f"{stage} {ds.root.name}", d, n))) if on_progress else (
-            lambda stage: None)
+    for ds in sets:
+        def report(stage: str, name: str = ds.root.name):
+            return (lambda d, n: on_progress(f"{stage} {name}", d, n)) if on_progress else None
+
+        # Every per-demo array below is in ds.episode_indices order, the order of ds.episodes' rows.
         mu, var = posteriors(ds, ckpt.model, dev, on_progress=report("PETNet"))
         mus.append(mu)
         vars_.append(var)
         if tec is not None:
             embs.append(posteriors(ds, tec.model, dev, on_progress=report("TecNets"))[0])
-        cb = report("actions")
-        feats.append(heuristic_table(_counting(ds, cb)))
-        eps = ds.episodes.reset_index().sort_values("episode_index").reset_index(drop=True)
-        parts.append(eps.assign(dataset=str(ds.root)))
+        feats.append(heuristic_table(_counting(ds, report("actions"))))
+        parts.append(ds.episodes.reset_index().assign(dataset=str(ds.root)))
     episodes = pd.concat(parts, ignore_index=True)
     episodes["label"] = episodes["label"].fillna("clean").astype(str)
     episodes = episodes.rename(columns={"episode_index": "source_index"})

@@ -99,7 +99,7 @@ def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", forc
     t0 = time.perf_counter()
     mu, var = posteriors(ds, ckpt.model, torch.device(device), on_progress=on_progress)
     t["score_s"] = time.perf_counter() - t0
-    episodes = ds.episodes.reset_index().sort_values("episode_index").reset_index(drop=True)
+    episodes = ds.episodes.reset_index()  # rows in ds.episode_indices order, as mu and var are
     ref = ckpt.meta.get("reference")
     table = score_table(episodes, mu, var, ref)
     flagged = table[table["is_anomaly"]]
