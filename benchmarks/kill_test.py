@@ -94,7 +94,7 @@ def main() -> None:
         for kind, make in commands.items():
             ref = tmp / f"{kind}-ref"
             _, full = _run(make(ref))
-            accepted_partial = finished = absent = 0
+            accepted_partial = finished = absent = resumed = 0
             for k in range(args.kills):
                 out = tmp / f"{kind}-{k}"
                 code, _ = _run(make(out), kill_after=float(rng.uniform(0.2, 1.1) * full))
@@ -105,17 +105,21 @@ def main() -> None:
                         accepted_partial += 1
                 else:
                     absent += 1
-                if kind == "train" and not out.exists() and (out.parent / f".{out.name}.partial").exists():
+                partial = out.parent / f".{out.name}.partial"
+                if kind == "train" and not out.exists() and any((partial / d / "state.json").exists()
+                                                                for d in ("state", "state.old")):
                     _run(make(out) + ["--resume"])
                     assert _weights_digest(out) == _weights_digest(ref), "resume after SIGKILL changed the weights"
+                    resumed += 1
                 else:
                     _run(make(out) + ["--force"])  # the command runs again over whatever the kill left
                 assert complete(kind, out, ref)
-            rows.append((kind, args.kills, absent, finished, accepted_partial, full))
-        print(f"| command | kills | output absent | output complete | half-written accepted | uninterrupted run |")
-        print("|---|---:|---:|---:|---:|---:|")
-        for kind, n, absent, finished, bad, full in rows:
-            print(f"| {kind} | {n} | {absent} | {finished} | {bad} | {full:.1f} s |")
+            rows.append((kind, args.kills, absent, finished, accepted_partial, resumed, full))
+        print("| command | kills | output absent | output complete | half-written accepted | resumed to identical "
+              "weights | uninterrupted run |")
+        print("|---|---:|---:|---:|---:|---:|---:|")
+        for kind, n, absent, finished, bad, resumed, full in rows:
+            print(f"| {kind} | {n} | {absent} | {finished} | {bad} | {resumed if kind == 'train' else ''} | {full:.1f} s |")
         if any(r[4] for r in rows):
             raise SystemExit("a half-written output was accepted as finished")
         print("train: every kill that left a partial run was resumed with --resume to weights identical "
