@@ -42,7 +42,7 @@ def main() -> None:
 def measure(dataset: str, steps: int = 60, warmup: int = 5, batch_tasks: int = 16, timesteps: int = 8,
             repeats: int = 3, device_name: str = "auto", verbose: bool = False) -> dict:
     """Median samples/s of the bare loop and of ``train`` over ``repeats`` interleaved runs, and their ratio."""
-    args = argparse.Namespace(steps=steps, warmup=warmup, batch_tasks=batch_tasks, timesteps=timesteps,
+    args = argparse.Namespace(dataset=dataset, steps=steps, warmup=warmup, batch_tasks=batch_tasks, timesteps=timesteps,
                               repeats=repeats, device=device_name)
     from democheck.data import open_dataset
     from democheck.data.cache import build_cache
