@@ -78,8 +78,13 @@ import json, resource, sys, time
 from democheck.workflows import audit_dataset
 s = audit_dataset(sys.argv[1], sys.argv[2], model=sys.argv[3] if sys.argv[3] != '-' else None, device=sys.argv[4],
                   force=True)
-print(json.dumps({"demos": s["demos"], "timing": s["timing"],
-                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+# VmHWM, not ru_maxrss: Linux carries ru_maxrss across execve, so a child of a parent that once held a large
+# memmap (benchmarks/run.py after the training benchmark) would report the parent's peak.
+try:
+    peak = int(open("/proc/self/status").read().split("VmHWM:")[1].split()[0]) / 1024
+except (OSError, IndexError):
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps({"demos": s["demos"], "timing": s["timing"], "peak_rss_mb": peak}))
 """
 
 
