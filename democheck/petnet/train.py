@@ -50,6 +50,8 @@ class TrainConfig:
     contrastive_weight: float = 0.0
     # Batches of look-alike tasks (see ``Batches``), when the data says which tasks look alike (democheck suites).
     hard_negatives: bool = False
+    # PETNet option: TecNets' hinge loss on the unit-normalised task means (cue vs another demo of the task).
+    mean_hinge_weight: float = 0.0
     keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
     seed: int = 0
     val_every: int = 500
@@ -183,9 +185,12 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
             mu_s, var_s = mu, var
         z = mu_s + var_s.sqrt() * torch.randn_like(mu_s) if sample else mu_s
         out["sigma"] = var.sqrt().mean()
-        if tc.contrastive_weight > 0:
+        if tc.contrastive_weight > 0 or tc.mean_hinge_weight > 0:
             mu_t, var_t = model.encoder(cue_input(batch["traj_cue"]))
+        if tc.contrastive_weight > 0:
             out["embed"] = task_matching_loss(mu, var, mu_t, var_t)
+        if tc.mean_hinge_weight > 0:
+            out["hinge"] = hinge_embedding_loss(F.normalize(mu, dim=-1), F.normalize(mu_t, dim=-1), tc.margin)
     else:
         z = model.encoder(cue)
         out["embed"] = hinge_embedding_loss(z, model.encoder(cue_input(batch["traj_cue"])), tc.margin)
@@ -195,6 +200,8 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
         total = total + tc.kl_weight * out["kl"]
     if "embed" in out:
         total = total + (tc.embed_weight if cfg.model_type == "tecnet" else tc.contrastive_weight) * out["embed"]
+    if "hinge" in out:
+        total = total + tc.mean_hinge_weight * out["hinge"]
     out["loss"] = total
     return out
 
