@@ -123,28 +123,25 @@ def action_wrong_dtype(tmp, ds, model):
     return _train(d, tmp)
 
 
-def action_nan(tmp, ds, model):
+def _poison(tmp, ds, key: str, row: int, col: int, value: float) -> list[str]:
+    """A copy of the dataset with one value of a state/action column replaced (NaN, inf), and train on it."""
     d = _copy(ds, tmp)
 
-    def nan_row(col):
-        x = np.stack(col.to_pylist()).astype(np.float32)
-        x[5, 2] = np.nan
+    def poisoned(column):
+        x = np.stack(column.to_pylist()).astype(np.float32)
+        x[row, col] = value
         return pa.FixedSizeListArray.from_arrays(pa.array(x.reshape(-1)), x.shape[1])
 
-    _rewrite_column(d / DATA_FILE, "action", nan_row)
+    _rewrite_column(d / DATA_FILE, key, poisoned)
     return _train(d, tmp)
+
+
+def action_nan(tmp, ds, model):
+    return _poison(tmp, ds, "action", 5, 2, np.nan)
 
 
 def state_inf(tmp, ds, model):
-    d = _copy(ds, tmp)
-
-    def inf_row(col):
-        x = np.stack(col.to_pylist()).astype(np.float32)
-        x[7, 0] = np.inf
-        return pa.FixedSizeListArray.from_arrays(pa.array(x.reshape(-1)), x.shape[1])
-
-    _rewrite_column(d / DATA_FILE, "observation.state", inf_row)
-    return _train(d, tmp)
+    return _poison(tmp, ds, "observation.state", 7, 0, np.inf)
 
 
 def zero_length_episode(tmp, ds, model):

@@ -101,7 +101,7 @@ def markdown(summary: dict[str, Any]) -> str:
         lines += [f"## {title} (each kind versus clean)", "", "| scorer | " + " | ".join(kinds) + " |",
                   "|---|" + "---:|" * len(kinds)]
         for name, per in res.items():
-            cells = [f"{per[k][metric]:.3f}" if k in per and np.isfinite(per[k][metric]) else "n/a" for k in kinds]
+            cells = [f"{per[k][metric]:.3f}" if per.get(k, {}).get(metric) is not None else "n/a" for k in kinds]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
         lines.append("")
     lines += ["## Best democheck scorer vs best baseline (AUROC)", "", "| kind | democheck | baseline | ours >= baseline |",
@@ -205,8 +205,9 @@ def bench(datasets: list[str | Path], out: str | Path, model: str | Path | None 
         keep = ["episode_index", "dataset", "source_index", "task", "label", *scorers, "sigma_vec", "mu"]
         table[keep].to_parquet(tmp / "scores.parquet", index=False)
         (tmp / "bench.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
-        (tmp / "bench.md").write_text(markdown(summary))
-        write_bench_rrd(tmp / "bench.rrd", summary)
+        text = markdown(summary)
+        (tmp / "bench.md").write_text(text)
+        write_bench_rrd(tmp / "bench.rrd", summary, text)
     return summary
 
 

@@ -111,7 +111,7 @@ class BothObjectsPolicy:
 
 
 def scene_options(kind: str) -> dict[str, bool]:
-    """PushEnv keyword arguments for a kind: which scene it is recorded in."""
+    """PushEnv keyword arguments for a kind: which scene it is recorded in (an occluder only ever with objects)."""
     return {"with_objects": kind != "no-objects", "occluder": kind == "occluded"}
 
 
@@ -153,8 +153,8 @@ class EnvCache:
         if env is None:
             self.env = PushEnv((target, distractor), image_size=self.image_size, **opts)
         elif (env.target, env.distractor, env.with_objects, env.occluder) != (
-                target, distractor, opts["with_objects"], opts["occluder"] and opts["with_objects"]):
-            env.with_objects, env.occluder = opts["with_objects"], opts["occluder"] and opts["with_objects"]
+                target, distractor, opts["with_objects"], opts["occluder"]):
+            env.with_objects, env.occluder = opts["with_objects"], opts["occluder"]
             env.set_task((target, distractor))
         return self.env
 
