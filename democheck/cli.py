@@ -167,6 +167,7 @@ def train(
     kl_target: Annotated[str, typer.Option(help="prior: KL to N(0, I); np: Neural-Process style, cue vs cue+target.")] = "prior",
     contrastive_weight: Annotated[float, typer.Option(help="PETNet option: weight of the task-matching loss, which trains mu and var to find a cue's task among others (0: the paper's loss).")] = 0.0,
     mean_hinge_weight: Annotated[float, typer.Option(help="PETNet option: weight of TecNets' hinge loss on the unit-normalised task means (0: off).")] = 0.0,
+    partial_cue_weight: Annotated[float, typer.Option(help="PETNet option: weight of the task-matching loss on partial cues (first frame + a frame at a random time), which teaches the variance to grow when a cue shows less of its task (0: off).")] = 0.0,
     hard_negatives: Annotated[bool, typer.Option("--hard-negatives", help="Fill batches with look-alike tasks (in democheck suites: the two orders of one object pair), so the embedding must read which object was pushed.")] = False,
     keypoints: Annotated[bool, typer.Option("--keypoints", help="Controller: last two conv layers at stride 1 and a spatial softmax (expected x, y per channel) instead of a flattened 4x4 map.")] = False,
     seed: Annotated[int, typer.Option(help="Seed for initialisation, sampling and noise.")] = 0,
@@ -192,7 +193,8 @@ def train(
         from democheck.petnet.train import TrainConfig
 
         tc = TrainConfig(steps=steps, batch_tasks=batch_tasks, timesteps=timesteps, lr=lr, kl_weight=kl_weight,
-                         kl_target=kl_target, contrastive_weight=contrastive_weight, hard_negatives=hard_negatives, mean_hinge_weight=mean_hinge_weight, keypoints=keypoints, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
+                         kl_target=kl_target, contrastive_weight=contrastive_weight, hard_negatives=hard_negatives, mean_hinge_weight=mean_hinge_weight,
+                         partial_cue_weight=partial_cue_weight, keypoints=keypoints, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
         cols = (TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(),
                 TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
         with Progress(*cols, console=err_console, transient=True) as bar:

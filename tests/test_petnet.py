@@ -9,7 +9,7 @@ from democheck.cli import app
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache
 from democheck.errors import DemocheckError
-from democheck.petnet.checkpoint import CheckpointError, load_checkpoint
+from democheck.petnet.checkpoint import CheckpointError, Normalisation, load_checkpoint
 from democheck.petnet.model import (ModelConfig, PETNet, TecNet, build_model, cue_input, hinge_embedding_loss,
                                     product_of_gaussians)
 from democheck.petnet.train import Batches, TrainConfig, losses, task_rows, to_device, train
@@ -158,3 +158,17 @@ def test_hard_negative_batches_hold_both_orders_of_an_object_pair(tiny_dataset, 
         assert len(set(groups[batches.tasks[i]] for i in picks)) == 1 and len(set(picks)) == 2
     plain = Batches(arrays, rows, None)
     assert not plain.groups and len(plain._pick_tasks(rng, 2)) == 2
+
+
+def test_partial_cues_cut_the_cue_demo_short_and_train(arrays, tmp_path):
+    rows = task_rows(arrays, "train", 0)
+    cue_rows = np.array([r[0] for r in rows.values()])
+    start = arrays.cue(cue_rows, end=np.zeros(len(cue_rows), np.int64))
+    assert np.array_equal(start[:, 1], start[:, 0])  # cut at t=0: the last frame is the first
+    assert np.array_equal(arrays.cue(cue_rows, end=arrays.lengths[cue_rows] + 5), arrays.cue(cue_rows))
+    norm = Normalisation.fit(arrays.state, arrays.actions)
+    batch = Batches(arrays, rows, norm).sample(np.random.default_rng(0), 2, 4, partial=True)
+    assert batch["partial_cue"].shape == batch["cue"].shape
+    assert np.array_equal(batch["partial_cue"][:, 0], batch["cue"][:, 0])  # same demo, same first frame
+    result = train(arrays, tmp_path / "m", TrainConfig(steps=5, seed=0, partial_cue_weight=1.0, **FAST))
+    assert np.isfinite(result.history[-1]["train_partial"]) and "val_partial" in result.history[-1]

@@ -54,10 +54,13 @@ class EpisodeArrays:
     episodes: pd.DataFrame  # index aligned with rows: episode_index, task, split (when known), label
     fingerprint: str
 
-    def cue(self, rows: np.ndarray) -> np.ndarray:
-        """First and last frame of each row's episode: uint8 [len(rows), 2, H, W, 3]."""
+    def cue(self, rows: np.ndarray, end: np.ndarray | None = None) -> np.ndarray:
+        """First and last frame of each row's episode: uint8 [len(rows), 2, H, W, 3].
+
+        ``end`` (a timestep per row) cuts each episode short there: the cue of the demo seen only up to ``end``.
+        """
         first = self.offsets[rows]
-        last = first + self.lengths[rows] - 1
+        last = first + (self.lengths[rows] - 1 if end is None else np.minimum(end, self.lengths[rows] - 1))
         return np.stack([self.frames[first], self.frames[last]], axis=1)
 
 

@@ -52,6 +52,11 @@ class TrainConfig:
     hard_negatives: bool = False
     # PETNet option: TecNets' hinge loss on the unit-normalised task means (cue vs another demo of the task).
     mean_hinge_weight: float = 0.0
+    # PETNet option: weight of the task-matching loss on *partial* cues, each the first frame and the frame at a
+    # random timestep of a training demo.  A cue that shows only the start of a task cannot say which of its
+    # look-alikes it is, so the loss teaches the variance to grow with what the cue leaves out -- the meaning of
+    # task uncertainty -- from clean demos alone, no labelled defects.
+    partial_cue_weight: float = 0.0
     keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
     seed: int = 0
     val_every: int = 500
@@ -126,24 +131,28 @@ class Batches:
             picks += list(rng.choice(rest, size=min(n_tasks - len(picks), len(rest)), replace=False))
         return np.asarray(picks[:n_tasks])
 
-    def sample(self, rng: np.random.Generator, n_tasks: int, k: int) -> dict[str, np.ndarray]:
+    def sample(self, rng: np.random.Generator, n_tasks: int, k: int, partial: bool = False) -> dict[str, np.ndarray]:
+        """A batch; ``partial`` adds ``partial_cue``: each cue cut short at a uniformly drawn timestep."""
         picks = self._pick_tasks(rng, n_tasks)
         cue_rows, traj_rows = [], []
         for t in picks:
             c, d = rng.choice(self.rows[t], size=2, replace=False)
             cue_rows.append(c)
             traj_rows.append(d)
-        return self.gather(np.array(cue_rows), np.array(traj_rows), rng=rng, k=k)
+        cue_rows, traj_rows = np.array(cue_rows), np.array(traj_rows)
+        steps = uniform_steps(rng, self.a.lengths[traj_rows], k)
+        ends = uniform_steps(rng, self.a.lengths[cue_rows], 1)[:, 0] if partial else None
+        return self.gather(cue_rows, traj_rows, steps, ends)
 
-    def gather(self, cue_rows: np.ndarray, traj_rows: np.ndarray, k: int, rng: np.random.Generator | None = None,
-               steps: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    def gather(self, cue_rows: np.ndarray, traj_rows: np.ndarray, steps: np.ndarray,
+               cue_ends: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The batch of those rows at those trajectory timesteps; ``cue_ends`` adds the cues cut short there."""
         a = self.a
         lengths = a.lengths[traj_rows]
-        if steps is None:
-            steps = uniform_steps(rng, lengths, k)
         idx = a.offsets[traj_rows][:, None] + np.minimum(steps, lengths[:, None] - 1)
         flat = idx.reshape(-1)
-        return {
+        extra = {} if cue_ends is None else {"partial_cue": a.cue(cue_rows, end=cue_ends)}
+        return {**extra,
             "cue": a.cue(cue_rows),
             "traj_cue": a.cue(traj_rows),
             "frames": a.frames[flat].reshape(*idx.shape, *a.frames.shape[1:]),
@@ -185,10 +194,12 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
             mu_s, var_s = mu, var
         z = mu_s + var_s.sqrt() * torch.randn_like(mu_s) if sample else mu_s
         out["sigma"] = var.sqrt().mean()
-        if tc.contrastive_weight > 0 or tc.mean_hinge_weight > 0:
+        if tc.contrastive_weight > 0 or tc.mean_hinge_weight > 0 or "partial_cue" in batch:
             mu_t, var_t = model.encoder(cue_input(batch["traj_cue"]))
         if tc.contrastive_weight > 0:
             out["embed"] = task_matching_loss(mu, var, mu_t, var_t)
+        if "partial_cue" in batch:
+            out["partial"] = task_matching_loss(*model.encoder(cue_input(batch["partial_cue"])), mu_t, var_t)
         if tc.mean_hinge_weight > 0:
             out["hinge"] = hinge_embedding_loss(F.normalize(mu, dim=-1), F.normalize(mu_t, dim=-1), tc.margin)
     else:
@@ -202,6 +213,8 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
         total = total + (tc.embed_weight if cfg.model_type == "tecnet" else tc.contrastive_weight) * out["embed"]
     if "hinge" in out:
         total = total + tc.mean_hinge_weight * out["hinge"]
+    if "partial" in out:
+        total = total + tc.partial_cue_weight * out["partial"]
     out["loss"] = total
     return out
 
@@ -303,8 +316,8 @@ def validate(model, val: Batches, tc: TrainConfig, device: torch.device, pairs: 
     tot, n = {}, 0
     for s in range(0, len(pairs["cue_rows"]), 32):
         sl = slice(s, s + 32)
-        batch = to_device(val.gather(pairs["cue_rows"][sl], pairs["traj_rows"][sl], k=pairs["steps"].shape[1],
-                                     steps=pairs["steps"][sl]), device)
+        ends = pairs["ends"][sl] if tc.partial_cue_weight > 0 and model.cfg.model_type == "petnet" else None
+        batch = to_device(val.gather(pairs["cue_rows"][sl], pairs["traj_rows"][sl], pairs["steps"][sl], ends), device)
         out = losses(model, batch, tc, sample=False)
         m = len(pairs["cue_rows"][sl])
         for key, v in out.items():
@@ -326,7 +339,8 @@ def _val_pairs(val: Batches, seed: int, per_task: int = 2, k: int = 10) -> dict[
     lengths = val.a.lengths[traj_rows] if len(traj_rows) else np.zeros(0, np.int64)
     # Fixed draws from the same uniform distribution training samples from, so the two losses compare.
     steps = uniform_steps(rng, lengths, k)
-    return {"cue_rows": cue_rows, "traj_rows": traj_rows, "steps": steps}
+    ends = uniform_steps(rng, val.a.lengths[cue_rows], 1)[:, 0] if len(cue_rows) else np.zeros(0, np.int64)
+    return {"cue_rows": cue_rows, "traj_rows": traj_rows, "steps": steps, "ends": ends}
 
 
 # ---------------------------------------------------------------------------
@@ -405,7 +419,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
     t0 = time.perf_counter()
     running: dict[str, float] = {}
     while step < tc.steps:
-        batch = to_device(batches.sample(rng, tc.batch_tasks, tc.timesteps), device)
+        batch = to_device(batches.sample(rng, tc.batch_tasks, tc.timesteps,
+                                         partial=tc.partial_cue_weight > 0 and model_type == "petnet"), device)
         out_l = losses(model, batch, tc)
         opt.zero_grad(set_to_none=True)
         out_l["loss"].backward()
