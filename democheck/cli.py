@@ -353,6 +353,58 @@ def eval_(
 
 
 @app.command()
+def dagger(
+    model: Annotated[Path, typer.Argument(help="PETNet model folder trained on --data (e.g. by democheck train).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write: the same model with the controller trained further.")],
+    data: Annotated[Path, typer.Option(help="The model's training suite (made by democheck synth): its training tasks are rolled out.")] = Path("data/push-v1"),
+    rounds: Annotated[int, typer.Option(help="DAgger rounds: each rolls the controller out, has the expert label what it saw, and trains on it.")] = 4,
+    episodes_per_task: Annotated[int, typer.Option(help="Rollouts per training task per round.")] = 1,
+    beta: Annotated[float, typer.Option(help="Probability that the expert takes a step of a rollout (0: the controller alone).")] = 0.3,
+    steps: Annotated[int, typer.Option(help="Controller training steps per round.")] = 2000,
+    batch_tasks: Annotated[int, typer.Option(help="Demo trajectories per step (and as many recovery trajectories).")] = 16,
+    timesteps: Annotated[int, typer.Option(help="Timesteps of each trajectory per step.")] = 8,
+    lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 5e-4,
+    seed: Annotated[int, typer.Option(help="Seed for cue draws, layouts, expert hand-overs and batches.")] = 0,
+    workers: Annotated[int, typer.Option(help="Parallel rollout processes.")] = 2,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda (training; rollouts run on CPU).")] = "auto",
+    resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last complete round.")] = False,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out, or discard an interrupted run and start over.")] = False,
+    cache_dir: Annotated[Optional[Path], typer.Option(help="Where decoded frames are cached (default ~/.cache/democheck).")] = None,
+) -> None:
+    """Recovery training: DAgger rounds that teach a PETNet controller to recover from its own mistakes.
+
+    The scripted expert labels the states the controller itself reaches; only the
+    controller learns, so the task encoder and every audit score stay as they were.
+    """
+    import shlex
+    import sys
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with _user_errors():
+        from democheck.petnet.dagger import DaggerConfig, dagger as run_dagger
+
+        cfg = DaggerConfig(rounds=rounds, episodes_per_task=episodes_per_task, beta=beta, steps=steps,
+                           batch_tasks=batch_tasks, timesteps=timesteps, lr=lr, seed=seed, workers=workers,
+                           device=device)
+        cols = (TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+        with Progress(*cols, console=err_console, transient=True) as bar:
+            job = bar.add_task("dagger", total=None)
+            s = run_dagger(model, data, out, cfg, resume=resume, force=force, cache_dir=cache_dir,
+                           command="democheck " + shlex.join(sys.argv[1:]),
+                           on_stage=lambda text: bar.update(job, description=text, completed=0, total=None),
+                           on_progress=lambda d, n: bar.update(job, completed=d, total=n))
+    table = Table(title=f"recovery training of {model} ({s['wall_s'] / 60:.1f} min)")
+    for col in ("round", "rollouts", "mixed success", "demo mse", "recovery mse"):
+        table.add_column(col, justify="right")
+    for h in s["history"]:
+        table.add_row(str(h["round"]), str(h["rollouts"]), f"{h['mixed_success']:.1%}", f"{h['demo_mse']:.4f}",
+                      f"{h['recovery_mse']:.4f}")
+    console.print(table)
+    console.print(f"{out}: measure it with democheck eval {out} --data {data}")
+
+
+@app.command()
 def view(
     report: Annotated[Path, typer.Argument(help="A report folder written by audit (or an .rrd file).")],
 ) -> None:
