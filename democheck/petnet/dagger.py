@@ -137,7 +137,7 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
     from democheck.petnet.card import git_commit, model_card
     from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
     from democheck.petnet.model import cue_input
-    from democheck.petnet.train import Batches, resolve_device, task_posteriors, task_rows
+    from democheck.petnet.train import Batches, _load_state, _save_state, resolve_device, task_posteriors, task_rows
     from democheck.sim.suite import run_shards
 
     if min(cfg.rounds, cfg.episodes_per_task, cfg.steps, cfg.batch_tasks, cfg.timesteps, cfg.workers) < 1:
@@ -180,17 +180,15 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
     model.encoder.eval()
     opt = torch.optim.Adam(model.controller.parameters(), lr=cfg.lr)
     rng = np.random.default_rng([cfg.seed, 17])
+    torch.manual_seed(cfg.seed)
     recovery, history, done, wall_before = RecoverySet(), [], 0, 0.0
-    if resume:
-        doc = json.loads((work / "state.json").read_text()) if (work / "state.json").exists() else None
-        if doc is None:
-            raise DemocheckError(f"{work}: no saved round to resume from")
+    if resume and any((work / d / "state.json").exists() for d in ("state", "state.old")):
+        # Weights, Adam moments and both RNGs as after the last complete round (saved like train's state).
+        done, rng, doc = _load_state(work, model, opt)
         if doc["config"] != {**asdict(cfg), "rounds": doc["config"]["rounds"], "workers": doc["config"]["workers"]}:
             raise DemocheckError(f"{work}: saved with other options; resume with the same options")
-        done, history, wall_before = doc["rounds_done"], doc["history"], doc["wall_s"]
-        model.load_state_dict(load_checkpoint(work / "model", device=device).model.state_dict())
+        history, wall_before = doc["history"], doc["wall_s"]
         recovery = RecoverySet.load(work / "recovery", done)
-        rng.bit_generator.state = doc["rng"]
     work.mkdir(parents=True, exist_ok=True)
 
     # z of every training demo once: the encoder does not change.
@@ -199,7 +197,7 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
     post = {int(r): i for i, r in enumerate(all_rows)}
     t0 = time.perf_counter()
     for rd in range(done, cfg.rounds):
-        save_checkpoint(work / "model", model, ckpt.config, norm, meta)  # what the workers roll out
+        save_checkpoint(work / "current", model, ckpt.config, norm, meta)  # what the workers roll out
         specs = []
         for ti, t in enumerate(batches.tasks):
             for _ in range(cfg.episodes_per_task):
@@ -209,7 +207,7 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
         if on_stage:
             on_stage(f"round {rd + 1}/{cfg.rounds}: rollouts")
         jobs = [(i, steps_per_ep, specs[i::cfg.workers * 4]) for i in range(min(len(specs), cfg.workers * 4))]
-        res = sorted(run_shards(jobs, _rollout_shard, _eval_init, (str(work / "model"), ckpt.config.image_size),
+        res = sorted(run_shards(jobs, _rollout_shard, _eval_init, (str(work / "current"), ckpt.config.image_size),
                                 cfg.workers, len(specs), on_progress), key=lambda r: r["row"])
         recovery.add({"task": np.array([r["row"] for r in res], np.int64),
                       "frames": np.stack([r["frames"] for r in res]),
@@ -247,11 +245,9 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
         history.append({"round": rd + 1, "rollouts": len(res), "mixed_success": round(mixed, 4),
                         "demo_mse": round(run_demo, 4), "recovery_mse": round(run_rec, 4)})
         done = rd + 1
-        save_checkpoint(work / "model", model, ckpt.config, norm, meta)
-        recovery.save_last(work / "recovery")
-        (work / "state.json").write_text(json.dumps({
-            "config": asdict(cfg), "rounds_done": done, "history": history, "rng": rng.bit_generator.state,
-            "wall_s": wall_before + time.perf_counter() - t0}))
+        recovery.save_last(work / "recovery")  # before the state that counts the round: a kill redoes the round
+        _save_state(work, model, opt, done, rng, {"config": asdict(cfg), "history": history,
+                                                  "wall_s": wall_before + time.perf_counter() - t0})
     wall = wall_before + time.perf_counter() - t0
     summary = {"base_model": str(model_dir), "dataset": str(ds.root), "config": asdict(cfg), "history": history,
                "wall_s": round(wall, 1), "command": command, "commit": git_commit(Path(__file__).parent)}
