@@ -354,7 +354,7 @@ def eval_(
 
 @app.command()
 def dagger(
-    model: Annotated[Path, typer.Argument(help="PETNet model folder trained on --data (e.g. by democheck train).")],
+    model: Annotated[Path, typer.Argument(help="Model folder (PETNet or TecNets) trained on --data by democheck train.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write: the same model with the controller trained further.")],
     data: Annotated[Path, typer.Option(help="The model's training suite (made by democheck synth): its training tasks are rolled out.")] = Path("data/push-v1"),
     rounds: Annotated[int, typer.Option(help="DAgger rounds: each rolls the controller out, has the expert label what it saw, and trains on it.")] = 4,
@@ -371,7 +371,7 @@ def dagger(
     force: Annotated[bool, typer.Option("--force", help="Replace --out, or discard an interrupted run and start over.")] = False,
     cache_dir: Annotated[Optional[Path], typer.Option(help="Where decoded frames are cached (default ~/.cache/democheck).")] = None,
 ) -> None:
-    """Recovery training: DAgger rounds that teach a PETNet controller to recover from its own mistakes.
+    """Recovery training: DAgger rounds that teach a model's controller to recover from its own mistakes.
 
     The scripted expert labels the states the controller itself reaches; only the
     controller learns, so the task encoder and every audit score stay as they were.

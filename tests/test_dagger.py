@@ -75,10 +75,17 @@ def test_dagger_cli_and_its_errors(tiny_dataset, tiny_model, tmp_path):
     assert json.loads((tmp_path / "d" / "config.json").read_text())["recovery"]["config"]["rounds"] == 1
     res = CliRunner().invoke(app, args + ["--out", str(tmp_path / "e"), "--beta", "1.5"])
     assert res.exit_code == 2 and "probability" in res.output
+    res = CliRunner().invoke(app, args + ["--out", str(tmp_path / "e"), "--data", str(tmp_path / "nowhere")])
+    assert res.exit_code == 2 and "nowhere" in res.output and "Traceback" not in res.output
+
+
+def test_dagger_trains_a_tecnets_controller_too(tiny_dataset, tmp_path):
+    from democheck.petnet.model import TecNet
     from democheck.petnet.train import TrainConfig
     from democheck.workflows import train_model
 
+    root, _ = tiny_dataset
     train_model(root, tmp_path / "tec", TrainConfig(steps=2, batch_tasks=2, timesteps=2, device="cpu"),
                 model_type="tecnet", cache_dir=tmp_path / "cache")
-    res = CliRunner().invoke(app, ["dagger", str(tmp_path / "tec"), "--data", str(root), "--out", str(tmp_path / "f")])
-    assert res.exit_code == 2 and "PETNet" in res.output
+    s = dagger(tmp_path / "tec", root, tmp_path / "d", DaggerConfig(**{**FAST, "rounds": 1}))
+    assert isinstance(load_checkpoint(tmp_path / "d").model, TecNet) and np.isfinite(s["history"][0]["demo_mse"])

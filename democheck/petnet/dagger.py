@@ -1,5 +1,7 @@
 """Recovery training (``democheck dagger``): DAgger rounds that teach the controller to recover from its own mistakes.
 
+Works on PETNet and on the TecNets baseline alike, so the two compare on the same budget.
+
 Behaviour cloning only shows the controller the expert's own states; once the
 learned controller drifts off them it has never seen what to do, and errors
 compound (on push-v1 a controller trained on demos alone pushes the target
@@ -136,7 +138,6 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
     from democheck.fsutil import atomic_output_dir
     from democheck.petnet.card import git_commit, model_card
     from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
-    from democheck.petnet.model import cue_input
     from democheck.petnet.train import Batches, _load_state, _save_state, resolve_device, task_posteriors, task_rows
     from democheck.sim.suite import run_shards
 
@@ -156,9 +157,6 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
         shutil.rmtree(work)
     device = resolve_device(cfg.device)
     ckpt = load_checkpoint(model_dir, device=device)
-    if ckpt.config.model_type != "petnet":
-        raise DemocheckError(f"{model_dir}: recovery training is for PETNet models, this one is "
-                             f"{ckpt.config.model_type}")
     ds = open_dataset(dataset)
     if "sim" not in ds.episodes:
         raise DemocheckError(f"{ds.root}: no sim records; recovery training needs the scripted expert to act in the "
@@ -222,8 +220,10 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
             demo = batches.sample(rng, cfg.batch_tasks, cfg.timesteps)
             rec = recovery.sample(rng, cfg.batch_tasks, cfg.timesteps)
             # z ~ N(mu, var) as in training: from each demo's cue, and from a demo of each recovery episode's task.
+            # (A TecNets model's embedding is deterministic: its "var" is zero.)
             with torch.no_grad():
-                mu_d, var_d = model.encoder(cue_input(torch.from_numpy(demo["cue"]).to(device)))
+                mu_d, var_d = task_posteriors(model, demo["cue"], device)
+                mu_d, var_d = torch.from_numpy(mu_d).to(device), torch.from_numpy(var_d).to(device)
             cue_rows = np.array([post[int(rng.choice(batches.rows[ti]))] for ti in rec["task"]])
             mu = torch.cat([mu_d, torch.from_numpy(mu_all[cue_rows]).to(device)])
             sd = torch.cat([var_d.sqrt(), torch.from_numpy(np.sqrt(var_all[cue_rows])).to(device)])
