@@ -234,9 +234,10 @@ def audit(
     camera: Annotated[Optional[str], typer.Option(help="Image feature to use when there are several.")] = None,
     task: Annotated[Optional[str], typer.Option(help="Task string for robomimic files that do not name their task.")] = None,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    actions: Annotated[bool, typer.Option("--actions/--no-actions", help="Also score how badly the model's controller explains each demo's actions (catches arms that never moved, flailed or stopped half-way). Decodes every demo in full: --no-actions is the fast pass on cue frames only.")] = True,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:
-    """Score every demonstration by task uncertainty and consistency, rank the suspects, flag anomalies."""
+    """Score every demonstration by task uncertainty, consistency and action error; rank the suspects, flag anomalies."""
     import json
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
@@ -250,7 +251,8 @@ def audit(
                       console=err_console, transient=True) as bar:
             job = bar.add_task("audit", total=None)
             summary = audit_dataset(dataset, out, model=model, top=top, camera=camera, task=task, device=device,
-                                    force=force, on_progress=lambda d, n: bar.update(job, completed=d, total=n))
+                                    force=force, on_progress=lambda d, n: bar.update(job, completed=d, total=n),
+                                    actions=actions)
     if json_out:
         console.print_json(json.dumps(summary))
     else:
@@ -260,20 +262,29 @@ def audit(
         raise typer.Exit(3)
 
 
+def _short(x: float) -> str:
+    """A score in at most 5 characters: 3 significant digits, whole numbers from 100 up."""
+    return f"{x:.3g}" if abs(x) < 100 else f"{x:.0f}"
+
+
 def _print_audit(summary: dict, out: Path) -> None:
     table = Table(title=f"top suspects of {summary['demos']} demos ({summary['flagged']} flagged by the one-class SVM)")
     # Short headers and a clipped task column keep the table readable in an 80-column terminal.
-    for col in ("rank", "ep", "task", "score", "cons.", "susp.", "flag"):
-        table.add_column(col, justify="left" if col == "task" else "right", no_wrap=True,
-                         overflow="ellipsis", max_width=28 if col == "task" else None)
+    acts = "action_error" in summary["scores"]
+    for col in ("rank", "ep", "task", "score", "cons.", *(["act."] if acts else []), "susp.", "flag"):
+        # Numbers keep their width; the task string gives way.
+        table.add_column(col, justify="left" if col == "task" else "right", no_wrap=True, overflow="ellipsis",
+                         max_width=24 if col == "task" else None, min_width=None if col == "task" else 4)
     for r in summary["top_suspects"]:
         cons = "n/a" if r["consistency"] is None else f"{r['consistency']:.2f}"
-        table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"], f"{r['score']:.4f}", cons,
-                      f"{r['suspicion']:.2f}", "[red]yes[/]" if r["is_anomaly"] else "")
+        table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"], f"{r['score']:.3f}", cons,
+                      *([_short(r["action_error"])] if acts else []), _short(r["suspicion"]),
+                      "[red]yes[/]" if r["is_anomaly"] else "")
     console.print(table)
     t = summary["timing"]
-    console.print(f"scored {summary['demos']} demos in {t['score_s']:.1f} s ({t['demos_per_s']:.0f}/s); "
-                  f"model load {t['model_load_s']:.1f} s, t-SNE {t['tsne_s']:.1f} s")
+    console.print(f"scored {summary['demos']} demos in {t['score_s']:.1f} s ({t['demos_per_s']:.0f}/s)"
+                  + (f", their actions in {t['actions_s']:.1f} s" if acts else "")
+                  + f"; model load {t['model_load_s']:.1f} s, t-SNE {t['tsne_s']:.1f} s")
     console.print(f"report: {out}/ (scores.parquet, scores.csv, summary.json, suspects.txt)")
     console.print(f"look at it: democheck view {out}")
 

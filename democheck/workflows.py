@@ -64,7 +64,7 @@ def object_pair_groups(ds) -> dict[str, str]:
 
 def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None = None, top: int = 20,
                   camera: str | None = None, task: str | None = None, device: str = "auto", force: bool = False,
-                  on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                  on_progress: Callable[[int, int], None] | None = None, actions: bool = True) -> dict[str, Any]:
     """Open ``dataset``, load the model (default: the shipped one), audit, write the report folder ``out``."""
     import time
 
@@ -79,7 +79,7 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
     ckpt = load_checkpoint(model, device=dev)
     load_s = time.perf_counter() - t0
     return audit(ds, ckpt, Path(out), top=top, device=str(dev), force=force, on_progress=on_progress,
-                 timings={"model_load_s": load_s})
+                 timings={"model_load_s": load_s}, actions=actions)
 
 
 DEMO_PLANT = {"idle": 4, "random": 4}
@@ -107,7 +107,7 @@ def run_demo(out: str | Path, model: str | Path | None = None, workers: int = 2,
     summary = audit_dataset(out / "data", out / "report", model=model, force=True, on_progress=on_progress)
     table = pd.read_parquet(out / "report" / "scores.parquet")
     summary["planted"] = DEMO_PLANT
-    summary["detection"] = {col: by_label(table, col) for col in ("suspicion", "score", "consistency")}
+    summary["detection"] = {col: by_label(table, col) for col in ("suspicion", "score", "consistency", "action_error")}
     summary["synth"] = {k: synth[k] for k in ("episodes", "wall_s", "frames_per_s")}
     planted = table[table["label"] != "clean"]
     summary["planted_ranks"] = planted[["episode_index", "label", "rank"]].to_dict(orient="records")

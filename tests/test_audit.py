@@ -3,6 +3,7 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from democheck.audit.metrics import detection, precision_at_k
@@ -94,6 +95,7 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
     for col in ("episode_index", "task", "score", "consistency", "suspicion", "rank", "is_anomaly", "sigma", "mu", "label"):
         assert col in table
     assert len(table) == 12 and list(table["rank"]) == list(range(1, 13))
+    assert table["action_error"].notna().all()  # on by default
     assert (np.diff(table["suspicion"].to_numpy()) <= 1e-12).all()  # ranked by suspicion
     assert len(table["sigma"][0]) == 10 and (np.stack(table["sigma"]) > 0).all()
     csv = pd.read_csv(tmp_path / "r" / "scores.csv")
@@ -182,8 +184,9 @@ def test_audit_mismatch_and_fail_on(tiny_dataset, tiny_model, tmp_path):
     root, _ = tiny_dataset
     # --fail-on: status 3 when more demos are flagged than allowed, 0 otherwise.
     res = runner.invoke(app, ["audit", str(root), "--out", str(tmp_path / "a"), "--model", str(tiny_model),
-                              "--fail-on", "12", "--device", "cpu"])
+                              "--fail-on", "12", "--device", "cpu", "--no-actions"])
     assert res.exit_code == 0, res.output
+    assert "action_error" not in pd.read_parquet(tmp_path / "a" / "scores.parquet")  # the cue-only pass
     flagged = json.loads((tmp_path / "a" / "summary.json").read_text())["flagged"]
     if flagged:
         res = runner.invoke(app, ["audit", str(root), "--out", str(tmp_path / "b"), "--model", str(tiny_model),
@@ -205,3 +208,40 @@ def test_fail_on_exit_code_with_a_strict_svm(tiny_dataset, tiny_model, tmp_path)
                               "--fail-on", "3", "--device", "cpu"])
     assert res.exit_code == 3 and "12 demos flagged" in res.output
     assert len((tmp_path / "r" / "suspects.txt").read_text().split()) == 12
+
+
+class _ZeroController:
+    """A controller that always predicts the normalised action 0."""
+
+    def act(self, frames, state, z):
+        return torch.zeros(*frames.shape[:2], 7)
+
+
+def test_action_error_is_the_controllers_mse_and_ranks_a_planted_flailing_demo_first():
+    from types import SimpleNamespace
+
+    from democheck.audit.run import action_errors, controller_z
+    from democheck.petnet.checkpoint import Normalisation
+
+    rng = np.random.default_rng(3)
+    eps = _episodes(n_tasks=3, per=5)
+    demos = [SimpleNamespace(frames=np.zeros((40, 8, 8, 3), np.uint8), state=rng.normal(0, 1, (40, 17)).astype(np.float32),
+                             actions=rng.normal(0, 0.1, (40, 7)).astype(np.float32)) for _ in range(len(eps))]
+    demos[6].actions = rng.normal(0, 3.0, (40, 7)).astype(np.float32)  # flails
+    norm = Normalisation(state_mean=[0.0] * 17, state_std=[1.0] * 17, action_mean=[0.0] * 7, action_std=[1.0] * 7)
+    ckpt = SimpleNamespace(model=SimpleNamespace(controller=_ZeroController()), norm=norm)
+    mu, var, _ = _posteriors(eps, rng)
+    err = action_errors(iter(demos), ckpt, controller_z(mu, var, eps["task"].to_numpy()), "cpu", steps=10, batch=4)
+    t = np.linspace(0, 39, 10).round().astype(int)
+    assert np.allclose(err, [np.mean(d.actions[t] ** 2) for d in demos], rtol=1e-5)
+    table = score_table(eps, mu, var, None, err)
+    assert table.iloc[0]["episode_index"] == 6 and "action_error" in table
+
+
+def test_controller_z_is_the_other_demos_posterior_or_the_demos_own():
+    from democheck.audit.run import controller_z
+
+    mu = np.array([[0.0], [2.0], [4.0], [9.0]])
+    var = np.array([[1.0], [1.0], [1.0], [1.0]])
+    z = controller_z(mu, var, np.array(["a", "a", "a", "b"]))
+    assert np.allclose(z[:, 0], [3.0, 2.0, 1.0, 9.0])  # leave-one-out means; b's lone demo keeps its own

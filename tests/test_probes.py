@@ -227,8 +227,8 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     doc = json.loads((out / "bench.json").read_text())
     kinds = {"idle", "random", "wrong-object", "no-action", "no-objects", "hidden"}
     assert kinds <= set(doc["kinds"])
-    assert set(doc["scorers"]) == {"sigma", "consistency", "suspicion", "ocsvm_flag", "tecnet_knn", "heuristic",
-                                   "random"}
+    assert set(doc["scorers"]) == {"sigma", "consistency", "action_error", "suspicion", "ocsvm_flag", "tecnet_knn",
+                                   "heuristic", "random"}
     for name, per in doc["scorers"].items():
         for kind in kinds:
             assert set(per[kind]) == {"auroc", "auprc", "p_at_k", "n"}

@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
@@ -25,12 +26,13 @@ import pandas as pd
 
 from democheck.errors import DemocheckError
 
-OURS = ("sigma", "consistency", "suspicion", "ocsvm_flag")
+OURS = ("sigma", "consistency", "action_error", "suspicion", "ocsvm_flag")
 BASELINES = ("tecnet_knn", "heuristic", "random")
 SCORER_NOTES = {
     "sigma": "PETNet task uncertainty: mean task standard deviation of the cue (the paper)",
     "consistency": "distance of the cue's task mean from the other demos of its task (democheck)",
-    "suspicion": "max of sigma and consistency, robustly standardised (democheck's ranking)",
+    "action_error": "how badly PETNet's controller, told the task by the other demos, explains the demo's actions",
+    "suspicion": "max of sigma, consistency and action error, robustly standardised (democheck's ranking)",
     "ocsvm_flag": "linear one-class SVM flag, nu from the model (one operating point)",
     "tecnet_knn": "TecNets embedding: mean distance to the 5 nearest other demos of the task",
     "heuristic": "linter rules: max |robust z| of idle fraction, action energy, jerk",
@@ -129,7 +131,7 @@ def bench(datasets: list[str | Path], out: str | Path, model: str | Path | None 
     import torch
 
     from democheck.audit.baselines import heuristic_score, heuristic_table, knn_same_task, random_score
-    from democheck.audit.run import check_compatible, posteriors, to_json
+    from democheck.audit.run import _counting, action_errors, check_compatible, controller_z, posteriors, to_json
     from democheck.audit.scores import score_table
     from democheck.data import open_dataset
     from democheck.fsutil import atomic_output_dir
@@ -151,25 +153,39 @@ def bench(datasets: list[str | Path], out: str | Path, model: str | Path | None 
             raise DemocheckError(f"{ds.root}: no labels; bench needs labelled demos (democheck synth --defect-rate, "
                                  "democheck probe)")
     t0 = time.perf_counter()
-    parts, mus, vars_, feats, embs = [], [], [], [], []
-    for ds in sets:
-        def report(stage: str, name: str = ds.root.name):
-            return (lambda d, n: on_progress(f"{stage} {name}", d, n)) if on_progress else None
+    parts, mus, vars_, feats, embs, errs = [], [], [], [], [], []
 
+    def report(stage: str, ds) -> Callable[[int, int], None] | None:
+        return (lambda d, n: on_progress(f"{stage} {ds.root.name}", d, n)) if on_progress else None
+
+    for ds in sets:
         # Every per-demo array below is in ds.episode_indices order, the order of ds.episodes' rows.
-        mu, var = posteriors(ds, ckpt.model, dev, on_progress=report("PETNet"))
+        mu, var = posteriors(ds, ckpt.model, dev, on_progress=report("PETNet", ds))
         mus.append(mu)
         vars_.append(var)
         if tec is not None:
-            embs.append(posteriors(ds, tec.model, dev, on_progress=report("TecNets"))[0])
-        feats.append(heuristic_table(_counting(ds, report("actions"))))
+            embs.append(posteriors(ds, tec.model, dev, on_progress=report("TecNets", ds))[0])
         parts.append(ds.episodes.reset_index().assign(dataset=str(ds.root)))
     episodes = pd.concat(parts, ignore_index=True)
     episodes["label"] = episodes["label"].fillna("clean").astype(str)
     episodes = episodes.rename(columns={"episode_index": "source_index"})
     episodes.insert(0, "episode_index", np.arange(len(episodes)))  # pooled id: unique across datasets
     mu, var = np.concatenate(mus), np.concatenate(vars_)
-    table = score_table(episodes, mu, var, ckpt.meta.get("reference"))
+    z = controller_z(mu, var, episodes["task"].to_numpy())  # each demo judged under its task across the pool
+    start = 0
+    for ds in sets:
+        # One decoding pass: the controller sees the frames, the heuristic keeps only state and actions.
+        light: list[SimpleNamespace] = []
+
+        def each(ds=ds, light=light):
+            for demo in _counting(ds, report("actions", ds)):
+                light.append(SimpleNamespace(state=demo.state, actions=demo.actions))
+                yield demo
+
+        errs.append(action_errors(each(), ckpt, z[start:start + len(ds)], dev))
+        feats.append(heuristic_table(light))
+        start += len(ds)
+    table = score_table(episodes, mu, var, ckpt.meta.get("reference"), np.concatenate(errs))
     order = table["episode_index"].to_numpy()  # score_table sorts by suspicion: map pooled ids back
     # The scorer "sigma" is the paper's score (mean task standard deviation); the vector moves to sigma_vec.
     table = table.rename(columns={"sigma": "sigma_vec"})
@@ -209,12 +225,3 @@ def bench(datasets: list[str | Path], out: str | Path, model: str | Path | None 
         (tmp / "bench.md").write_text(text)
         write_bench_rrd(tmp / "bench.rrd", summary, text)
     return summary
-
-
-def _counting(ds, on_progress):
-    """Iterate a DemoSet's demos, reporting progress."""
-    n = len(ds)
-    for i, demo in enumerate(ds):
-        yield demo
-        if on_progress and (i % 50 == 49 or i == n - 1):
-            on_progress(i + 1, n)

@@ -53,6 +53,47 @@ def posteriors(ds: DemoSet, model, device, batch: int = 256,
     return np.concatenate(mus), np.concatenate(vars_)
 
 
+ACTION_STEPS = 25  # timesteps per demo at which the controller's actions are compared with the demo's
+
+
+def controller_z(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray) -> np.ndarray:
+    """The task variable each demo's actions are judged under: its task's other demos' posterior mean (own mu if alone)."""
+    from democheck.audit.scores import others_posterior
+
+    m, _ = others_posterior(mu, var, tasks)
+    return np.where(np.isfinite(m), m, mu).astype(np.float32)
+
+
+def action_errors(demos, ckpt, z: np.ndarray, device, steps: int = ACTION_STEPS, batch: int = 32) -> np.ndarray:
+    """Per demo (an iterable, in ``z``'s order): mean squared error between its normalised actions and the
+    controller's under its ``z``, at ``steps`` evenly spaced timesteps (all of them when it is shorter)."""
+    import torch
+
+    out = np.full(len(z), np.nan)
+    pending: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def flush() -> None:
+        frames = torch.from_numpy(np.stack([p[1] for p in pending])).to(device)
+        state = torch.from_numpy(np.stack([p[2] for p in pending])).to(device)
+        rows = np.array([p[0] for p in pending])
+        with torch.no_grad():
+            pred = ckpt.model.controller.act(frames, state, torch.from_numpy(z[rows]).to(device)).cpu().numpy()
+        out[rows] = ((pred - np.stack([p[3] for p in pending])) ** 2).mean(axis=(1, 2))
+        pending.clear()
+
+    for i, demo in enumerate(demos):
+        t = np.unique(np.linspace(0, len(demo.actions) - 1, steps).round().astype(np.int64))
+        if len(t) < steps:  # a short demo: repeat its timesteps so a batch stacks
+            t = np.resize(t, steps)
+        pending.append((i, demo.frames[t], ckpt.norm.state(demo.state[t]).astype(np.float32),
+                        ckpt.norm.action(demo.actions[t]).astype(np.float32)))
+        if len(pending) == batch:
+            flush()
+    if pending:
+        flush()
+    return out
+
+
 def embed_2d(table: pd.DataFrame, top: int, max_points: int = 1500, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """t-SNE of the task means; above ``max_points`` demos, the suspects plus a random sample of the rest."""
     from sklearn.manifold import TSNE
@@ -84,9 +125,11 @@ def write_tables(folder: Path, table: pd.DataFrame, suspects: list[int]) -> None
 
 
 def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", force: bool = False,
-          on_progress: Callable[[int, int], None] | None = None, timings: dict[str, float] | None = None
-          ) -> dict[str, Any]:
-    """Score ``ds`` with ``ckpt`` and write the report folder ``out`` atomically; returns the summary."""
+          on_progress: Callable[[int, int], None] | None = None, timings: dict[str, float] | None = None,
+          actions: bool = False) -> dict[str, Any]:
+    """Score ``ds`` with ``ckpt`` and write the report folder ``out`` atomically; returns the summary.
+
+    ``actions`` adds the action error (every demo decoded in full: slower than the cue-only scores)."""
     import torch
 
     from democheck.audit.scores import score_table
@@ -101,7 +144,13 @@ def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", forc
     t["score_s"] = time.perf_counter() - t0
     episodes = ds.episodes.reset_index()  # rows in ds.episode_indices order, as mu and var are
     ref = ckpt.meta.get("reference")
-    table = score_table(episodes, mu, var, ref)
+    err = None
+    if actions:
+        t1 = time.perf_counter()
+        z = controller_z(mu, var, episodes["task"].to_numpy())
+        err = action_errors(_counting(ds, on_progress), ckpt, z, torch.device(device))
+        t["actions_s"] = time.perf_counter() - t1
+    table = score_table(episodes, mu, var, ref, err)
     flagged = table[table["is_anomaly"]]
     # suspects.txt: what a dataset-editing tool should drop -- the flagged demos, or the top ones without an OCSVM.
     suspects = flagged["episode_index"].tolist() if ref and ref.get("ocsvm") else table.head(top)["episode_index"].tolist()
@@ -125,13 +174,16 @@ def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", forc
                 "score": "mean over embedding dimensions of the task standard deviation sqrt(var) of the demo's cue",
                 "consistency": "RMS over dimensions of (mu - m)/sqrt(v + var), (m, v) the product-of-Gaussians "
                                "posterior of the other demos of the same task",
-                "suspicion": "max of score and consistency, each standardised by the median and 1.4826*MAD of the "
-                             "model's training demos",
+                "suspicion": "max of score, consistency (and action_error) each standardised by the median and "
+                             "1.4826*MAD of this dataset's demos",
                 "is_anomaly": "linear one-class SVM on 1/sigma^2, fitted on the model's training demos",
-            },
+            } | ({"action_error": f"mean squared error between the demo's normalised actions and the controller's at "
+                                  f"{ACTION_STEPS} evenly spaced timesteps, under the task posterior mean of the other "
+                                  "demos of its task"} if actions else {}),
             "reference": {k: v for k, v in (ref or {}).items() if k != "ocsvm"},
             "ocsvm": {k: (ref or {}).get("ocsvm", {}).get(k) for k in ("nu", "offset", "n_fit", "flagged_fraction_on_fit")},
-            "top_suspects": table.head(top)[["rank", "episode_index", "task", "score", "consistency", "suspicion",
+            "top_suspects": table.head(top)[["rank", "episode_index", "task", "score", "consistency",
+                                             *(["action_error"] if actions else []), "suspicion",
                                              "is_anomaly"]].to_dict(orient="records"),
             "timing": {k: round(v, 3) for k, v in t.items()} | {"demos_per_s": round(len(table) / max(t["score_s"], 1e-9), 1)},
         }
@@ -140,6 +192,15 @@ def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", forc
         summary = to_json(summary)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
     return summary
+
+
+def _counting(ds: DemoSet, on_progress: Callable[[int, int], None] | None):
+    """Iterate a DemoSet's demos in ``ds.episode_indices`` order, reporting progress."""
+    n = len(ds)
+    for i, demo in enumerate(ds):
+        yield demo
+        if on_progress and (i % 50 == 49 or i == n - 1):
+            on_progress(i + 1, n)
 
 
 def to_json(x: Any) -> Any:

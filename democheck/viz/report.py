@@ -50,14 +50,18 @@ def suspect_path(rank: int, episode_index: int) -> str:
 
 
 def suspects_markdown(table: pd.DataFrame, top: int, title: str) -> str:
-    lines = [f"# {title}", "", "| rank | episode | task | score | consistency | suspicion | flagged |",
-             "|---:|---:|---|---:|---:|---:|:---:|"]
+    acts = "action_error" in table
+    lines = [f"# {title}", "", "| rank | episode | task | score | consistency | " + ("action error | " if acts else "")
+             + "suspicion | flagged |", "|---:|---:|---|---:|---:|" + ("---:|" if acts else "") + "---:|:---:|"]
     for r in table.head(top).itertuples():
         cons = "n/a" if not np.isfinite(r.consistency) else f"{r.consistency:.2f}"
-        lines.append(f"| {r.rank} | {r.episode_index} | {r.task} | {r.score:.4f} | {cons} | {r.suspicion:.2f} | "
+        act = f"{r.action_error:.2f} | " if acts else ""
+        lines.append(f"| {r.rank} | {r.episode_index} | {r.task} | {r.score:.4f} | {cons} | {act}{r.suspicion:.2f} | "
                      f"{'yes' if r.is_anomaly else ''} |")
     lines += ["", "score: mean task standard deviation; consistency: distance of the demo's task mean from the other "
-              "demos of its task; suspicion: the larger of the two, robustly standardised. flagged: one-class SVM."]
+              "demos of its task; " + ("action error: how badly the model's controller explains the demo's actions; "
+                                       if acts else "")
+              + "suspicion: the largest of these, robustly standardised. flagged: one-class SVM."]
     return "\n".join(lines)
 
 
