@@ -77,7 +77,7 @@ CHILD = """
 import json, resource, sys, time
 from democheck.workflows import audit_dataset
 s = audit_dataset(sys.argv[1], sys.argv[2], model=sys.argv[3] if sys.argv[3] != '-' else None, device=sys.argv[4],
-                  force=True)
+                  force=True, actions=sys.argv[5] == "actions")
 # VmHWM, not ru_maxrss: Linux carries ru_maxrss across execve, so a child of a parent that once held a large
 # memmap (benchmarks/run.py after the training benchmark) would report the parent's peak.
 try:
@@ -88,9 +88,10 @@ print(json.dumps({"demos": s["demos"], "timing": s["timing"], "peak_rss_mb": pea
 """
 
 
-def run_audit(dataset: Path, out: Path, model: str, device: str = "cpu") -> dict:
-    res = subprocess.run([sys.executable, "-c", CHILD, str(dataset), str(out), model, device], capture_output=True,
-                         text=True)
+def run_audit(dataset: Path, out: Path, model: str, device: str = "cpu", actions: bool = False) -> dict:
+    """One audit in a fresh process; the cue pass (``--no-actions``) unless ``actions``."""
+    res = subprocess.run([sys.executable, "-c", CHILD, str(dataset), str(out), model, device,
+                          "actions" if actions else "cues"], capture_output=True, text=True)
     if res.returncode:
         raise SystemExit(res.stderr)
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -98,7 +99,10 @@ def run_audit(dataset: Path, out: Path, model: str, device: str = "cpu") -> dict
 
 def measure(dataset: Path, times: int = 10, model: str = "-", repeats: int = 1, workdir: Path | None = None,
             device: str = "cpu", verbose: bool = False) -> dict:
-    """Audit ``dataset`` and its ``times``-fold replica, each ``repeats`` times in a fresh process; medians."""
+    """Audit ``dataset`` and its ``times``-fold replica, each ``repeats`` times in a fresh process; medians.
+
+    The cue pass (``audit --no-actions``): the action error decodes every frame and is timed on its own
+    (``audit_actions``)."""
     import statistics
 
     out = {}
@@ -121,6 +125,15 @@ def measure(dataset: Path, times: int = 10, model: str = "-", repeats: int = 1, 
     return out
 
 
+def audit_actions(dataset: Path, model: str = "-", device: str = "cpu") -> dict:
+    """The default audit (with the action error) of ``dataset`` once: demos/s of each pass and peak memory."""
+    with tempfile.TemporaryDirectory() as tmp:
+        r = run_audit(dataset, Path(tmp) / "report", model, device, actions=True)
+    t = r["timing"]
+    return {"demos": r["demos"], "cue_demos_per_s": t["demos_per_s"],
+            "action_demos_per_s": r["demos"] / t["actions_s"], "peak_rss_mb": r["peak_rss_mb"]}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("dataset", type=Path)
@@ -128,7 +141,13 @@ def main() -> None:
     ap.add_argument("--model", default="-")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--workdir", type=Path, default=None, help="where to put the replica (default: a temp folder)")
+    ap.add_argument("--actions", action="store_true", help="time the default audit, with the action error, instead")
     args = ap.parse_args()
+    if args.actions:
+        r = audit_actions(args.dataset, args.model)
+        print(f"{r['demos']} demos: cue pass {r['cue_demos_per_s']:.0f} demos/s, action pass "
+              f"{r['action_demos_per_s']:.0f} demos/s, peak memory {r['peak_rss_mb']:.0f} MB")
+        return
     res = measure(args.dataset, args.times, args.model, args.repeats, args.workdir, verbose=True)
     print(f"peak memory ratio {args.times}x / 1x: {res['memory_ratio']:.2f}")
 

@@ -126,7 +126,7 @@ def write_tables(folder: Path, table: pd.DataFrame, suspects: list[int]) -> None
 
 def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", force: bool = False,
           on_progress: Callable[[int, int], None] | None = None, timings: dict[str, float] | None = None,
-          actions: bool = False) -> dict[str, Any]:
+          actions: bool = True) -> dict[str, Any]:
     """Score ``ds`` with ``ckpt`` and write the report folder ``out`` atomically; returns the summary.
 
     ``actions`` adds the action error (every demo decoded in full: slower than the cue-only scores)."""
