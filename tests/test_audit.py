@@ -59,6 +59,25 @@ def test_consistency_matches_brute_force_and_handles_singletons():
     assert np.isnan(c[3])
 
 
+def test_consistency_against_the_k_nearest_others_matches_brute_force():
+    from democheck.audit.scores import others_posterior
+
+    rng = np.random.default_rng(5)
+    n = 23
+    mu, var = rng.normal(size=(n, 4)), rng.uniform(0.1, 1, (n, 4))
+    tasks = np.array(["a"] * 20 + ["b"] * 3)
+    m, v = others_posterior(mu, var, tasks, k=5, chunk=7)  # several chunks of task a
+    for i in [0, 6, 7, 19, 21]:
+        idx = np.flatnonzero(tasks == tasks[i])
+        others = idx[idx != i]
+        d = ((mu[i] - mu[others]) ** 2 / (var[i] + var[others])).mean(1)
+        nn = others[np.argsort(d)[:5]]
+        p = (1 / var[nn]).sum(0)
+        assert np.allclose(m[i], (mu[nn] / var[nn]).sum(0) / p) and np.allclose(v[i], 1 / p)
+    m_all, _ = others_posterior(mu, var, tasks)
+    assert np.allclose(m[21], m_all[21])  # task b has 2 others, fewer than k: all of them
+
+
 def test_ocsvm_flags_high_uncertainty():
     rng = np.random.default_rng(3)
     train_sigma = rng.uniform(0.05, 0.07, (500, 10))

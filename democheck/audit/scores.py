@@ -3,10 +3,16 @@
 - ``score`` (task uncertainty, the paper): the mean over embedding dimensions
   of the task standard deviation sqrt(var) of the demo's cue.
 - ``consistency``: how far the demo's ``mu`` lies from the product-of-Gaussians
-  posterior of the *other* demos of the same task, as the root-mean-square
-  over dimensions of (mu - m) / sqrt(v + var), where (m, v) is that posterior
-  and var the demo's own variance: the spread expected of a demo that says
-  the same as the others.  Variance catches cues that say nothing;
+  posterior of its ``CONSISTENCY_K`` nearest *other* demos of the same task
+  (all of them when there are fewer), as the root-mean-square over
+  dimensions of (mu - m) / sqrt(v + var), where (m, v) is that posterior and
+  var the demo's own variance: the spread expected of a demo that says the
+  same as its neighbours.  Nearest by that same distance, pairwise.  The
+  posterior of *all* the others is blurred by the task's own bad demos and
+  by tasks done in more than one way; the neighbours' is not (on a separate
+  development set, ``push-v1-dev`` + probes, mean AUROC over the 8 kinds:
+  all others 0.67; k = 1, 2, 3, 5, 8: 0.75, 0.76, 0.77, 0.80, 0.80; 5 is
+  also the kNN baseline's k).  Variance catches cues that say nothing;
   consistency catches cues that clearly say the wrong thing.  NaN for a task
   with a single demo.
 - ``action_error`` (optional, ``audit --actions``): how badly the model's
@@ -46,23 +52,38 @@ def task_score(sigma: np.ndarray) -> np.ndarray:
     return sigma.mean(axis=1)
 
 
-def others_posterior(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each demo, the product of Gaussians of the *other* demos of its task: (m, v), NaN for a task's only demo."""
+CONSISTENCY_K = 5
+
+
+def others_posterior(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray, k: int | None = None,
+                     chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """For each demo, the product of Gaussians of the *other* demos of its task -- all of them, or its ``k``
+    nearest by RMS (mu_i - mu_j) / sqrt(var_i + var_j): (m, v), NaN for a task's only demo."""
     m_out, v_out = np.full(mu.shape, np.nan), np.full(mu.shape, np.nan)
     prec = 1.0 / var
     for task in np.unique(tasks):
         idx = np.flatnonzero(tasks == task)
         if len(idx) < 2:
             continue
-        p_rest = prec[idx].sum(0)[None] - prec[idx]  # precision of the others, per demo
-        m_out[idx] = ((prec[idx] * mu[idx]).sum(0)[None] - prec[idx] * mu[idx]) / p_rest
-        v_out[idx] = 1.0 / p_rest
+        if k is None or k >= len(idx) - 1:
+            p_rest = prec[idx].sum(0)[None] - prec[idx]  # precision of the others, per demo
+            m_out[idx] = ((prec[idx] * mu[idx]).sum(0)[None] - prec[idx] * mu[idx]) / p_rest
+            v_out[idx] = 1.0 / p_rest
+            continue
+        for s in range(0, len(idx), chunk):  # [chunk, n, z] at a time: a task may hold thousands of demos
+            rows = idx[s:s + chunk]
+            d = ((mu[rows, None] - mu[None, idx]) ** 2 / (var[rows, None] + var[None, idx])).mean(-1)
+            d[np.arange(len(rows)), s + np.arange(len(rows))] = np.inf  # not itself
+            nn = idx[np.argpartition(d, k - 1, axis=1)[:, :k]]  # [rows, k]
+            p = prec[nn].sum(1)
+            m_out[rows] = (prec[nn] * mu[nn]).sum(1) / p
+            v_out[rows] = 1.0 / p
     return m_out, v_out
 
 
-def consistency(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray) -> np.ndarray:
-    """Leave-one-out task consistency of each demo (see module docstring); NaN for single-demo tasks."""
-    m, v = others_posterior(mu, var, tasks)
+def consistency(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray, k: int | None = CONSISTENCY_K) -> np.ndarray:
+    """Task consistency of each demo against its k nearest other demos of the task (see module docstring)."""
+    m, v = others_posterior(mu, var, tasks, k)
     return np.sqrt(((mu - m) ** 2 / (v + var)).mean(1))
 
 
