@@ -268,7 +268,7 @@ def _short(x: float) -> str:
 
 
 def _print_audit(summary: dict, out: Path) -> None:
-    table = Table(title=f"top suspects of {summary['demos']} demos ({summary['flagged']} flagged by the one-class SVM)")
+    table = Table(title=f"top suspects of {summary['demos']} demos ({summary['flagged']} flagged)")
     # Short headers and a clipped task column keep the table readable in an 80-column terminal.
     acts = "action_error" in summary["scores"]
     for col in ("rank", "ep", "task", "score", "cons.", *(["act."] if acts else []), "susp.", "flag"):

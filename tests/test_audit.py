@@ -255,6 +255,8 @@ def test_action_error_is_the_controllers_mse_and_ranks_a_planted_flailing_demo_f
     assert np.allclose(err, [np.mean(d.actions[t] ** 2) for d in demos], rtol=1e-5)
     table = score_table(eps, mu, var, None, err)
     assert table.iloc[0]["episode_index"] == 6 and "action_error" in table
+    # No OCSVM here: the flag is the suspicion threshold alone, and only the flailing demo crosses it.
+    assert table.loc[table["is_anomaly"], "episode_index"].tolist() == [6]
 
 
 def test_controller_z_is_the_other_demos_posterior_or_the_demos_own():

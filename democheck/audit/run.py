@@ -132,7 +132,7 @@ def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", forc
     ``actions`` adds the action error (every demo decoded in full: slower than the cue-only scores)."""
     import torch
 
-    from democheck.audit.scores import score_table
+    from democheck.audit.scores import SUSPICION_FLAG, score_table
     from democheck.data.cache import dataset_fingerprint
     from democheck.fsutil import atomic_output_dir
     from democheck.viz.report import write_report_rrd
@@ -151,9 +151,8 @@ def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", forc
         err = action_errors(_counting(ds, on_progress), ckpt, z, torch.device(device))
         t["actions_s"] = time.perf_counter() - t1
     table = score_table(episodes, mu, var, ref, err)
-    flagged = table[table["is_anomaly"]]
-    # suspects.txt: what a dataset-editing tool should drop -- the flagged demos, or the top ones without an OCSVM.
-    suspects = flagged["episode_index"].tolist() if ref and ref.get("ocsvm") else table.head(top)["episode_index"].tolist()
+    # suspects.txt: what a dataset-editing tool should drop -- the flagged demos, most suspect first.
+    suspects = table.loc[table["is_anomaly"], "episode_index"].tolist()
     fingerprint = dataset_fingerprint(ds) if (ds.root / "meta").is_dir() else None
     trained_on = ckpt.meta.get("data", {}).get("fingerprint")
     with atomic_output_dir(out, force=force) as tmp:
@@ -176,7 +175,8 @@ def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", forc
                                "posterior of the other demos of the same task",
                 "suspicion": "max of score, consistency (and action_error) each standardised by the median and "
                              "1.4826*MAD of this dataset's demos",
-                "is_anomaly": "linear one-class SVM on 1/sigma^2, fitted on the model's training demos",
+                "is_anomaly": "linear one-class SVM on 1/sigma^2, fitted on the model's training demos, or suspicion "
+                              f"above {SUSPICION_FLAG:g}",
             } | ({"action_error": f"mean squared error between the demo's normalised actions and the controller's at "
                                   f"{ACTION_STEPS} evenly spaced timesteps, under the task posterior mean of the other "
                                   "demos of its task"} if actions else {}),
