@@ -385,7 +385,8 @@ def dagger(
     """Recovery training: DAgger rounds that teach a model's controller to recover from its own mistakes.
 
     The scripted expert labels the states the controller itself reaches; only the
-    controller learns, so the task encoder and every audit score stay as they were.
+    controller learns, so the task encoder, sigma, consistency and the one-class SVM
+    stay as they were (the action error is the new controller's).
     """
     import shlex
     import sys

@@ -18,9 +18,9 @@ here (Ross et al. 2011, DAgger):
    ``steps`` more steps, each on a batch of demo timesteps plus a batch of
    recovery timesteps.
 
-Only the controller learns.  The task encoder -- and with it every audit
-score, the stored score scales and the one-class SVM -- stays exactly as
-trained, so a model's audit numbers hold after recovery training.
+Only the controller learns.  The task encoder -- and with it sigma,
+consistency, the stored score scales and the one-class SVM -- stays exactly
+as trained; the audit's action error is then the new controller's.
 
 Needs a democheck suite (sim records): the expert must be able to act in the
 same scenes.  The run's state after each round (weights, recovery episodes,
@@ -265,7 +265,7 @@ def recovery_section(summary: dict[str, Any]) -> str:
     c = summary["config"]
     lines = ["## Recovery training", "",
              f"The controller was then trained further by {c['rounds']} DAgger rounds on the training tasks "
-             f"(`democheck dagger`; the task encoder, hence every audit score, unchanged):", "",
+             f"(`democheck dagger`; the task encoder, hence sigma, consistency and the one-class SVM, unchanged):", "",
              f"    {summary.get('command') or '?'}", "",
              f"- from `{summary['base_model']}`, commit `{summary['commit']}`; per round {c['episodes_per_task']} "
              f"rollout(s) per task with the expert acting on {c['beta']:.0%} of steps, then {c['steps']} steps of "
