@@ -1,0 +1,50 @@
+"""The measurements behind two choices in ``democheck.audit.scores``, on a bench's scores.parquet.
+
+    democheck synth push-v1-test --seed 2 --out data/push-v1-dev       # a development set, not the test bench
+    democheck probe data/push-v1-dev --out data/push-v1-dev-probes --seed 2
+    democheck bench data/push-v1-dev data/push-v1-dev-probes --out runs/bench-dev
+    python benchmarks/score_choices.py runs/bench-dev/scores.parquet
+
+1. ``CONSISTENCY_K``: AUROC of consistency against the k nearest other demos of the task, per kind, for
+   several k (and all others).
+2. ``SUSPICION_FLAG``: the share of clean and of each bad kind above several suspicion thresholds.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pandas as pd
+from sklearn.metrics import roc_auc_score
+
+from democheck.audit.scores import others_posterior
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scores", help="scores.parquet written by democheck bench")
+    args = ap.parse_args()
+    t = pd.read_parquet(args.scores)
+    mu = np.stack(t["mu"].to_numpy()).astype(np.float64)
+    var = np.stack(t["sigma_vec"].to_numpy()).astype(np.float64) ** 2
+    labels, tasks = t["label"].to_numpy(), t["task"].to_numpy()
+    kinds = sorted(set(labels) - {"clean"})
+    print("consistency AUROC by k:", " ".join(kinds), "| mean")
+    for k in (1, 2, 3, 5, 8, None):
+        m, v = others_posterior(mu, var, tasks, k)
+        score = np.sqrt(((mu - m) ** 2 / (v + var)).mean(1))
+        au = []
+        for kind in kinds:
+            sel = (labels == kind) | (labels == "clean")
+            au.append(roc_auc_score(labels[sel] == kind, np.nan_to_num(score[sel])))
+        print(f"  k={k or 'all':>3}: " + " ".join(f"{a:.2f}" for a in au) + f" | {np.mean(au):.3f}")
+    print("share above a suspicion threshold: clean", " ".join(kinds))
+    s = t["suspicion"].to_numpy()
+    for th in (4, 6, 8, 10):
+        print(f"  {th:>2}: {np.mean(s[labels == 'clean'] > th):.3f} "
+              + " ".join(f"{np.mean(s[labels == k] > th):.2f}" for k in kinds))
+
+
+if __name__ == "__main__":
+    main()
