@@ -12,7 +12,7 @@
   by tasks done in more than one way; the neighbours' is not (on a separate
   development set, ``push-v1-dev`` + probes, mean AUROC over the 8 kinds:
   all others 0.67; k = 1, 2, 3, 5, 8: 0.75, 0.76, 0.77, 0.80, 0.80; 5 is
-  also the kNN baseline's k).  Variance catches cues that say nothing;
+  also the kNN baseline's k; ``benchmarks/score_choices.py``).  Variance catches cues that say nothing;
   consistency catches cues that clearly say the wrong thing.  NaN for a task
   with a single demo.
 - ``action_error`` (optional, ``audit --actions``): how badly the model's
@@ -42,7 +42,8 @@
   sees sigma only, which barely moves for an idle or flailing arm; the
   suspicion threshold flags those.  8 was chosen on the development set
   (push-v1-dev + probes) for about the OCSVM's 1% of clean demos: 4, 6, 8, 10
-  flag 12.5%, 4.4%, 0.5%, 0% of its clean demos (on push-v1-test 0.3% at 8).
+  flag 12.5%, 4.4%, 0.5%, 0% of its clean demos (on push-v1-test 0.3% at 8;
+  ``benchmarks/score_choices.py``).
 """
 
 from __future__ import annotations
