@@ -138,7 +138,8 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
     from democheck.fsutil import atomic_output_dir
     from democheck.petnet.card import git_commit, model_card
     from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
-    from democheck.petnet.train import Batches, _load_state, _save_state, resolve_device, task_posteriors, task_rows
+    from democheck.petnet.train import (Batches, _load_state, _save_state, resolve_device, task_posteriors, task_rows,
+                                        uniform_steps, work_dir)
     from democheck.sim.suite import run_shards
 
     if min(cfg.rounds, cfg.episodes_per_task, cfg.steps, cfg.batch_tasks, cfg.timesteps, cfg.workers) < 1:
@@ -147,14 +148,7 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
     if not 0.0 <= cfg.beta <= 1.0:
         raise DemocheckError(f"--beta is a probability, not {cfg.beta}")
     out, model_dir = Path(out), Path(model_dir)
-    work = out.parent / f".{out.name}.partial"
-    if out.exists() and any(out.iterdir()) and not force:
-        raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
-    if work.exists() and not resume:
-        if not force:
-            raise DemocheckError(f"{work}: an interrupted run is there; pass --resume to continue it or --force to "
-                                 "start over")
-        shutil.rmtree(work)
+    work = work_dir(out, resume, force)
     device = resolve_device(cfg.device)
     ckpt = load_checkpoint(model_dir, device=device)
     ds = open_dataset(dataset)
@@ -217,16 +211,14 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
         model.controller.train()
         run_demo = run_rec = None
         for step in range(cfg.steps):
-            demo = batches.sample(rng, cfg.batch_tasks, cfg.timesteps)
+            cue_rows, traj_rows = batches.pick_rows(rng, cfg.batch_tasks)
+            demo = batches.gather(cue_rows, traj_rows, uniform_steps(rng, arrays.lengths[traj_rows], cfg.timesteps))
             rec = recovery.sample(rng, cfg.batch_tasks, cfg.timesteps)
-            # z ~ N(mu, var) as in training: from each demo's cue, and from a demo of each recovery episode's task.
-            # (A TecNets model's embedding is deterministic: its "var" is zero.)
-            with torch.no_grad():
-                mu_d, var_d = task_posteriors(model, demo["cue"], device)
-                mu_d, var_d = torch.from_numpy(mu_d).to(device), torch.from_numpy(var_d).to(device)
-            cue_rows = np.array([post[int(rng.choice(batches.rows[ti]))] for ti in rec["task"]])
-            mu = torch.cat([mu_d, torch.from_numpy(mu_all[cue_rows]).to(device)])
-            sd = torch.cat([var_d.sqrt(), torch.from_numpy(np.sqrt(var_all[cue_rows])).to(device)])
+            # z ~ N(mu, var) as in training: from each demo's cue, and from a demo of each recovery episode's task,
+            # both looked up (the encoder is frozen).  A TecNets model's embedding is deterministic: "var" is zero.
+            rec_cues = [rng.choice(batches.rows[ti]) for ti in rec["task"]]
+            at = np.array([post[int(r)] for r in [*cue_rows, *rec_cues]])
+            mu, sd = torch.from_numpy(mu_all[at]).to(device), torch.from_numpy(np.sqrt(var_all[at])).to(device)
             z = mu + sd * torch.randn_like(sd)
             n = cfg.batch_tasks
             frames = torch.from_numpy(np.concatenate([demo["frames"], rec["frames"]])).to(device)

@@ -131,15 +131,18 @@ class Batches:
             picks += list(rng.choice(rest, size=min(n_tasks - len(picks), len(rest)), replace=False))
         return np.asarray(picks[:n_tasks])
 
-    def sample(self, rng: np.random.Generator, n_tasks: int, k: int, partial: bool = False) -> dict[str, np.ndarray]:
-        """A batch; ``partial`` adds ``partial_cue``: each cue cut short at a uniformly drawn timestep."""
-        picks = self._pick_tasks(rng, n_tasks)
+    def pick_rows(self, rng: np.random.Generator, n_tasks: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of a cue demo and of a different demonstrated trajectory for each of ``n_tasks`` tasks."""
         cue_rows, traj_rows = [], []
-        for t in picks:
+        for t in self._pick_tasks(rng, n_tasks):
             c, d = rng.choice(self.rows[t], size=2, replace=False)
             cue_rows.append(c)
             traj_rows.append(d)
-        cue_rows, traj_rows = np.array(cue_rows), np.array(traj_rows)
+        return np.array(cue_rows), np.array(traj_rows)
+
+    def sample(self, rng: np.random.Generator, n_tasks: int, k: int, partial: bool = False) -> dict[str, np.ndarray]:
+        """A batch; ``partial`` adds ``partial_cue``: each cue cut short at a uniformly drawn timestep."""
+        cue_rows, traj_rows = self.pick_rows(rng, n_tasks)
         steps = uniform_steps(rng, self.a.lengths[traj_rows], k)
         ends = uniform_steps(rng, self.a.lengths[cue_rows], 1)[:, 0] if partial else None
         return self.gather(cue_rows, traj_rows, steps, ends)
@@ -356,6 +359,23 @@ class TrainResult:
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
+def work_dir(out: Path, resume: bool, force: bool) -> Path:
+    """The folder beside ``out`` where a run keeps its state for ``--resume``, after checking ``out`` and it.
+
+    Refuses an existing ``out`` without ``force``, and an interrupted run's folder without ``resume`` (or
+    ``force``, which discards it).
+    """
+    work = out.parent / f".{out.name}.partial"
+    if out.exists() and any(out.iterdir()) and not force:
+        raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
+    if work.exists() and not resume:
+        if not force:
+            raise DemocheckError(f"{work}: an interrupted run of this model is there; pass --resume to continue it "
+                                 "or --force to start over")
+        shutil.rmtree(work)
+    return work
+
+
 def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "petnet", resume: bool = False,
           force: bool = False, meta: dict[str, Any] | None = None,
           on_progress: Callable[[int, int, dict[str, float]], None] | None = None,
@@ -373,14 +393,7 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
     from democheck.fsutil import atomic_output_dir
 
     out = Path(out)
-    work = out.parent / f".{out.name}.partial"
-    if out.exists() and any(out.iterdir()) and not force:
-        raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
-    if work.exists() and not resume:
-        if not force:
-            raise DemocheckError(f"{work}: an interrupted run of this model is there; pass --resume to continue it "
-                                 "or --force to start over")
-        shutil.rmtree(work)
+    work = work_dir(out, resume, force)
     device = resolve_device(tc.device)
     torch.manual_seed(tc.seed)
     rng = np.random.default_rng(tc.seed)
