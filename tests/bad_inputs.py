@@ -209,6 +209,12 @@ def path_escape(tmp, ds, model):
     return _audit(d, tmp, model)
 
 
+def path_nul(tmp, ds, model):
+    d = _copy(ds, tmp)
+    _edit_json(d / "meta/info.json", lambda doc: doc.update(video_path="\0"))
+    return _audit(d, tmp, model)
+
+
 CASES = [
     Case("path does not exist", missing_path, "no such file or directory"),
     Case("a directory that is no dataset", not_a_dataset, "not a dataset democheck knows"),
@@ -232,6 +238,7 @@ CASES = [
     Case("a torch pickle file given as the model", checkpoint_is_a_torch_file, "not a file"),
     Case("image size the model was not trained for", image_size_mismatch, "24x24x3 images"),
     Case("a ../../ video path in the metadata", path_escape, "points outside the dataset"),
+    Case("a NUL character in a metadata path", path_nul, "holds a NUL character"),
 ]
 
 

@@ -172,3 +172,54 @@ def test_partial_cues_cut_the_cue_demo_short_and_train(arrays, tmp_path):
     assert np.array_equal(batch["partial_cue"][:, 0], batch["cue"][:, 0])  # same demo, same first frame
     result = train(arrays, tmp_path / "m", TrainConfig(steps=5, seed=0, partial_cue_weight=1.0, **FAST))
     assert np.isfinite(result.history[-1]["train_partial"]) and "val_partial" in result.history[-1]
+
+
+def test_partial_kl_covers_the_starting_encoders_whole_cue_posterior(arrays, tmp_path):
+    import copy
+
+    from democheck.petnet.model import kl_diag
+
+    rows = task_rows(arrays, "train", 0)
+    norm = Normalisation.fit(arrays.state, arrays.actions)
+    batches = Batches(arrays, rows, norm)
+    cue_rows, traj_rows = batches.pick_rows(np.random.default_rng(0), 2)
+    steps = np.zeros((2, 3), np.int64)
+    model = build_model(ModelConfig(image_size=arrays.frames.shape[1], state_dim=arrays.state.shape[1],
+                                    action_dim=arrays.actions.shape[1]))
+    torch.manual_seed(0)
+    with torch.no_grad():  # large random weights, so that a cut cue's posterior differs from the whole one's
+        for p in model.encoder.parameters():
+            p.normal_(0.0, 0.3)
+    teacher = copy.deepcopy(model.encoder).requires_grad_(False)
+    tc = TrainConfig(partial_kl_weight=1.0)
+    cut = to_device(batches.gather(cue_rows, traj_rows, steps, np.zeros(2, np.int64)), torch.device("cpu"))
+    with pytest.raises(ValueError, match="starting encoder"):
+        losses(model, cut, tc)
+    out = losses(model, cut, tc, sample=False, teacher=teacher)
+    with torch.no_grad():
+        mu, var = teacher(cue_input(cut["cue"]))
+        mu_p, var_p = model.encoder(cue_input(cut["partial_cue"]))
+    assert torch.allclose(out["partial_kl"], kl_diag(mu, var, mu_p, var_p).mean(), rtol=1e-5)
+    assert float(out["partial_kl"]) > 1e-3
+    # Cut at the last frame the cue is whole: while the model is still its starting point, nothing to cover.
+    whole = to_device(batches.gather(cue_rows, traj_rows, steps, arrays.lengths[cue_rows] - 1), torch.device("cpu"))
+    assert float(losses(model, whole, tc, sample=False, teacher=teacher)["partial_kl"]) == pytest.approx(0.0, abs=1e-6)
+    # The target is fixed: the teacher gets no gradient.
+    out["partial_kl"].backward()
+    assert all(p.grad is None for p in teacher.parameters())
+
+
+def test_init_starts_from_a_model_and_the_partial_kl_needs_it(arrays, tmp_path):
+    base = train(arrays, tmp_path / "base", TrainConfig(steps=3, seed=0, **FAST))
+    with pytest.raises(DemocheckError, match="needs --init"):
+        train(arrays, tmp_path / "x", TrainConfig(steps=1, seed=0, partial_kl_weight=1.0, **FAST))
+    with pytest.raises(DemocheckError, match="architecture differs"):
+        train(arrays, tmp_path / "x", TrainConfig(steps=1, seed=0, init=str(tmp_path / "base"), keypoints=True, **FAST))
+    # A step at learning rate 0 keeps the starting model exactly, normalisation included.
+    same = train(arrays, tmp_path / "same", TrainConfig(steps=1, lr=0.0, seed=0, init=str(tmp_path / "base"), **FAST))
+    assert same.norm == base.norm
+    for (k, a), b in zip(base.model.state_dict().items(), same.model.state_dict().values()):
+        assert torch.equal(a, b), k
+    tuned = train(arrays, tmp_path / "ft", TrainConfig(steps=5, seed=0, init=str(tmp_path / "base"),
+                                                       partial_kl_weight=1.0, **FAST))
+    assert np.isfinite(tuned.history[-1]["train_partial_kl"]) and "val_partial_sigma" in tuned.history[-1]

@@ -268,7 +268,9 @@ def _template(info: dict[str, Any], key: str, default: str | None, root: Path, *
 
 
 def _inside(root: Path, rel: str) -> Path:
-    """A path from the dataset's metadata, refused if it escapes the dataset folder."""
+    """A path from the dataset's metadata, refused if it escapes the dataset folder or cannot be a path."""
+    if "\0" in rel:
+        raise DatasetError(f"{root / 'meta/info.json'}: path {rel!r} holds a NUL character")
     path = (root / rel).resolve()
     if not path.is_relative_to(root.resolve()):
         raise DatasetError(f"{root / 'meta/info.json'}: path {rel!r} points outside the dataset")

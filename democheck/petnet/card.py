@@ -52,6 +52,7 @@ def model_card(name: str, meta: dict[str, Any]) -> str:
         f"seed {tr['seed']}, KL weight {tr['kl_weight']}" + (f" ({tr['kl_target']})" if tr['kl_weight'] else "")
         + (f", contrastive weight {tr['contrastive_weight']}" if tr.get('contrastive_weight') else "")
         + ("" if tr['kl_weight'] or tr.get('contrastive_weight') else " (the paper's loss)"),
+        *([f"- started from `{tr['init']}` (its weights and normalisation)"] if tr.get("init") else []),
         f"- wall time {m['wall_s'] / 60:.1f} min",
         "",
         "## Results",

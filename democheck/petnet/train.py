@@ -12,6 +12,7 @@ continues from it and reaches the same weights as an uninterrupted run.
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import shutil
@@ -57,11 +58,28 @@ class TrainConfig:
     # look-alikes it is, so the loss teaches the variance to grow with what the cue leaves out -- the meaning of
     # task uncertainty -- from clean demos alone, no labelled defects.
     partial_cue_weight: float = 0.0
+    # PETNet option, with ``init``: weight of KL(q0(z | full cue) || q(z | the same cue cut at a random timestep)),
+    # where q0 is the starting model's encoder, frozen.  A cut cue must *cover* every task its beginning is
+    # consistent with: averaged over training demos, the best q(z | cut cue) has the mean of their posteriors and
+    # their variance plus the spread of their means, so sigma grows with what the cue leaves out (the Neural
+    # Process view: less context, wider posterior).  Clean demos only; no defect kind is shown to the model.  The
+    # target must be fixed: taken from the encoder being trained, every widening of cut cues leaks into whole
+    # ones, which the next step must cover again, and sigma runs away (push-v1: mean val sigma 39 after 1,000
+    # steps at weight 0.1, 2.6e7 after 3,000 at weight 1).  Measured and not shipped: from petnet-push-v1, 5,000
+    # steps at weight 1 left sigma flat over the cut time (0.359-0.360) and lowered the KL the cheaper way, by
+    # making mu ignore the last frame (a cut at t=0 moved mu by 0.77 sigma, against 1.58 before).
+    partial_kl_weight: float = 0.0
+    # Start from this model folder's weights and normalisation instead of a fresh network (same architecture).
+    init: str | None = None
     keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
     seed: int = 0
     val_every: int = 500
     ckpt_every: int = 1000
     device: str = "auto"
+
+    def partial_cues(self, model_type: str) -> bool:
+        """Whether batches carry cues cut short (``partial_cue``), for either partial-cue loss."""
+        return model_type == "petnet" and (self.partial_cue_weight > 0 or self.partial_kl_weight > 0)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -177,9 +195,12 @@ def task_matching_loss(mu_c: torch.Tensor, var_c: torch.Tensor, mu_t: torch.Tens
     return F.cross_entropy(logp, torch.arange(len(mu_c), device=mu_c.device))
 
 
-def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConfig, sample: bool = True
-           ) -> dict[str, torch.Tensor]:
-    """The training objective for either model type; ``sample=False`` uses z = mu (validation)."""
+def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConfig, sample: bool = True,
+           teacher: torch.nn.Module | None = None) -> dict[str, torch.Tensor]:
+    """The training objective for either model type; ``sample=False`` uses z = mu (validation).
+
+    ``teacher``: the frozen starting encoder, the partial-cue KL's target (``TrainConfig.partial_kl_weight``).
+    """
     cfg: ModelConfig = model.cfg
     cue = cue_input(batch["cue"])
     frames, state = batch["frames"], batch["state"]
@@ -197,12 +218,21 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
             mu_s, var_s = mu, var
         z = mu_s + var_s.sqrt() * torch.randn_like(mu_s) if sample else mu_s
         out["sigma"] = var.sqrt().mean()
-        if tc.contrastive_weight > 0 or tc.mean_hinge_weight > 0 or "partial_cue" in batch:
+        if tc.contrastive_weight > 0 or tc.mean_hinge_weight > 0 or tc.partial_cue_weight > 0:
             mu_t, var_t = model.encoder(cue_input(batch["traj_cue"]))
         if tc.contrastive_weight > 0:
             out["embed"] = task_matching_loss(mu, var, mu_t, var_t)
         if "partial_cue" in batch:
-            out["partial"] = task_matching_loss(*model.encoder(cue_input(batch["partial_cue"])), mu_t, var_t)
+            mu_p, var_p = model.encoder(cue_input(batch["partial_cue"]))
+            if tc.partial_cue_weight > 0:
+                out["partial"] = task_matching_loss(mu_p, var_p, mu_t, var_t)
+            if tc.partial_kl_weight > 0:
+                if teacher is None:
+                    raise ValueError("the partial-cue KL needs the frozen starting encoder (TrainConfig.init)")
+                with torch.no_grad():
+                    mu_0, var_0 = teacher(cue)
+                out["partial_kl"] = kl_diag(mu_0, var_0, mu_p, var_p).mean()
+            out["partial_sigma"] = var_p.sqrt().mean()
         if tc.mean_hinge_weight > 0:
             out["hinge"] = hinge_embedding_loss(F.normalize(mu, dim=-1), F.normalize(mu_t, dim=-1), tc.margin)
     else:
@@ -218,6 +248,8 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
         total = total + tc.mean_hinge_weight * out["hinge"]
     if "partial" in out:
         total = total + tc.partial_cue_weight * out["partial"]
+    if "partial_kl" in out:
+        total = total + tc.partial_kl_weight * out["partial_kl"]
     out["loss"] = total
     return out
 
@@ -314,14 +346,15 @@ def nonsense_cues(real: np.ndarray, rng: np.random.Generator) -> dict[str, np.nd
 
 
 @torch.no_grad()
-def validate(model, val: Batches, tc: TrainConfig, device: torch.device, pairs: dict[str, np.ndarray]) -> dict[str, float]:
+def validate(model, val: Batches, tc: TrainConfig, device: torch.device, pairs: dict[str, np.ndarray],
+             teacher: torch.nn.Module | None = None) -> dict[str, float]:
     model.eval()
     tot, n = {}, 0
     for s in range(0, len(pairs["cue_rows"]), 32):
         sl = slice(s, s + 32)
-        ends = pairs["ends"][sl] if tc.partial_cue_weight > 0 and model.cfg.model_type == "petnet" else None
+        ends = pairs["ends"][sl] if tc.partial_cues(model.cfg.model_type) else None
         batch = to_device(val.gather(pairs["cue_rows"][sl], pairs["traj_rows"][sl], pairs["steps"][sl], ends), device)
-        out = losses(model, batch, tc, sample=False)
+        out = losses(model, batch, tc, sample=False, teacher=teacher)
         m = len(pairs["cue_rows"][sl])
         for key, v in out.items():
             tot[key] = tot.get(key, 0.0) + float(v) * m
@@ -357,6 +390,18 @@ class TrainResult:
     norm: Normalisation
     history: list[dict[str, float]] = field(default_factory=list)
     metrics: dict[str, Any] = field(default_factory=dict)
+
+
+def _start_from(model: torch.nn.Module, cfg: ModelConfig, folder: str) -> Normalisation:
+    """Load ``folder``'s weights into ``model`` (which must have its architecture); returns its normalisation."""
+    from democheck.petnet.checkpoint import load_checkpoint
+
+    start = load_checkpoint(folder)
+    if start.config != cfg:
+        diff = sorted(k for k, v in cfg.to_dict().items() if start.config.to_dict().get(k) != v)
+        raise DemocheckError(f"--init {folder}: its architecture differs from this run's ({', '.join(diff)})")
+    model.load_state_dict(start.model.state_dict())
+    return start.norm
 
 
 def work_dir(out: Path, resume: bool, force: bool) -> Path:
@@ -403,12 +448,21 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
         raise DemocheckError("training needs at least one task with two or more demos (a cue and a trajectory); "
                              "this dataset has none")
     all_train = np.concatenate(list(train_rows.values()))
-    spans = np.concatenate([np.arange(arrays.offsets[r], arrays.offsets[r] + arrays.lengths[r]) for r in all_train])
-    norm = Normalisation.fit(arrays.state[spans], arrays.actions[spans])
     h = arrays.frames.shape[1]
     cfg = ModelConfig(model_type=model_type, image_size=h, state_dim=arrays.state.shape[1],
                       action_dim=arrays.actions.shape[1], keypoints=tc.keypoints)
     model = build_model(cfg).to(device)
+    teacher = None
+    if tc.init:
+        norm = _start_from(model, cfg, tc.init)
+        if tc.partial_kl_weight > 0:
+            teacher = copy.deepcopy(model.encoder).eval().requires_grad_(False)
+    elif tc.partial_kl_weight > 0:
+        raise DemocheckError("--partial-kl-weight needs --init: the KL's target is the starting model's encoder, "
+                             "held fixed")
+    else:
+        spans = np.concatenate([np.arange(arrays.offsets[r], arrays.offsets[r] + arrays.lengths[r]) for r in all_train])
+        norm = Normalisation.fit(arrays.state[spans], arrays.actions[spans])
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=tc.lr)
     groups = task_groups if tc.hard_negatives else None
@@ -433,8 +487,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
     running: dict[str, float] = {}
     while step < tc.steps:
         batch = to_device(batches.sample(rng, tc.batch_tasks, tc.timesteps,
-                                         partial=tc.partial_cue_weight > 0 and model_type == "petnet"), device)
-        out_l = losses(model, batch, tc)
+                                         partial=tc.partial_cues(model_type)), device)
+        out_l = losses(model, batch, tc, teacher=teacher)
         opt.zero_grad(set_to_none=True)
         out_l["loss"].backward()
         opt.step()
@@ -444,7 +498,7 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
             running[key] = 0.98 * running.get(key, v) + 0.02 * v
         report: dict[str, float] = {f"train_{k}": v for k, v in running.items()}
         if pairs is not None and (step % tc.val_every == 0 or step == tc.steps):
-            report.update({f"val_{k}": v for k, v in validate(model, val, tc, device, pairs).items()})
+            report.update({f"val_{k}": v for k, v in validate(model, val, tc, device, pairs, teacher).items()})
             history.append({"step": step, **report})
         if on_progress:
             on_progress(step, tc.steps, report)
