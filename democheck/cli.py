@@ -172,6 +172,7 @@ def train(
     init: Annotated[Optional[Path], typer.Option(help="Start from this model folder's weights and normalisation (same architecture) instead of a fresh network.")] = None,
     hard_negatives: Annotated[bool, typer.Option("--hard-negatives", help="Fill batches with look-alike tasks (in democheck suites: the two orders of one object pair), so the embedding must read which object was pushed.")] = False,
     keypoints: Annotated[bool, typer.Option("--keypoints", help="Controller: last two conv layers at stride 1 and a spatial softmax (expected x, y per channel) instead of a flattened 4x4 map.")] = False,
+    shift: Annotated[int, typer.Option(help="Augment training images by a random shift of up to this many pixels each way (0: off).")] = 0,
     seed: Annotated[int, typer.Option(help="Seed for initialisation, sampling and noise.")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     val_every: Annotated[int, typer.Option(help="Validate on the val split every this many steps.")] = 500,
@@ -191,12 +192,14 @@ def train(
             raise DemocheckError(f"--kl-target must be prior or np, not {kl_target!r}")
         if min(steps, batch_tasks, timesteps, val_every, ckpt_every) < 1:
             raise DemocheckError("--steps, --batch-tasks, --timesteps, --val-every and --ckpt-every must be positive")
+        if shift < 0:
+            raise DemocheckError(f"--shift must be 0 or more pixels, not {shift}")
         from democheck.workflows import train_model
         from democheck.petnet.train import TrainConfig
 
         tc = TrainConfig(steps=steps, batch_tasks=batch_tasks, timesteps=timesteps, lr=lr, kl_weight=kl_weight,
                          kl_target=kl_target, contrastive_weight=contrastive_weight, hard_negatives=hard_negatives, mean_hinge_weight=mean_hinge_weight,
-                         partial_cue_weight=partial_cue_weight, partial_kl_weight=partial_kl_weight, init=str(init) if init else None, keypoints=keypoints, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
+                         partial_cue_weight=partial_cue_weight, partial_kl_weight=partial_kl_weight, init=str(init) if init else None, keypoints=keypoints, shift=shift, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
         cols = (TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(),
                 TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
         with Progress(*cols, console=err_console, transient=True) as bar:

@@ -12,7 +12,7 @@ from democheck.errors import DemocheckError
 from democheck.petnet.checkpoint import CheckpointError, Normalisation, load_checkpoint
 from democheck.petnet.model import (ModelConfig, PETNet, TecNet, build_model, cue_input, hinge_embedding_loss,
                                     product_of_gaussians)
-from democheck.petnet.train import Batches, TrainConfig, losses, task_rows, to_device, train
+from democheck.petnet.train import Batches, TrainConfig, augment, losses, random_shift, task_rows, to_device, train
 
 FAST = dict(batch_tasks=2, timesteps=4, val_every=5, ckpt_every=5, device="cpu")
 
@@ -90,8 +90,9 @@ def test_save_load_bit_identical_and_card(arrays, tmp_path):
     assert not (tmp_path / ".m.partial").exists()  # the resume state is gone once the model is written
 
 
-def test_resume_reproduces_uninterrupted_run(arrays, tmp_path):
-    tc = TrainConfig(steps=14, seed=2, **FAST)
+@pytest.mark.parametrize("shift", [0, 2])
+def test_resume_reproduces_uninterrupted_run(arrays, tmp_path, shift):
+    tc = TrainConfig(steps=14, seed=2, shift=shift, **FAST)
     full = train(arrays, tmp_path / "full", tc)
     assert train(arrays, tmp_path / "cut", tc, stop_after=7) is None  # "killed" after its step-7 save
     assert (tmp_path / ".cut.partial").exists() and not (tmp_path / "cut").exists()
@@ -100,6 +101,33 @@ def test_resume_reproduces_uninterrupted_run(arrays, tmp_path):
     resumed = train(arrays, tmp_path / "cut", tc, resume=True)
     for (k, a), (_, b) in zip(full.model.state_dict().items(), resumed.model.state_dict().items()):
         assert torch.equal(a, b), k
+
+
+def test_random_shift_moves_each_item_by_one_offset_with_edge_padding():
+    torch.manual_seed(0)
+    images = torch.randint(0, 256, (64, 2, 9, 7, 3), dtype=torch.uint8)
+    moved = random_shift(images, 2)
+    padded = np.pad(images.numpy(), ((0, 0), (0, 0), (2, 2), (2, 2), (0, 0)), mode="edge")
+    seen = set()
+    for i in range(len(images)):
+        # exactly one crop of the edge-padded item (both of its frames together) gives the shifted item
+        hits = [(dy, dx) for dy in range(5) for dx in range(5)
+                if np.array_equal(moved[i].numpy(), padded[i, :, dy:dy + 9, dx:dx + 7])]
+        assert len(hits) >= 1
+        seen.add(hits[0])
+    assert len(seen) > 10  # offsets vary between items, in both directions
+    assert torch.equal(random_shift(images, 0), images)
+
+
+def test_augment_shifts_cues_whole_and_frames_one_by_one():
+    torch.manual_seed(1)
+    still = torch.randint(0, 256, (1, 1, 16, 16, 3), dtype=torch.uint8)
+    batch = {"cue": still.expand(6, 2, 16, 16, 3).clone(), "frames": still.expand(6, 5, 16, 16, 3).clone(),
+             "state": torch.zeros(6, 5, 3)}
+    out = augment(batch, 3)
+    assert torch.equal(out["cue"][:, 0], out["cue"][:, 1])  # a cue's two frames move together
+    assert not all(torch.equal(out["frames"][0, 0], out["frames"][0, k]) for k in range(5))  # frames apart
+    assert out["state"] is batch["state"] and torch.equal(batch["cue"][:, 0], still[:, 0].expand(6, 16, 16, 3))
 
 
 def test_tecnet_trains(arrays, tmp_path):

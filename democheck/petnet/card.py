@@ -53,6 +53,7 @@ def model_card(name: str, meta: dict[str, Any]) -> str:
         + (f", contrastive weight {tr['contrastive_weight']}" if tr.get('contrastive_weight') else "")
         + ("" if tr['kl_weight'] or tr.get('contrastive_weight') else " (the paper's loss)"),
         *([f"- started from `{tr['init']}` (its weights and normalisation)"] if tr.get("init") else []),
+        *([f"- training images shifted at random by up to {tr['shift']} px"] if tr.get("shift") else []),
         f"- wall time {m['wall_s'] / 60:.1f} min",
         "",
         "## Results",

@@ -72,6 +72,8 @@ class TrainConfig:
     # Start from this model folder's weights and normalisation instead of a fresh network (same architecture).
     init: str | None = None
     keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
+    # Random-shift augmentation of training images (``random_shift``): up to this many pixels each way, 0 = off.
+    shift: int = 0
     seed: int = 0
     val_every: int = 500
     ckpt_every: int = 1000
@@ -251,6 +253,38 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
     if "partial_kl" in out:
         total = total + tc.partial_kl_weight * out["partial_kl"]
     out["loss"] = total
+    return out
+
+
+def random_shift(images: torch.Tensor, pad: int) -> torch.Tensor:
+    """Each item of uint8 ``images`` [N, M, H, W, C] moved by its own random whole-pixel offset of at most ``pad``
+    (the M images of an item, e.g. a cue's two frames, together); borders repeat the edge pixels.
+
+    The translation augmentation of image-based RL and imitation (DrQ's random shift): the network must find
+    things wherever they are in the frame instead of memorising pixel positions.  Draws from torch's RNG, which the
+    training state saves, so a resumed run shifts as the uninterrupted one would.
+    """
+    if pad <= 0:
+        return images
+    n, h, w = images.shape[0], images.shape[-3], images.shape[-2]
+    off = torch.randint(-pad, pad + 1, (2, n), device=images.device)
+    rows = (torch.arange(h, device=images.device)[None] + off[0][:, None]).clamp_(0, h - 1)  # [N, H]
+    cols = (torch.arange(w, device=images.device)[None] + off[1][:, None]).clamp_(0, w - 1)  # [N, W]
+    idx = torch.arange(n, device=images.device)[:, None, None]
+    moved = images.movedim(1, -1)[idx, rows[:, :, None], cols[:, None, :]]  # [N, H, W, C, M]
+    return moved.movedim(-1, 1)
+
+
+def augment(batch: dict[str, torch.Tensor], shift: int) -> dict[str, torch.Tensor]:
+    """A training batch with every image randomly shifted: each cue as a whole, each controller frame alone."""
+    if shift <= 0:
+        return batch
+    out = dict(batch)
+    for key in ("cue", "traj_cue", "partial_cue"):
+        if key in out:
+            out[key] = random_shift(out[key], shift)
+    frames = out["frames"]
+    out["frames"] = random_shift(frames.reshape(-1, 1, *frames.shape[2:]), shift).reshape(frames.shape)
     return out
 
 
@@ -488,7 +522,7 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
     while step < tc.steps:
         batch = to_device(batches.sample(rng, tc.batch_tasks, tc.timesteps,
                                          partial=tc.partial_cues(model_type)), device)
-        out_l = losses(model, batch, tc, teacher=teacher)
+        out_l = losses(model, augment(batch, tc.shift), tc, teacher=teacher)
         opt.zero_grad(set_to_none=True)
         out_l["loss"].backward()
         opt.step()
