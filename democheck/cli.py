@@ -169,6 +169,7 @@ def train(
     mean_hinge_weight: Annotated[float, typer.Option(help="PETNet option: weight of TecNets' hinge loss on the unit-normalised task means (0: off).")] = 0.0,
     partial_cue_weight: Annotated[float, typer.Option(help="PETNet option: weight of the task-matching loss on partial cues (first frame + a frame at a random time), which teaches the variance to grow when a cue shows less of its task (0: off).")] = 0.0,
     partial_kl_weight: Annotated[float, typer.Option(help="PETNet option, with --init: weight of KL(q0(z | cue) || q(z | the cue cut at a random time)), q0 the starting model's encoder held fixed; a cue that shows less of its task must cover every task it could be, so sigma grows with what is missing (0: off).")] = 0.0,
+    broken_cue_weight: Annotated[float, typer.Option(help="PETNet option: weight of a hinge that makes broken cues (first and last frame from two scenes, or played backwards) at least twice as uncertain as real ones (0: off).")] = 0.0,
     init: Annotated[Optional[Path], typer.Option(help="Start from this model folder's weights and normalisation (same architecture) instead of a fresh network.")] = None,
     hard_negatives: Annotated[bool, typer.Option("--hard-negatives", help="Fill batches with look-alike tasks (in democheck suites: the two orders of one object pair), so the embedding must read which object was pushed.")] = False,
     keypoints: Annotated[bool, typer.Option("--keypoints", help="Controller: last two conv layers at stride 1 and a spatial softmax (expected x, y per channel) instead of a flattened 4x4 map.")] = False,
@@ -199,7 +200,7 @@ def train(
 
         tc = TrainConfig(steps=steps, batch_tasks=batch_tasks, timesteps=timesteps, lr=lr, kl_weight=kl_weight,
                          kl_target=kl_target, contrastive_weight=contrastive_weight, hard_negatives=hard_negatives, mean_hinge_weight=mean_hinge_weight,
-                         partial_cue_weight=partial_cue_weight, partial_kl_weight=partial_kl_weight, init=str(init) if init else None, keypoints=keypoints, shift=shift, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
+                         partial_cue_weight=partial_cue_weight, partial_kl_weight=partial_kl_weight, broken_cue_weight=broken_cue_weight, init=str(init) if init else None, keypoints=keypoints, shift=shift, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
         cols = (TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(),
                 TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
         with Progress(*cols, console=err_console, transient=True) as bar:

@@ -12,7 +12,8 @@ from democheck.errors import DemocheckError
 from democheck.petnet.checkpoint import CheckpointError, Normalisation, load_checkpoint
 from democheck.petnet.model import (ModelConfig, PETNet, TecNet, build_model, cue_input, hinge_embedding_loss,
                                     product_of_gaussians)
-from democheck.petnet.train import Batches, TrainConfig, augment, losses, random_shift, task_rows, to_device, train
+from democheck.petnet.train import (Batches, TrainConfig, augment, broken_cue_loss, broken_cues, losses,
+                                    random_shift, task_rows, to_device, train)
 
 FAST = dict(batch_tasks=2, timesteps=4, val_every=5, ckpt_every=5, device="cpu")
 
@@ -128,6 +129,38 @@ def test_augment_shifts_cues_whole_and_frames_one_by_one():
     assert torch.equal(out["cue"][:, 0], out["cue"][:, 1])  # a cue's two frames move together
     assert not all(torch.equal(out["frames"][0, 0], out["frames"][0, k]) for k in range(5))  # frames apart
     assert out["state"] is batch["state"] and torch.equal(batch["cue"][:, 0], still[:, 0].expand(6, 16, 16, 3))
+
+
+def test_broken_cues_splice_scenes_and_reverse_time():
+    cue = torch.arange(3, dtype=torch.uint8)[:, None, None, None, None] * 10 + torch.tensor([0, 1], dtype=torch.uint8
+                                                                                           )[None, :, None, None, None]
+    cue = cue.expand(3, 2, 4, 4, 3)
+    out = broken_cues(cue)
+    assert out.shape == (6, 2, 4, 4, 3)
+    assert out[:3, :, 0, 0, 0].tolist() == [[0, 11], [10, 21], [20, 1]]  # first frame of i, last frame of i + 1
+    assert out[3:, :, 0, 0, 0].tolist() == [[1, 0], [11, 10], [21, 20]]  # played backwards
+
+
+def test_broken_cue_loss_ranks_broken_cues_above_real_ones_by_the_margin():
+    real = torch.full((4,), 0.3, requires_grad=True)
+    broken = torch.tensor([0.3, 0.9], requires_grad=True)  # one as sure as a real cue, one 3x less sure
+    loss = broken_cue_loss(real, broken)
+    loss.backward()
+    assert loss.item() == pytest.approx(np.log(2) / 2)
+    assert broken.grad[0] < 0 and broken.grad[1] == 0  # only the too-sure broken cue is pushed up...
+    assert torch.all(real.grad > 0)  # ...and the real cues down
+    assert broken_cue_loss(real * 10, broken * 10).item() == pytest.approx(loss.item())  # no scale of its own
+
+
+def test_broken_cue_weight_adds_its_loss(arrays):
+    cfg = ModelConfig(image_size=arrays.frames.shape[1], state_dim=arrays.state.shape[1],
+                      action_dim=arrays.actions.shape[1])
+    norm = Normalisation.fit(arrays.state, arrays.actions)
+    batch = to_device(Batches(arrays, task_rows(arrays, "train", 0), norm).sample(np.random.default_rng(0), 2, 3),
+                      torch.device("cpu"))
+    out = losses(build_model(cfg), batch, TrainConfig(broken_cue_weight=2.0))
+    assert out["broken"] > 0
+    assert out["loss"].item() == pytest.approx((out["mse"] + 2.0 * out["broken"]).item(), rel=1e-5)
 
 
 def test_tecnet_trains(arrays, tmp_path):

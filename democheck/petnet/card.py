@@ -53,6 +53,9 @@ def model_card(name: str, meta: dict[str, Any]) -> str:
         + (f", contrastive weight {tr['contrastive_weight']}" if tr.get('contrastive_weight') else "")
         + ("" if tr['kl_weight'] or tr.get('contrastive_weight') else " (the paper's loss)"),
         *([f"- started from `{tr['init']}` (its weights and normalisation)"] if tr.get("init") else []),
+        *([f"- broken-cue loss weight {tr['broken_cue_weight']} (spliced and reversed cues made at least twice as "
+            "uncertain as real ones; none of the nonsense cues below is one of them)"]
+          if tr.get("broken_cue_weight") else []),
         *([f"- training images shifted at random by up to {tr['shift']} px"] if tr.get("shift") else []),
         f"- wall time {m['wall_s'] / 60:.1f} min",
         "",

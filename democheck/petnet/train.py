@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 import shutil
 import time
@@ -69,6 +70,9 @@ class TrainConfig:
     # steps at weight 1 left sigma flat over the cut time (0.359-0.360) and lowered the KL the cheaper way, by
     # making mu ignore the last frame (a cut at t=0 moved mu by 0.77 sigma, against 1.58 before).
     partial_kl_weight: float = 0.0
+    # PETNet option: weight of the broken-cue loss (``broken_cue_loss``): cues that break what every demonstration
+    # obeys -- one scene from start to end, time running forwards -- must be more uncertain than real ones.
+    broken_cue_weight: float = 0.0
     # Start from this model folder's weights and normalisation instead of a fresh network (same architecture).
     init: str | None = None
     keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
@@ -197,6 +201,28 @@ def task_matching_loss(mu_c: torch.Tensor, var_c: torch.Tensor, mu_t: torch.Tens
     return F.cross_entropy(logp, torch.arange(len(mu_c), device=mu_c.device))
 
 
+def broken_cues(cue: torch.Tensor) -> torch.Tensor:
+    """Cues no demonstration can produce, made from a batch of real ones (uint8 [B, 2, H, W, C]): each cue's
+    first frame with the next cue's last frame (two scenes; the batch's cues are of different tasks), and each
+    cue played backwards.  Neither is a defect kind democheck injects or probes, so the benchmark stays unseen.
+    """
+    spliced = torch.stack([cue[:, 0], cue.roll(-1, 0)[:, 1]], dim=1)
+    return torch.cat([spliced, cue.flip(1)])
+
+
+def broken_cue_loss(sigma_real: torch.Tensor, sigma_broken: torch.Tensor, margin: float = math.log(2.0)
+                    ) -> torch.Tensor:
+    """Hinge on log task standard deviations ([N] each, the mean over dimensions): every broken cue must be at
+    least ``exp(margin)`` times as uncertain as the batch's real cues on average.  Both sides get the gradient --
+    broken cues up, real ones down -- so the loss ranks without setting a scale; the task-matching loss, which
+    wants real cues sure of their task, sets it.  Two variants ran away or collapsed (push-v1, from
+    petnet-push-v1, weight 1): with the real cues as a fixed reference, every rise leaked into them through the
+    shared weights and sigma ran away (mean val sigma 56 after 500 steps, 4,700 after 3,000); with the prior's
+    sigma 1 as the target, all cues rose to 1.3 together and task matching fell to chance (val 3.34 = ln 28).
+    """
+    return F.relu(margin - (sigma_broken.log() - sigma_real.log().mean())).mean()
+
+
 def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConfig, sample: bool = True,
            teacher: torch.nn.Module | None = None) -> dict[str, torch.Tensor]:
     """The training objective for either model type; ``sample=False`` uses z = mu (validation).
@@ -235,6 +261,10 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
                     mu_0, var_0 = teacher(cue)
                 out["partial_kl"] = kl_diag(mu_0, var_0, mu_p, var_p).mean()
             out["partial_sigma"] = var_p.sqrt().mean()
+        if tc.broken_cue_weight > 0:
+            _, var_b = model.encoder(cue_input(broken_cues(batch["cue"])))
+            out["broken"] = broken_cue_loss(var.sqrt().mean(-1), var_b.sqrt().mean(-1))
+            out["broken_sigma"] = var_b.sqrt().mean()
         if tc.mean_hinge_weight > 0:
             out["hinge"] = hinge_embedding_loss(F.normalize(mu, dim=-1), F.normalize(mu_t, dim=-1), tc.margin)
     else:
@@ -252,6 +282,8 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
         total = total + tc.partial_cue_weight * out["partial"]
     if "partial_kl" in out:
         total = total + tc.partial_kl_weight * out["partial_kl"]
+    if "broken" in out:
+        total = total + tc.broken_cue_weight * out["broken"]
     out["loss"] = total
     return out
 
