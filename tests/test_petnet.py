@@ -261,7 +261,7 @@ def test_partial_kl_covers_the_starting_encoders_whole_cue_posterior(arrays, tmp
         mu, var = teacher(cue_input(cut["cue"]))
         mu_p, var_p = model.encoder(cue_input(cut["partial_cue"]))
     assert torch.allclose(out["partial_kl"], kl_diag(mu, var, mu_p, var_p).mean(), rtol=1e-5)
-    assert float(out["partial_kl"]) > 1e-3
+    assert out["partial_kl"].item() > 1e-3
     # Cut at the last frame the cue is whole: while the model is still its starting point, nothing to cover.
     whole = to_device(batches.gather(cue_rows, traj_rows, steps, arrays.lengths[cue_rows] - 1), torch.device("cpu"))
     assert float(losses(model, whole, tc, sample=False, teacher=teacher)["partial_kl"]) == pytest.approx(0.0, abs=1e-6)
