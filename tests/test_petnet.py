@@ -264,7 +264,7 @@ def test_partial_kl_covers_the_starting_encoders_whole_cue_posterior(arrays, tmp
     assert out["partial_kl"].item() > 1e-3
     # Cut at the last frame the cue is whole: while the model is still its starting point, nothing to cover.
     whole = to_device(batches.gather(cue_rows, traj_rows, steps, arrays.lengths[cue_rows] - 1), torch.device("cpu"))
-    assert float(losses(model, whole, tc, sample=False, teacher=teacher)["partial_kl"]) == pytest.approx(0.0, abs=1e-6)
+    assert losses(model, whole, tc, sample=False, teacher=teacher)["partial_kl"].item() == pytest.approx(0.0, abs=1e-6)
     # The target is fixed: the teacher gets no gradient.
     out["partial_kl"].backward()
     assert all(p.grad is None for p in teacher.parameters())
