@@ -245,7 +245,8 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
                 out["kl"] = kl_diag(mu, var, torch.zeros_like(mu), torch.ones_like(var)).mean()
             mu_s, var_s = mu, var
         z = mu_s + var_s.sqrt() * torch.randn_like(mu_s) if sample else mu_s
-        out["sigma"] = var.sqrt().mean()
+        sigma = var.sqrt()
+        out["sigma"] = sigma.mean()
         if tc.contrastive_weight > 0 or tc.mean_hinge_weight > 0 or tc.partial_cue_weight > 0:
             mu_t, var_t = model.encoder(cue_input(batch["traj_cue"]))
         if tc.contrastive_weight > 0:
@@ -263,7 +264,7 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
             out["partial_sigma"] = var_p.sqrt().mean()
         if tc.broken_cue_weight > 0:
             _, var_b = model.encoder(cue_input(broken_cues(batch["cue"])))
-            out["broken"] = broken_cue_loss(var.sqrt().mean(-1), var_b.sqrt().mean(-1))
+            out["broken"] = broken_cue_loss(sigma.mean(-1), var_b.sqrt().mean(-1))
             out["broken_sigma"] = var_b.sqrt().mean()
         if tc.mean_hinge_weight > 0:
             out["hinge"] = hinge_embedding_loss(F.normalize(mu, dim=-1), F.normalize(mu_t, dim=-1), tc.margin)
@@ -271,19 +272,14 @@ def losses(model: torch.nn.Module, batch: dict[str, torch.Tensor], tc: TrainConf
         z = model.encoder(cue)
         out["embed"] = hinge_embedding_loss(z, model.encoder(cue_input(batch["traj_cue"])), tc.margin)
     out["mse"] = ((model.controller.act(frames, state, z) - batch["actions"]) ** 2).mean()
+    weights = {"kl": tc.kl_weight,
+               "embed": tc.embed_weight if cfg.model_type == "tecnet" else tc.contrastive_weight,
+               "hinge": tc.mean_hinge_weight, "partial": tc.partial_cue_weight,
+               "partial_kl": tc.partial_kl_weight, "broken": tc.broken_cue_weight}
     total = out["mse"]
-    if "kl" in out:
-        total = total + tc.kl_weight * out["kl"]
-    if "embed" in out:
-        total = total + (tc.embed_weight if cfg.model_type == "tecnet" else tc.contrastive_weight) * out["embed"]
-    if "hinge" in out:
-        total = total + tc.mean_hinge_weight * out["hinge"]
-    if "partial" in out:
-        total = total + tc.partial_cue_weight * out["partial"]
-    if "partial_kl" in out:
-        total = total + tc.partial_kl_weight * out["partial_kl"]
-    if "broken" in out:
-        total = total + tc.broken_cue_weight * out["broken"]
+    for key, weight in weights.items():
+        if key in out:
+            total = total + weight * out[key]
     out["loss"] = total
     return out
 
