@@ -170,6 +170,7 @@ def train(
     partial_cue_weight: Annotated[float, typer.Option(help="PETNet option: weight of the task-matching loss on partial cues (first frame + a frame at a random time), which teaches the variance to grow when a cue shows less of its task (0: off).")] = 0.0,
     partial_kl_weight: Annotated[float, typer.Option(help="PETNet option, with --init: weight of KL(q0(z | cue) || q(z | the cue cut at a random time)), q0 the starting model's encoder held fixed; a cue that shows less of its task must cover every task it could be, so sigma grows with what is missing (0: off).")] = 0.0,
     broken_cue_weight: Annotated[float, typer.Option(help="PETNet option: weight of a hinge that makes broken cues (first and last frame from two scenes, or played backwards) at least twice as uncertain as real ones (0: off).")] = 0.0,
+    novelty: Annotated[bool, typer.Option("--novelty/--no-novelty", help="PETNet: after training, fit the density of the training cues' features that widens the task variance of unfamiliar cues (--no-novelty: the paper's variance head alone).")] = True,
     init: Annotated[Optional[Path], typer.Option(help="Start from this model folder's weights and normalisation (same architecture) instead of a fresh network.")] = None,
     hard_negatives: Annotated[bool, typer.Option("--hard-negatives", help="Fill batches with look-alike tasks (in democheck suites: the two orders of one object pair), so the embedding must read which object was pushed.")] = False,
     keypoints: Annotated[bool, typer.Option("--keypoints", help="Controller: last two conv layers at stride 1 and a spatial softmax (expected x, y per channel) instead of a flattened 4x4 map.")] = False,
@@ -200,7 +201,7 @@ def train(
 
         tc = TrainConfig(steps=steps, batch_tasks=batch_tasks, timesteps=timesteps, lr=lr, kl_weight=kl_weight,
                          kl_target=kl_target, contrastive_weight=contrastive_weight, hard_negatives=hard_negatives, mean_hinge_weight=mean_hinge_weight,
-                         partial_cue_weight=partial_cue_weight, partial_kl_weight=partial_kl_weight, broken_cue_weight=broken_cue_weight, init=str(init) if init else None, keypoints=keypoints, shift=shift, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
+                         partial_cue_weight=partial_cue_weight, partial_kl_weight=partial_kl_weight, broken_cue_weight=broken_cue_weight, novelty=novelty, init=str(init) if init else None, keypoints=keypoints, shift=shift, seed=seed, val_every=val_every, ckpt_every=ckpt_every, device=device)
         cols = (TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(),
                 TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
         with Progress(*cols, console=err_console, transient=True) as bar:
@@ -226,6 +227,38 @@ def train(
     for name, v in result.metrics.get("task_sigma", {}).items():
         table.add_row(f"mean sigma: {name}", f"{v:.4f}")
     table.add_row("wall time", f"{result.metrics['wall_s'] / 60:.1f} min")
+    console.print(table)
+
+
+@app.command(name="fit-novelty")
+def fit_novelty(
+    model: Annotated[Path, typer.Argument(help="A trained PETNet model folder.")],
+    data: Annotated[Path, typer.Option("--data", help="The dataset the model was trained on (its train split fits the density, its val split the reference distance).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write: the same weights with the density, the card's numbers and the audit's reference redone.")],
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    camera: Annotated[Optional[str], typer.Option(help="Image feature the model was trained on when there are several.")] = None,
+    cache_dir: Annotated[Optional[Path], typer.Option(help="Where decoded frames are cached (default ~/.cache/democheck).")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out.")] = False,
+) -> None:
+    """Give a trained PETNet model the epistemic part of its task variance, without retraining.
+
+    A Gaussian fitted to the encoder's conv features of the training cues; a cue far from them gets a wider task posterior. democheck train fits it itself; this is for models trained with --no-novelty or before it existed.
+    """
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    with _user_errors():
+        from democheck.workflows import refit_novelty
+
+        with Progress(TextColumn("decode frames"), BarColumn(), MofNCompleteColumn(), console=err_console,
+                      transient=True) as bar:
+            job = bar.add_task("decode", total=None)
+            meta = refit_novelty(model, data, out, camera=camera, cache_dir=cache_dir, device=device, force=force,
+                                 on_decode=lambda d, n: bar.update(job, completed=d, total=n))
+    table = Table(title=f"{model} + novelty -> {out}", show_header=False)
+    nov = meta["novelty"]
+    table.add_row("reference d2", f"{nov['d2_ref']:.1f} ({nov['quantile']:.0%} of {nov['held_out_cues']} held-out cues)")
+    for name, v in meta["metrics"]["task_sigma"].items():
+        table.add_row(f"mean sigma: {name}", f"{v:.4f}")
     console.print(table)
 
 

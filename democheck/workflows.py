@@ -12,6 +12,8 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
+
 from democheck import __version__
 
 
@@ -39,12 +41,59 @@ def train_model(dataset: str | Path, out: str | Path, tc, model_type: str = "pet
     suite = Path(dataset) / "meta" / "democheck" / "suite.json"
     if suite.exists():
         data["recipe"] = json.loads(suite.read_text())["recipe"]
-    meta = {"data": data, "command": "democheck " + shlex.join(sys.argv[1:]) if sys.argv[0].endswith("democheck")
-            else shlex.join(sys.argv), "commit": git_commit(Path(__file__).parent), "democheck_version": __version__,
+    meta = {"data": data, "command": _command_line(), "commit": git_commit(Path(__file__).parent), "democheck_version": __version__,
             "torch_version": torch.__version__, "device": str(resolve_device(tc.device))}
     return train(arrays, Path(out), tc, model_type=model_type, resume=resume, force=force, meta=meta,
                  on_progress=on_step, card=lambda m: model_card(Path(out).name, m), stop_after=stop_after,
                  reference=reference, task_groups=object_pair_groups(ds))
+
+
+def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camera: str | None = None,
+                  cache_dir: Path | None = None, device: str = "auto", force: bool = False,
+                  on_decode: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """Fit (or refit) a trained PETNet model's novelty density on ``dataset`` -- its training data -- and write
+    the model, weights unchanged, to ``out`` with the card's numbers and the audit's reference redone."""
+    from democheck.audit.run import check_compatible
+    from democheck.audit.scores import reference
+    from democheck.data import open_dataset
+    from democheck.data.cache import build_cache
+    from democheck.errors import DemocheckError
+    from democheck.fsutil import atomic_output_dir
+    from democheck.petnet.card import git_commit, model_card
+    from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
+    from democheck.petnet.train import finish_petnet, resolve_device, task_rows
+
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not force:
+        raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
+    dev = resolve_device(device)
+    ckpt = load_checkpoint(model, device=dev)
+    ds = open_dataset(dataset, camera=camera)
+    check_compatible(ds, ckpt)
+    arrays = build_cache(ds, cache_dir, on_progress=on_decode)
+    trained_on = ckpt.meta.get("data", {}).get("fingerprint")
+    if trained_on is not None and trained_on != arrays.fingerprint:
+        raise DemocheckError(f"{ds.root}: not the data {ckpt.path} was trained on (fingerprint {arrays.fingerprint}, "
+                             f"the model's {trained_on}); the density must describe what the model saw")
+    seed = int(ckpt.meta.get("training", {}).get("seed", 0))
+    train_rows, val_rows = task_rows(arrays, "train", seed), task_rows(arrays, "val", seed)
+    if not train_rows:
+        raise DemocheckError(f"{ds.root}: no training tasks with two or more demos")
+    held = np.concatenate(list(val_rows.values())) if val_rows else None
+    extra = finish_petnet(ckpt.model, arrays, np.concatenate(list(train_rows.values())), held, seed, dev,
+                          novelty=True, reference=reference)
+    meta = dict(ckpt.meta)
+    meta["metrics"] = {**meta.get("metrics", {}), "task_sigma": extra.pop("task_sigma")}
+    meta.update(extra)
+    meta["novelty"].update(command=_command_line(), commit=git_commit(Path(__file__).parent))
+    with atomic_output_dir(out, force=force) as tmp:
+        save_checkpoint(tmp, ckpt.model, ckpt.config, ckpt.norm, meta, model_card(out.name, meta))
+    return meta
+
+
+def _command_line() -> str:
+    """The command that is running, as the user would type it."""
+    return "democheck " + shlex.join(sys.argv[1:]) if sys.argv[0].endswith("democheck") else shlex.join(sys.argv)
 
 
 def object_pair_groups(ds) -> dict[str, str]:

@@ -227,14 +227,16 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     doc = json.loads((out / "bench.json").read_text())
     kinds = {"idle", "random", "wrong-object", "no-action", "no-objects", "hidden"}
     assert kinds <= set(doc["kinds"])
-    assert set(doc["scorers"]) == {"sigma", "consistency", "action_error", "suspicion", "ocsvm_flag", "tecnet_knn",
-                                   "heuristic", "random"}
+    assert set(doc["scorers"]) == {"sigma", "sigma_head", "consistency", "action_error", "suspicion", "ocsvm_flag",
+                                   "tecnet_knn", "heuristic", "random"}
     for name, per in doc["scorers"].items():
         for kind in kinds:
             assert set(per[kind]) == {"auroc", "auprc", "p_at_k", "n"}
     # Every figure is what scikit-learn says on the pooled scores.
     table = pd.read_parquet(out / "scores.parquet")
     assert len(table) == len(open_dataset(defect_dataset)) + len(open_dataset(probe_root))
+    # The paper's sigma (the head alone) is the total without the novelty part: never larger, larger somewhere.
+    assert (table["sigma_head"] <= table["sigma"] * (1 + 1e-6)).all() and (table["sigma_head"] < table["sigma"]).any()
     for name in ("sigma", "heuristic", "tecnet_knn"):
         for kind in ("idle", "hidden"):
             keep = table["label"].isin([kind, "clean"])

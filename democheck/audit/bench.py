@@ -26,10 +26,11 @@ import pandas as pd
 
 from democheck.errors import DemocheckError
 
-OURS = ("sigma", "consistency", "action_error", "suspicion", "ocsvm_flag")
+OURS = ("sigma", "sigma_head", "consistency", "action_error", "suspicion", "ocsvm_flag")
 BASELINES = ("tecnet_knn", "heuristic", "random")
 SCORER_NOTES = {
-    "sigma": "PETNet task uncertainty: mean task standard deviation of the cue (the paper)",
+    "sigma": "PETNet task uncertainty: mean task standard deviation of the cue, both parts of the variance",
+    "sigma_head": "the paper's task uncertainty: sigma from the variance head alone, without the novelty part",
     "consistency": "distance of the cue's task mean from the other demos of its task (democheck)",
     "action_error": "how badly PETNet's controller, told the task by the other demos, explains the demo's actions",
     "suspicion": "max of sigma, consistency and action error, robustly standardised (democheck's ranking)",
@@ -132,7 +133,7 @@ def bench(datasets: list[str | Path], out: str | Path, model: str | Path | None 
 
     from democheck.audit.baselines import heuristic_score, heuristic_table, knn_same_task, random_score
     from democheck.audit.run import _counting, action_errors, check_compatible, controller_z, posteriors, to_json
-    from democheck.audit.scores import score_table
+    from democheck.audit.scores import score_table, task_score
     from democheck.data import open_dataset
     from democheck.fsutil import atomic_output_dir
     from democheck.petnet.checkpoint import load_checkpoint
@@ -153,16 +154,17 @@ def bench(datasets: list[str | Path], out: str | Path, model: str | Path | None 
             raise DemocheckError(f"{ds.root}: no labels; bench needs labelled demos (democheck synth --defect-rate, "
                                  "democheck probe)")
     t0 = time.perf_counter()
-    parts, mus, vars_, feats, embs, errs = [], [], [], [], [], []
+    parts, mus, vars_, heads, feats, embs, errs = [], [], [], [], [], [], []
 
     def report(stage: str, ds) -> Callable[[int, int], None] | None:
         return (lambda d, n: on_progress(f"{stage} {ds.root.name}", d, n)) if on_progress else None
 
     for ds in sets:
         # Every per-demo array below is in ds.episode_indices order, the order of ds.episodes' rows.
-        mu, var = posteriors(ds, ckpt.model, dev, on_progress=report("PETNet", ds))
+        mu, var_task, var_novel = posteriors(ds, ckpt.model, dev, on_progress=report("PETNet", ds), parts=True)
         mus.append(mu)
-        vars_.append(var)
+        vars_.append(var_task + var_novel)
+        heads.append(var_task)
         if tec is not None:
             embs.append(posteriors(ds, tec.model, dev, on_progress=report("TecNets", ds))[0])
         parts.append(ds.episodes.reset_index().assign(dataset=str(ds.root)))
@@ -190,6 +192,7 @@ def bench(datasets: list[str | Path], out: str | Path, model: str | Path | None 
     # The scorer "sigma" is the paper's score (mean task standard deviation); the vector moves to sigma_vec.
     table = table.rename(columns={"sigma": "sigma_vec"})
     table["sigma"] = table["score"]
+    table["sigma_head"] = task_score(np.sqrt(np.concatenate(heads)))[order]
     table["ocsvm_flag"] = (table["ocsvm_margin"] < 0).astype(float)  # the paper's flag alone
     table["heuristic"] = heuristic_score(np.concatenate(feats))[order]
     table["random"] = random_score(len(table), seed)

@@ -37,20 +37,21 @@ def check_compatible(ds: DemoSet, ckpt) -> None:
 
 
 def posteriors(ds: DemoSet, model, device, batch: int = 256,
-               on_progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Task posterior (mu, var) of every demo's cue, in ``ds.episode_indices`` order."""
+               on_progress: Callable[[int, int], None] | None = None, parts: bool = False) -> tuple[np.ndarray, ...]:
+    """Task posterior (mu, var) of every demo's cue, in ``ds.episode_indices`` order; ``parts``: (mu, var_task,
+    var_novel), as ``task_posteriors``."""
     from democheck.petnet.train import task_posteriors
 
     eps = ds.episode_indices
-    mus, vars_ = [], []
+    cols: list[list[np.ndarray]] = []
     for s in range(0, len(eps), batch):
-        cues = ds.cue_frames_many(eps[s:s + batch])
-        mu, var = task_posteriors(model, cues, device)
-        mus.append(mu)
-        vars_.append(var)
+        out = task_posteriors(model, ds.cue_frames_many(eps[s:s + batch]), device, parts=parts)
+        cols = cols or [[] for _ in out]
+        for col, x in zip(cols, out):
+            col.append(x)
         if on_progress:
             on_progress(min(s + batch, len(eps)), len(eps))
-    return np.concatenate(mus), np.concatenate(vars_)
+    return tuple(np.concatenate(c) for c in cols)
 
 
 ACTION_STEPS = 25  # timesteps per demo at which the controller's actions are compared with the demo's

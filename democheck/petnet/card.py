@@ -18,6 +18,20 @@ def git_commit(path: Path) -> str:
         return "unknown"
 
 
+def novelty_lines(nov: dict[str, Any] | None) -> list[str]:
+    """The card's account of the novelty density (``democheck.petnet.novelty``), if the model has one."""
+    if not nov:
+        return ["- no novelty density: the task variance is the paper's head alone"]
+    lines = [f"- novelty density (the epistemic part of the task variance): a Gaussian over the encoder's "
+             f"{nov['feature_dim']} conv features of {nov['train_cues']} training cues (Ledoit-Wolf shrinkage "
+             f"{nov['shrinkage']:.3f}); reference distance d2 = {nov['d2_ref']:.1f}, the "
+             f"{nov['quantile']:.0%} quantile of {nov['held_out_cues']} held-out cues"]
+    if nov.get("command"):
+        lines.append(f"- novelty density fitted afterwards, weights unchanged: `{nov['command']}` (commit "
+                     f"`{nov.get('commit', 'unknown')}`)")
+    return lines
+
+
 def model_card(name: str, meta: dict[str, Any]) -> str:
     tr, m, data = meta["training"], meta["metrics"], meta["data"]
     final = m.get("final", {})
@@ -58,6 +72,7 @@ def model_card(name: str, meta: dict[str, Any]) -> str:
           if tr.get("broken_cue_weight") else []),
         *([f"- training images shifted at random by up to {tr['shift']} px"] if tr.get("shift") else []),
         f"- wall time {m['wall_s'] / 60:.1f} min",
+        *(novelty_lines(meta.get("novelty")) if tr["model_type"] == "petnet" else []),
         "",
         "## Results",
         "",
@@ -68,8 +83,8 @@ def model_card(name: str, meta: dict[str, Any]) -> str:
         if key in final:
             lines.append(f"| final {key.replace('_', ' ')} | {final[key]:.4f} |")
     if "task_sigma" in m:
-        lines += ["", "Mean task standard deviation (mean over the embedding's dimensions of sqrt(var)) of real "
-                  "cues and of hand-made nonsense cues made from them:", "", "| cues | mean sigma |", "|---|---|"]
+        lines += ["", "Mean task standard deviation (mean over the embedding's dimensions of sqrt(var), both parts "
+                  "of the variance) of real cues and of hand-made nonsense cues made from them:", "", "| cues | mean sigma |", "|---|---|"]
         lines += [f"| {k} | {v:.4f} |" for k, v in m["task_sigma"].items()]
     for section in meta.get("extra_sections", []):
         lines += ["", section]

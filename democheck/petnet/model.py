@@ -43,6 +43,9 @@ class ModelConfig:
     # Controller only: last two conv layers at stride 1 and a spatial softmax (expected x, y of each channel)
     # instead of flattening a 4x4 map, so object and fingertip positions survive to the FC layers.
     keypoints: bool = False
+    # PETNet encoder only: the task variance has a second, epistemic part that grows with the distance of the
+    # cue's conv features from the training cues' (``TaskEncoder``); fitted after training, ``petnet.novelty``.
+    novelty: bool = False
 
     @property
     def embed_dim(self) -> int:
@@ -116,9 +119,19 @@ def cue_input(cues: torch.Tensor) -> torch.Tensor:
 class TaskEncoder(nn.Module):
     """Cue -> (mu, var) of a diagonal Gaussian over task space.
 
-    var = floor + softplus(raw): softplus grows linearly, not exponentially,
-    so an out-of-distribution cue cannot blow the variance up to inf, and the
-    floor keeps 1/var finite in the product of Gaussians.
+    var = var_task + var_novel.  ``var_task`` is the paper's head: floor +
+    softplus(raw); softplus grows linearly, not exponentially, so an
+    out-of-distribution cue cannot blow the variance up to inf, and the floor
+    keeps 1/var finite in the product of Gaussians.  The head is trained only
+    on real cues and says nothing sure about others (a black image can get a
+    smaller variance than any demo).  ``var_novel`` (``cfg.novelty``) is the
+    part the training data cannot vouch for: prior_var * d2 / d2_ref, where
+    d2 is the cue's squared Mahalanobis distance from the training cues' conv
+    features, d2_ref a reference distance of held-out real cues and prior_var
+    the variance of z over the training cues, per dimension -- an unfamiliar
+    cue's posterior widens in proportion to how unfamiliar it is, in task-space
+    units.  Fitted after training (``democheck.petnet.novelty``), zero until
+    then; without it the encoder is exactly the paper's.
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -126,11 +139,36 @@ class TaskEncoder(nn.Module):
         self.cfg = cfg
         self.conv = conv_stack(6, cfg)
         self.head = mlp(conv_out_dim(cfg), 2 * cfg.z_dim, cfg)
+        if cfg.novelty:
+            self.add_novelty()
+
+    def add_novelty(self) -> None:
+        """Register the (zero) buffers of the feature density; ``petnet.novelty.fit_novelty`` fills them."""
+        if hasattr(self, "feature_mean"):
+            return
+        d = conv_out_dim(self.cfg)
+        self.register_buffer("feature_mean", torch.zeros(d))
+        self.register_buffer("feature_precision", torch.zeros(d, d))
+        self.register_buffer("novelty_ref", torch.ones(()))
+        self.register_buffer("prior_var", torch.zeros(self.cfg.z_dim))
+
+    def distance2(self, features: torch.Tensor) -> torch.Tensor:
+        """Squared Mahalanobis distance of conv features [B, D] from the training cues': [B]."""
+        d = features - self.feature_mean
+        return ((d @ self.feature_precision) * d).sum(-1)
+
+    def parts(self, cue: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(mu, var_task, var_novel); var_novel is zero without a fitted novelty density."""
+        h = self.conv(cue)
+        mu, raw = self.head(h).chunk(2, dim=-1)
+        var_task = self.cfg.var_floor + F.softplus(raw)
+        if not self.cfg.novelty:
+            return mu, var_task, torch.zeros_like(var_task)
+        return mu, var_task, self.prior_var * (self.distance2(h) / self.novelty_ref)[:, None]
 
     def forward(self, cue: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.head(self.conv(cue))
-        mu, raw = out.chunk(2, dim=-1)
-        return mu, self.cfg.var_floor + F.softplus(raw)
+        mu, var_task, var_novel = self.parts(cue)
+        return mu, var_task + var_novel
 
 
 class EmbeddingEncoder(nn.Module):

@@ -30,8 +30,8 @@ from safetensors.torch import load_file, save_file
 from democheck.data.cache import EpisodeArrays
 from democheck.errors import DemocheckError
 from democheck.petnet.checkpoint import Normalisation, save_checkpoint
-from democheck.petnet.model import (ModelConfig, build_model, cue_input, hinge_embedding_loss, kl_diag,
-                                    product_of_gaussians)
+from democheck.petnet.model import (ModelConfig, TaskEncoder, build_model, cue_input, hinge_embedding_loss,
+                                    kl_diag, product_of_gaussians)
 
 
 @dataclass
@@ -73,6 +73,9 @@ class TrainConfig:
     # PETNet option: weight of the broken-cue loss (``broken_cue_loss``): cues that break what every demonstration
     # obeys -- one scene from start to end, time running forwards -- must be more uncertain than real ones.
     broken_cue_weight: float = 0.0
+    # PETNet: after training, fit the novelty density that adds the epistemic part of the task variance
+    # (``democheck.petnet.novelty``); off leaves the paper's variance head alone.
+    novelty: bool = True
     # Start from this model folder's weights and normalisation instead of a fresh network (same architecture).
     init: str | None = None
     keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
@@ -371,25 +374,59 @@ def _load_state(work: Path, model, opt) -> tuple[int, np.random.Generator, dict[
 # ---------------------------------------------------------------------------
 
 @torch.no_grad()
-def task_posteriors(model, cues: np.ndarray, device: torch.device, chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+def task_posteriors(model, cues: np.ndarray, device: torch.device, chunk: int = 256, parts: bool = False
+                    ) -> tuple[np.ndarray, ...]:
     """Per-cue task posterior (mu, var), each [N, z], for uint8 cues [N, 2, H, W, 3].
 
-    A TecNets model has no variance: its embedding comes back as ``mu`` with ``var`` all zero.
+    ``parts``: (mu, var_task, var_novel) instead -- the paper's head and the novelty part, var their sum
+    (``TaskEncoder``).  A TecNets model has no variance: its embedding comes back as ``mu``, variances zero.
     """
-    mus, vars_ = [], []
+    cols: list[list[np.ndarray]] = [[], [], []]
     for s in range(0, len(cues), chunk):
-        out = model.encoder(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device)))
-        mu, var = out if isinstance(out, tuple) else (out, torch.zeros_like(out))
-        mus.append(mu.cpu().numpy())
-        vars_.append(var.cpu().numpy())
-    if not mus:
-        return np.zeros((0, model.cfg.z_dim), np.float32), np.zeros((0, model.cfg.z_dim), np.float32)
-    return np.concatenate(mus), np.concatenate(vars_)
+        x = cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device))
+        if isinstance(model.encoder, TaskEncoder):
+            mu, var_task, var_novel = model.encoder.parts(x)
+            out = (mu, var_task, var_novel) if parts else (mu, var_task + var_novel)
+        else:
+            emb = model.encoder(x)
+            out = (emb, torch.zeros_like(emb), torch.zeros_like(emb))[:3 if parts else 2]
+        for col, t in zip(cols, out):
+            col.append(t.cpu().numpy())
+    n_out = 3 if parts else 2
+    if not cols[0]:
+        return tuple(np.zeros((0, model.cfg.z_dim), np.float32) for _ in range(n_out))
+    return tuple(np.concatenate(c) for c in cols[:n_out])
 
 
 def task_sigma(model, cues: np.ndarray, device: torch.device) -> np.ndarray:
     """Per-cue task standard deviation vectors sqrt(var): [N, z]."""
     return np.sqrt(task_posteriors(model, cues, device)[1])
+
+
+def finish_petnet(model, arrays: EpisodeArrays, train_rows: np.ndarray, held_rows: np.ndarray | None, seed: int,
+                  device: torch.device, novelty: bool = True,
+                  reference: Callable[[np.ndarray, np.ndarray, np.ndarray], dict[str, Any]] | None = None
+                  ) -> dict[str, Any]:
+    """What a trained PETNet model carries beside its weights, from its training cues (``train_rows``) and
+    held-out real cues (``held_rows``, the val split; None: none): the novelty density (``novelty``, fitted in
+    place), the mean task sigma of held-out and nonsense cues (``task_sigma``), and the audit's reference on the
+    training demos (``reference``).  Also how an existing model gets its novelty density refitted."""
+    out: dict[str, Any] = {}
+    if novelty:
+        from democheck.petnet.novelty import fit_novelty
+
+        # Without held-out tasks the reference distance comes from the training cues themselves (a little low).
+        out["novelty"] = fit_novelty(model, arrays.cue(train_rows),
+                                     arrays.cue(held_rows if held_rows is not None else train_rows), device)
+    real = arrays.cue(held_rows if held_rows is not None else train_rows[:500])
+    sig = {"val demos" if held_rows is not None else "train demos": float(task_sigma(model, real, device).mean())}
+    for name, cues in nonsense_cues(real[:200], np.random.default_rng(seed)).items():
+        sig[name] = float(task_sigma(model, cues, device).mean())
+    out["task_sigma"] = sig
+    if reference is not None:
+        mu, var = task_posteriors(model, arrays.cue(train_rows), device)
+        out["reference"] = reference(mu, var, arrays.episodes["task"].to_numpy()[train_rows])
+    return out
 
 
 def nonsense_cues(real: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -459,10 +496,11 @@ def _start_from(model: torch.nn.Module, cfg: ModelConfig, folder: str) -> Normal
     from democheck.petnet.checkpoint import load_checkpoint
 
     start = load_checkpoint(folder)
-    if start.config != cfg:
-        diff = sorted(k for k, v in cfg.to_dict().items() if start.config.to_dict().get(k) != v)
+    # The novelty density belongs to the trained weights; training changes them, so it is dropped and refitted.
+    diff = sorted(k for k, v in cfg.to_dict().items() if start.config.to_dict().get(k) != v and k != "novelty")
+    if diff:
         raise DemocheckError(f"--init {folder}: its architecture differs from this run's ({', '.join(diff)})")
-    model.load_state_dict(start.model.state_dict())
+    model.load_state_dict({k: v for k, v in start.model.state_dict().items() if k in model.state_dict()})
     return start.norm
 
 
@@ -573,18 +611,14 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, model_type: str = "
     # Final numbers: losses, and how uncertain the model is about real vs nonsense cues.
     model.eval()
     metrics: dict[str, Any] = {"steps": step, "wall_s": round(wall, 1), "final": history[-1] if history else report}
+    meta = dict(meta or {})
     if cfg.model_type == "petnet":
-        sig_rows = np.concatenate(list(val_rows.values())) if val_rows else all_train[:500]
-        real = arrays.cue(sig_rows)
-        sig = {"val demos" if val_rows else "train demos": float(task_sigma(model, real, device).mean())}
-        for name, cues in nonsense_cues(real[:200], np.random.default_rng(tc.seed)).items():
-            sig[name] = float(task_sigma(model, cues, device).mean())
-        metrics["task_sigma"] = sig
-    meta = {**(meta or {}), "data": {**(meta or {}).get("data", {}), "fingerprint": arrays.fingerprint},
+        held = np.concatenate(list(val_rows.values())) if val_rows else None
+        extra = finish_petnet(model, arrays, all_train, held, tc.seed, device, tc.novelty, reference)
+        metrics["task_sigma"] = extra.pop("task_sigma")
+        meta.update(extra)
+    meta = {**meta, "data": {**meta.get("data", {}), "fingerprint": arrays.fingerprint},
             "training": {**asdict(tc), "model_type": model_type}, "metrics": metrics, "history": history}
-    if reference is not None and cfg.model_type == "petnet":
-        mu, var = task_posteriors(model, arrays.cue(all_train), device)
-        meta["reference"] = reference(mu, var, arrays.episodes["task"].to_numpy()[all_train])
     with atomic_output_dir(out, force=True) as tmp:
         save_checkpoint(tmp, model, cfg, norm, meta, card(meta) if card else None)
     shutil.rmtree(work, ignore_errors=True)

@@ -1,0 +1,135 @@
+"""The novelty density: the epistemic part of PETNet's task variance."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from sklearn.covariance import LedoitWolf
+from typer.testing import CliRunner
+
+from democheck.cli import app
+from democheck.data import open_dataset
+from democheck.data.cache import build_cache
+from democheck.errors import DemocheckError
+from democheck.petnet.card import model_card
+from democheck.petnet.checkpoint import load_checkpoint
+from democheck.petnet.model import ModelConfig, build_model, cue_input
+from democheck.petnet.novelty import QUANTILE, conv_features, fit_novelty
+from democheck.petnet.train import TrainConfig, nonsense_cues, train
+
+FAST = dict(batch_tasks=2, timesteps=4, val_every=5, ckpt_every=5, device="cpu")
+CPU = torch.device("cpu")
+
+
+@pytest.fixture(scope="module")
+def arrays(tiny_dataset, tmp_path_factory):
+    root, _ = tiny_dataset
+    return build_cache(open_dataset(root), tmp_path_factory.mktemp("cache"))
+
+
+def _cues(n: int, seed: int = 0, size: int = 16) -> np.ndarray:
+    """Smooth random cues: a coarse random image blown up, so they share structure like real frames do."""
+    coarse = np.random.default_rng(seed).integers(60, 200, (n, 2, size // 4, size // 4, 3))
+    return coarse.repeat(4, axis=2).repeat(4, axis=3).astype(np.uint8)
+
+
+def test_novelty_adds_variance_far_from_the_training_cues_and_nothing_else():
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(image_size=16)).eval()
+    train_cues, held = _cues(300, seed=1), _cues(60, seed=2)
+    with torch.no_grad():
+        before = model.encoder(cue_input(torch.from_numpy(held)))
+    stats = fit_novelty(model, train_cues, held, CPU)
+    assert model.cfg.novelty and stats["train_cues"] == 300 and stats["held_out_cues"] == 60
+    black = np.zeros_like(held)
+    with torch.no_grad():
+        mu, var_task, var_novel = model.encoder.parts(cue_input(torch.from_numpy(held)))
+        _, var_b = model.encoder(cue_input(torch.from_numpy(black)))
+        _, _, novel_b = model.encoder.parts(cue_input(torch.from_numpy(black)))
+    # The paper's head is untouched; the total is the head's variance plus the novelty part.
+    assert torch.equal(mu, before[0]) and torch.equal(var_task, before[1])
+    assert torch.equal(model.encoder(cue_input(torch.from_numpy(held)))[1], var_task + var_novel)
+    # A held-out cue at the reference distance gets one prior's worth: 90% of them (QUANTILE) get less.
+    ratio = (var_novel / model.encoder.prior_var).mean(1)
+    assert (ratio <= 1 + 1e-5).float().mean().item() == pytest.approx(QUANTILE, abs=0.02)
+    # A black cue is far from anything seen: many times the novelty of any held-out cue.
+    assert (novel_b / model.encoder.prior_var).mean(1).min() > 10 * ratio.max()
+    assert torch.equal(var_b, model.encoder.parts(cue_input(torch.from_numpy(black)))[1] + novel_b)
+    assert var_b.sqrt().mean() > 2 * (var_task + var_novel).sqrt().mean()
+
+
+def test_distance_is_sklearn_mahalanobis_and_prior_is_the_variance_of_z():
+    torch.manual_seed(1)
+    model = build_model(ModelConfig(image_size=16)).eval()
+    train_cues, held = _cues(200, seed=3), _cues(40, seed=4)
+    stats = fit_novelty(model, train_cues, held, CPU)
+    feats, mus, var_task = conv_features(model.encoder, train_cues, CPU)
+    lw = LedoitWolf().fit(feats.astype(np.float64))
+    held_feats = conv_features(model.encoder, held, CPU)[0]
+    want = lw.mahalanobis(held_feats.astype(np.float64))
+    got = model.encoder.distance2(torch.from_numpy(held_feats)).numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-3)
+    assert stats["d2_ref"] == pytest.approx(float(np.quantile(want, QUANTILE)))
+    # The prior is z's variance over the training cues: the spread of their means plus their mean variance.
+    np.testing.assert_allclose(model.encoder.prior_var.numpy(), mus.var(0) + var_task.mean(0), rtol=1e-5)
+
+
+def test_fit_refuses_a_tecnet_and_too_few_cues():
+    with pytest.raises(DemocheckError, match="PETNet"):
+        fit_novelty(build_model(ModelConfig(model_type="tecnet", image_size=16)), _cues(5), _cues(2), CPU)
+    with pytest.raises(DemocheckError, match="at least 2"):
+        fit_novelty(build_model(ModelConfig(image_size=16)), _cues(1), _cues(2), CPU)
+
+
+def test_training_fits_it_and_the_checkpoint_keeps_it_bit_for_bit(arrays, tmp_path):
+    card = lambda meta: model_card("m", meta)  # noqa: E731
+    result = train(arrays, tmp_path / "m", TrainConfig(steps=4, seed=0, **FAST), card=card)
+    ckpt = load_checkpoint(tmp_path / "m")
+    assert ckpt.config.novelty and ckpt.meta["novelty"]["train_cues"] > 0
+    cue = torch.from_numpy(arrays.cue(np.arange(6)))
+    with torch.no_grad():
+        a, b = result.model.eval().encoder.parts(cue_input(cue)), ckpt.model.encoder.parts(cue_input(cue))
+    assert all(torch.equal(x, y) for x, y in zip(a, b)) and (a[2] > 0).all()
+    assert "novelty density" in (tmp_path / "m" / "README.md").read_text()
+    # The card's nonsense table is measured with both parts: a black cue is more uncertain than real ones.
+    sig = ckpt.meta["metrics"]["task_sigma"]
+    real = sig.get("val demos", sig.get("train demos"))
+    assert sig["black"] > real and sig["grey"] > real
+
+    plain = train(arrays, tmp_path / "plain", TrainConfig(steps=4, seed=0, novelty=False, **FAST), card=card)
+    assert not plain.config.novelty and "novelty" not in load_checkpoint(tmp_path / "plain").meta
+    assert "the paper's head alone" in (tmp_path / "plain" / "README.md").read_text()
+    # Fine-tuning drops the starting model's density (its weights change) and fits a new one.
+    tuned = train(arrays, tmp_path / "ft", TrainConfig(steps=2, seed=0, init=str(tmp_path / "m"), **FAST))
+    assert tuned.config.novelty
+
+
+def test_fit_novelty_cli_adds_it_to_a_trained_model(tiny_dataset, tmp_path):
+    root, _ = tiny_dataset
+    arrays = build_cache(open_dataset(root), tmp_path / "cache")
+    train(arrays, tmp_path / "plain", TrainConfig(steps=3, seed=0, novelty=False, **FAST))
+    args = ["fit-novelty", str(tmp_path / "plain"), "--data", str(root), "--out", str(tmp_path / "nov"),
+            "--device", "cpu", "--cache-dir", str(tmp_path / "cache")]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "reference d2" in res.output and "mean sigma: black" in res.output
+    before, after = load_checkpoint(tmp_path / "plain"), load_checkpoint(tmp_path / "nov")
+    assert after.config.novelty and not before.config.novelty
+    for k, v in before.model.state_dict().items():  # the weights are the same; only the density is new
+        assert torch.equal(v, after.model.state_dict()[k]), k
+    doc = json.loads((tmp_path / "nov" / "config.json").read_text())
+    assert doc["novelty"]["command"] and doc["reference"]["ocsvm"]  # how it was made, and the audit refitted
+    real = arrays.cue(np.arange(8))
+    with torch.no_grad():
+        _, var_real = after.model.encoder(cue_input(torch.from_numpy(real)))
+        for name, cues in nonsense_cues(real, np.random.default_rng(0)).items():
+            if name in ("black", "white", "grey", "noise"):
+                _, var = after.model.encoder(cue_input(torch.from_numpy(cues)))
+                assert var.sqrt().mean() > var_real.sqrt().mean(), name
+    # The same folder again needs --force; a TecNets model and the wrong data are refused in one line.
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and "already exists" in res.output
+    train(arrays, tmp_path / "tec", TrainConfig(steps=2, seed=0, **FAST), model_type="tecnet")
+    res = CliRunner().invoke(app, ["fit-novelty", str(tmp_path / "tec"), *args[2:4], "--out", str(tmp_path / "x")])
+    assert res.exit_code == 2 and "PETNet" in res.output
