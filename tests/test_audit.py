@@ -117,6 +117,16 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
     assert table["action_error"].notna().all()  # on by default
     assert (np.diff(table["suspicion"].to_numpy()) <= 1e-12).all()  # ranked by suspicion
     assert len(table["sigma"][0]) == 10 and (np.stack(table["sigma"]) > 0).all()
+    # The model has a novelty density: each demo's d2 / d2_ref, which scales the novelty part of its variance.
+    from democheck.data import open_dataset
+    from democheck.petnet.checkpoint import load_checkpoint
+    from democheck.petnet.novelty import conv_features
+
+    enc = load_checkpoint(tiny_model).model.encoder
+    ds = open_dataset(root)
+    feats = conv_features(enc, ds.cue_frames_many(table["episode_index"].tolist()), torch.device("cpu"))[0]
+    want = (enc.distance2(torch.from_numpy(feats)) / enc.novelty_ref).numpy()
+    np.testing.assert_allclose(table["novelty"].to_numpy(), want, rtol=1e-4)
     csv = pd.read_csv(tmp_path / "r" / "scores.csv")
     assert list(csv["episode_index"]) == list(table["episode_index"])
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())

@@ -141,7 +141,8 @@ def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", forc
     check_compatible(ds, ckpt)
     t = dict(timings or {})
     t0 = time.perf_counter()
-    mu, var = posteriors(ds, ckpt.model, torch.device(device), on_progress=on_progress)
+    mu, var_task, var_novel = posteriors(ds, ckpt.model, torch.device(device), on_progress=on_progress, parts=True)
+    var = var_task + var_novel
     t["score_s"] = time.perf_counter() - t0
     episodes = ds.episodes.reset_index()  # rows in ds.episode_indices order, as mu and var are
     ref = ckpt.meta.get("reference")
@@ -152,6 +153,10 @@ def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", forc
         err = action_errors(_counting(ds, on_progress), ckpt, z, torch.device(device))
         t["actions_s"] = time.perf_counter() - t1
     table = score_table(episodes, mu, var, ref, err)
+    if ckpt.config.novelty:
+        # How unfamiliar the cue's images are: d2 / d2_ref (1 = the 90th percentile of held-out real cues).
+        ratio = (var_novel / ckpt.model.encoder.prior_var.cpu().numpy()).mean(1)
+        table["novelty"] = ratio[pd.Index(episodes["episode_index"]).get_indexer(table["episode_index"])]
     # suspects.txt: what a dataset-editing tool should drop -- the flagged demos, most suspect first.
     suspects = table.loc[table["is_anomaly"], "episode_index"].tolist()
     fingerprint = dataset_fingerprint(ds) if (ds.root / "meta").is_dir() else None
@@ -178,7 +183,10 @@ def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", forc
                              "1.4826*MAD of this dataset's demos",
                 "is_anomaly": "linear one-class SVM on 1/sigma^2, fitted on the model's training demos, or suspicion "
                               f"above {SUSPICION_FLAG:g}",
-            } | ({"action_error": f"mean squared error between the demo's normalised actions and the controller's at "
+            } | ({"novelty": "squared Mahalanobis distance of the cue's conv features from the training cues', over "
+                             "the model's reference distance (the novelty part of the variance is prior_var times "
+                             "this); above 1: less familiar than 9 in 10 real cues of new tasks"}
+                 if ckpt.config.novelty else {}) | ({"action_error": f"mean squared error between the demo's normalised actions and the controller's at "
                                   f"{ACTION_STEPS} evenly spaced timesteps, under the task posterior mean of the other "
                                   "demos of its task"} if actions else {}),
             "reference": {k: v for k, v in (ref or {}).items() if k != "ocsvm"},
