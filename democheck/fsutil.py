@@ -11,6 +11,13 @@ from typing import Iterator
 from democheck.errors import DemocheckError
 
 
+def refuse_existing(out: Path, force: bool) -> None:
+    """One clear line when ``out`` exists (a non-empty folder, or a file) and ``force`` was not given; called
+    before long work starts as well as by ``atomic_output_dir``."""
+    if out.exists() and not (out.is_dir() and not any(out.iterdir())) and not force:
+        raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
+
+
 @contextmanager
 def atomic_output_dir(out: str | Path, force: bool = False) -> Iterator[Path]:
     """Yield a temporary folder that becomes ``out`` only if the block finishes.
@@ -20,8 +27,7 @@ def atomic_output_dir(out: str | Path, force: bool = False) -> Iterator[Path]:
     Python-level exit and ignored by every reader.
     """
     out = Path(out)
-    if out.exists() and not (out.is_dir() and not any(out.iterdir())) and not force:
-        raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
+    refuse_existing(out, force)
     out.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale(out)
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"

@@ -58,14 +58,13 @@ def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camer
     from democheck.data import open_dataset
     from democheck.data.cache import build_cache
     from democheck.errors import DemocheckError
-    from democheck.fsutil import atomic_output_dir
+    from democheck.fsutil import atomic_output_dir, refuse_existing
     from democheck.petnet.card import git_commit, model_card
     from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
     from democheck.petnet.train import finish_petnet, resolve_device, task_rows
 
     out = Path(out)
-    if out.exists() and any(out.iterdir()) and not force:
-        raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
+    refuse_existing(out, force)  # before the decoding, not only when writing
     dev = resolve_device(device)
     ckpt = load_checkpoint(model, device=dev)
     ds = open_dataset(dataset, camera=camera)
@@ -141,12 +140,11 @@ def run_demo(out: str | Path, model: str | Path | None = None, workers: int = 2,
     import pandas as pd
 
     from democheck.audit.metrics import by_label
-    from democheck.errors import DemocheckError
+    from democheck.fsutil import refuse_existing
     from democheck.sim.suite import generate, load_recipe
 
     out = Path(out)
-    if out.exists() and any(out.iterdir()) and not force:
-        raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
+    refuse_existing(out, force)
     recipe = load_recipe("push-mini").with_overrides(defects=DEMO_PLANT)
     if on_stage:
         on_stage(f"generating {recipe.n_episodes} demos of push-mini ({sum(DEMO_PLANT.values())} planted bad ones)")

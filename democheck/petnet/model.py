@@ -157,11 +157,15 @@ class TaskEncoder(nn.Module):
         d = features - self.feature_mean
         return ((d @ self.feature_precision) * d).sum(-1)
 
+    def head_posterior(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The paper's head on conv features [B, D]: (mu, var_task), var_task = floor + softplus(raw)."""
+        mu, raw = self.head(features).chunk(2, dim=-1)
+        return mu, self.cfg.var_floor + F.softplus(raw)
+
     def parts(self, cue: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(mu, var_task, var_novel); var_novel is zero without a fitted novelty density."""
         h = self.conv(cue)
-        mu, raw = self.head(h).chunk(2, dim=-1)
-        var_task = self.cfg.var_floor + F.softplus(raw)
+        mu, var_task = self.head_posterior(h)
         if not self.cfg.novelty:
             return mu, var_task, torch.zeros_like(var_task)
         return mu, var_task, self.prior_var * (self.distance2(h) / self.novelty_ref)[:, None]

@@ -45,9 +45,9 @@ def conv_features(encoder: torch.nn.Module, cues: np.ndarray, device: torch.devi
     for s in range(0, len(cues), chunk):
         h = encoder.conv(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device)))
         feats.append(h.float().cpu().numpy())
-        mu, raw = encoder.head(h).chunk(2, dim=-1)
+        mu, var = encoder.head_posterior(h)
         mus.append(mu.cpu().numpy())
-        var_task.append((encoder.cfg.var_floor + torch.nn.functional.softplus(raw)).cpu().numpy())
+        var_task.append(var.cpu().numpy())
     return np.concatenate(feats), np.concatenate(mus), np.concatenate(var_task)
 
 

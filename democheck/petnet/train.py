@@ -29,6 +29,7 @@ from safetensors.torch import load_file, save_file
 
 from democheck.data.cache import EpisodeArrays
 from democheck.errors import DemocheckError
+from democheck.fsutil import refuse_existing
 from democheck.petnet.checkpoint import Normalisation, save_checkpoint
 from democheck.petnet.model import (ModelConfig, TaskEncoder, build_model, cue_input, hinge_embedding_loss,
                                     kl_diag, product_of_gaussians)
@@ -385,17 +386,14 @@ def task_posteriors(model, cues: np.ndarray, device: torch.device, chunk: int = 
     for s in range(0, len(cues), chunk):
         x = cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device))
         if isinstance(model.encoder, TaskEncoder):
-            mu, var_task, var_novel = model.encoder.parts(x)
-            out = (mu, var_task, var_novel) if parts else (mu, var_task + var_novel)
+            out = model.encoder.parts(x)
         else:
             emb = model.encoder(x)
-            out = (emb, torch.zeros_like(emb), torch.zeros_like(emb))[:3 if parts else 2]
+            out = (emb, torch.zeros_like(emb), torch.zeros_like(emb))
         for col, t in zip(cols, out):
             col.append(t.cpu().numpy())
-    n_out = 3 if parts else 2
-    if not cols[0]:
-        return tuple(np.zeros((0, model.cfg.z_dim), np.float32) for _ in range(n_out))
-    return tuple(np.concatenate(c) for c in cols[:n_out])
+    mu, var_task, var_novel = (np.concatenate(c) if c else np.zeros((0, model.cfg.z_dim), np.float32) for c in cols)
+    return (mu, var_task, var_novel) if parts else (mu, var_task + var_novel)
 
 
 def task_sigma(model, cues: np.ndarray, device: torch.device) -> np.ndarray:
@@ -500,7 +498,8 @@ def _start_from(model: torch.nn.Module, cfg: ModelConfig, folder: str) -> Normal
     diff = sorted(k for k, v in cfg.to_dict().items() if start.config.to_dict().get(k) != v and k != "novelty")
     if diff:
         raise DemocheckError(f"--init {folder}: its architecture differs from this run's ({', '.join(diff)})")
-    model.load_state_dict({k: v for k, v in start.model.state_dict().items() if k in model.state_dict()})
+    own = model.state_dict().keys()
+    model.load_state_dict({k: v for k, v in start.model.state_dict().items() if k in own})
     return start.norm
 
 
@@ -511,8 +510,7 @@ def work_dir(out: Path, resume: bool, force: bool) -> Path:
     ``force``, which discards it).
     """
     work = out.parent / f".{out.name}.partial"
-    if out.exists() and any(out.iterdir()) and not force:
-        raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
+    refuse_existing(out, force)
     if work.exists() and not resume:
         if not force:
             raise DemocheckError(f"{work}: an interrupted run of this model is there; pass --resume to continue it "
