@@ -84,8 +84,8 @@ def main() -> None:
             "synth": lambda out: ["synth", "push-mini", "--out", str(out), "--tasks", "6", "--demos", "3",
                                   "--workers", "2"],
             "probe": lambda out: ["probe", str(data), "--out", str(out), "--per-kind", "3"],
-            "train": lambda out: ["train", str(data), "--out", str(out), "--steps", "600", "--batch-tasks", "2",
-                                  "--timesteps", "2", "--ckpt-every", "25", "--val-every", "300", "--device", "cpu",
+            "train": lambda out: ["train", str(data), "--out", str(out), "--steps", "600", "--set", "batch_tasks=2",
+                                  "--set", "timesteps=2", "--set", "ckpt_every=25", "--set", "val_every=300", "--device", "cpu",
                                   "--cache-dir", str(tmp / "cache")],
             "audit": lambda out: ["audit", str(data), "--out", str(out)],
         }

@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit.scores import others_posterior
+from democheck.petnet.posterior import product_of_others
 
 
 def main() -> None:
@@ -27,12 +27,12 @@ def main() -> None:
     args = ap.parse_args()
     t = pd.read_parquet(args.scores)
     mu = np.stack(t["mu"].to_numpy()).astype(np.float64)
-    var = np.stack(t["sigma_vec"].to_numpy()).astype(np.float64) ** 2
+    var = np.stack(t["sigma"].to_numpy()).astype(np.float64) ** 2
     labels, tasks = t["label"].to_numpy(), t["task"].to_numpy()
     kinds = sorted(set(labels) - {"clean"})
     print("consistency AUROC by k:", " ".join(kinds), "| mean")
     for k in (1, 2, 3, 5, 8, None):
-        m, v = others_posterior(mu, var, tasks, k)
+        m, v = product_of_others(mu, var, tasks, k)
         score = np.sqrt(((mu - m) ** 2 / (v + var)).mean(1))
         au = []
         for kind in kinds:

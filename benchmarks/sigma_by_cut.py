@@ -17,7 +17,8 @@ import torch
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache
 from democheck.petnet.checkpoint import load_checkpoint
-from democheck.petnet.train import task_posteriors, task_rows
+from democheck.petnet.batches import task_rows
+from democheck.petnet.model import encode
 
 CUTS = (0, 10, 25, 50, 75, 99)
 
@@ -31,8 +32,8 @@ def main() -> None:
     rows = np.concatenate(list(task_rows(arrays, "val", 0).values()))
     for path in args.models:
         model = load_checkpoint(path).model
-        sig = [np.sqrt(task_posteriors(model, arrays.cue(rows, end=np.full(len(rows), t)), torch.device("cpu"))[1])
-               .mean() for t in CUTS]
+        sig = [encode(model, arrays.cue(rows, end=np.full(len(rows), t)), torch.device("cpu")).sigma.mean()
+               for t in CUTS]
         print(f"{path}: " + "  ".join(f"t={t}: {s:.3f}" for t, s in zip(CUTS, sig)))
 
 

@@ -48,7 +48,8 @@ def measure(dataset: str, steps: int = 60, warmup: int = 5, batch_tasks: int = 1
     from democheck.data.cache import build_cache
     from democheck.petnet.checkpoint import Normalisation
     from democheck.petnet.model import ModelConfig, build_model
-    from democheck.petnet.train import Batches, TrainConfig, losses, resolve_device, task_rows, to_device, train
+    from democheck.petnet.batches import Batches, task_rows, to_device
+    from democheck.petnet.train import TrainConfig, objective, resolve_device, train
 
     device = resolve_device(args.device)
     arrays = build_cache(open_dataset(args.dataset))
@@ -68,7 +69,7 @@ def measure(dataset: str, steps: int = 60, warmup: int = 5, batch_tasks: int = 1
                 if device.type == "cuda":
                     torch.cuda.synchronize()
                 t0 = time.perf_counter()
-            out = losses(model, next_batch(), tc)
+            out = objective(model, next_batch(), tc)
             opt.zero_grad(set_to_none=True)
             out["loss"].backward()
             opt.step()

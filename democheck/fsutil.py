@@ -1,12 +1,16 @@
-"""Atomic output folders: write into a temporary sibling, rename at the end."""
+"""Writing results: atomic output folders (a temporary sibling, renamed at the end) and plain JSON."""
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import shutil
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
+
+import numpy as np
 
 from democheck.errors import DemocheckError
 
@@ -64,3 +68,21 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def to_json(x: Any) -> Any:
+    """Plain JSON values: numpy scalars unwrapped, NaN and inf as null."""
+    if isinstance(x, dict):
+        return {str(k): to_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [to_json(v) for v in x]
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def write_json(path: Path, doc: Any) -> None:
+    """``doc`` as indented JSON (``to_json`` first, so NaN never reaches the file)."""
+    path.write_text(json.dumps(to_json(doc), indent=2, allow_nan=False))

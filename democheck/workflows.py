@@ -1,7 +1,9 @@
-"""Library functions behind the CLI commands that join several parts (data -> petnet -> ...).
+"""The library functions behind the CLI commands: each joins the parts one command needs and writes its folder.
 
-Each part stays in its lane (``petnet`` never reads datasets from disk); the
-joining happens here, once, so the CLI only parses and prints.
+The parts compute (``audit`` scores, ``evaluate`` rolls out, ``petnet``
+trains); only here are results written into a command's output folder,
+atomically, with the Rerun recording ``viz`` makes.  The CLI parses, calls
+one of these, and prints.
 """
 
 from __future__ import annotations
@@ -9,28 +11,43 @@ from __future__ import annotations
 import json
 import shlex
 import sys
+import time
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+import pandas as pd
+import torch
 
 from democheck import __version__
+from democheck.audit.bench import bench, markdown as bench_markdown
+from democheck.audit.metrics import by_label
+from democheck.audit.run import audit, check_compatible, finish_summary, suspects, write_tables
+from democheck.audit.scores import reference
+from democheck.data import open_dataset
+from democheck.data.cache import build_cache
+from democheck.errors import DatasetError, DemocheckError
+from democheck.evaluate.meta_test import markdown as eval_markdown, meta_test
+from democheck.fsutil import atomic_output_dir, refuse_existing, to_json, write_json
+from democheck.petnet.batches import task_rows
+from democheck.petnet.card import git_commit, model_card
+from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
+from democheck.petnet.finish import finish_petnet
+from democheck.petnet.recipe import DEFAULT_RECIPE, load_recipe
+from democheck.petnet.train import TrainConfig, TrainResult, resolve_device, train
+from democheck.sim.suite import generate, load_recipe as load_suite
+from democheck.viz.report import embed_2d, write_bench_rrd, write_eval_rrd, write_report_rrd
 
 
-def train_model(dataset: str | Path, out: str | Path, tc, model_type: str = "petnet", resume: bool = False,
-                force: bool = False, camera: str | None = None, cache_dir: Path | None = None,
+def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: bool = False, force: bool = False,
+                camera: str | None = None, cache_dir: Path | None = None, recipe: dict[str, Any] | None = None,
                 on_decode: Callable[[int, int], None] | None = None,
-                on_step: Callable[[int, int, dict], None] | None = None, stop_after: int | None = None):
-    """Open ``dataset``, decode it into the frame cache, train, and write the model folder ``out``."""
-    import torch
+                on_step: Callable[[int, int, dict], None] | None = None,
+                stop_after: int | None = None) -> TrainResult | None:
+    """Open ``dataset``, decode it into the frame cache, train, and write the model folder ``out``.
 
-    from democheck.audit.scores import reference
-    from democheck.data import open_dataset
-    from democheck.data.cache import build_cache
-    from democheck.errors import DatasetError
-    from democheck.petnet.card import git_commit, model_card
-    from democheck.petnet.train import resolve_device, train
-
+    ``recipe``: the resolved training recipe ``tc`` came from (``petnet.recipe.load_recipe``), recorded in the
+    model's config.json and card."""
     ds = open_dataset(dataset, camera=camera)
     if ds.episodes.groupby("task").size().max() < 2:
         raise DatasetError(f"{ds.root}: every task has a single demo; training needs two or more per task (a cue and "
@@ -41,11 +58,23 @@ def train_model(dataset: str | Path, out: str | Path, tc, model_type: str = "pet
     suite = Path(dataset) / "meta" / "democheck" / "suite.json"
     if suite.exists():
         data["recipe"] = json.loads(suite.read_text())["recipe"]
-    meta = {"data": data, "command": _command_line(), "commit": git_commit(Path(__file__).parent), "democheck_version": __version__,
-            "torch_version": torch.__version__, "device": str(resolve_device(tc.device))}
-    return train(arrays, Path(out), tc, model_type=model_type, resume=resume, force=force, meta=meta,
-                 on_progress=on_step, card=lambda m: model_card(Path(out).name, m), stop_after=stop_after,
-                 reference=reference, task_groups=object_pair_groups(ds))
+    meta = {"data": data, "command": command_line(), "commit": git_commit(Path(__file__).parent),
+            "democheck_version": __version__, "torch_version": torch.__version__,
+            "device": str(resolve_device(tc.device))}
+    if recipe is not None:
+        meta["recipe"] = recipe
+    return train(arrays, Path(out), tc, resume=resume, force=force, meta=meta, on_progress=on_step,
+                 card=lambda m: model_card(Path(out).name, m), stop_after=stop_after, reference=reference,
+                 task_groups=object_pair_groups(ds))
+
+
+def train_from_recipe(dataset: str | Path, out: str | Path, recipe: str | Path = DEFAULT_RECIPE,
+                      sets: list[str] | None = None, **options: Any) -> TrainResult | None:
+    """``train_model`` with the ``TrainConfig`` of a training recipe and its ``--set`` overrides; ``options``:
+    the everyday ones (``steps``, ``seed``, ``device``; None = the recipe's) and ``train_model``'s."""
+    everyday = {k: options.pop(k) for k in ("steps", "seed", "device") if k in options}
+    tc, resolved = load_recipe(recipe, sets, **everyday)
+    return train_model(dataset, out, tc, recipe=resolved, **options)
 
 
 def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camera: str | None = None,
@@ -53,16 +82,6 @@ def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camer
                   on_decode: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Fit (or refit) a trained PETNet model's novelty density on ``dataset`` -- its training data -- and write
     the model, weights unchanged, to ``out`` with the card's numbers and the audit's reference redone."""
-    from democheck.audit.run import check_compatible
-    from democheck.audit.scores import reference
-    from democheck.data import open_dataset
-    from democheck.data.cache import build_cache
-    from democheck.errors import DemocheckError
-    from democheck.fsutil import atomic_output_dir, refuse_existing
-    from democheck.petnet.card import git_commit, model_card
-    from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
-    from democheck.petnet.train import finish_petnet, resolve_device, task_rows
-
     out = Path(out)
     refuse_existing(out, force)  # before the decoding, not only when writing
     dev = resolve_device(device)
@@ -84,13 +103,13 @@ def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camer
     meta = dict(ckpt.meta)
     meta["metrics"] = {**meta.get("metrics", {}), "task_sigma": extra.pop("task_sigma")}
     meta.update(extra)
-    meta["novelty"].update(command=_command_line(), commit=git_commit(Path(__file__).parent))
+    meta["novelty"].update(command=command_line(), commit=git_commit(Path(__file__).parent))
     with atomic_output_dir(out, force=force) as tmp:
         save_checkpoint(tmp, ckpt.model, ckpt.config, ckpt.norm, meta, model_card(out.name, meta))
     return meta
 
 
-def _command_line() -> str:
+def command_line() -> str:
     """The command that is running, as the user would type it."""
     return "democheck " + shlex.join(sys.argv[1:]) if sys.argv[0].endswith("democheck") else shlex.join(sys.argv)
 
@@ -112,22 +131,76 @@ def object_pair_groups(ds) -> dict[str, str]:
 
 def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None = None, top: int = 20,
                   camera: str | None = None, task: str | None = None, device: str = "auto", force: bool = False,
-                  on_progress: Callable[[int, int], None] | None = None, actions: bool = True) -> dict[str, Any]:
-    """Open ``dataset``, load the model (default: the shipped one), audit, write the report folder ``out``."""
-    import time
+                  on_progress: Callable[[str, int, int], None] | None = None, actions: bool = True) -> dict[str, Any]:
+    """Open ``dataset``, load the model (default: the shipped one), audit, and write the report folder ``out``
+    atomically (scores.parquet/.csv, summary.json, suspects.txt, report.rrd); returns the summary.
 
-    from democheck.audit.run import audit
-    from democheck.data import open_dataset
-    from democheck.petnet.checkpoint import load_checkpoint
-    from democheck.petnet.train import resolve_device
-
+    ``on_progress(stage, done, total)``: the cue pass, then the decoding pass."""
+    out = Path(out)
+    refuse_existing(out, force)
     ds = open_dataset(dataset, camera=camera, task=task)
     dev = resolve_device(device)
     t0 = time.perf_counter()
     ckpt = load_checkpoint(model, device=dev)
-    load_s = time.perf_counter() - t0
-    return audit(ds, ckpt, Path(out), top=top, device=str(dev), force=force, on_progress=on_progress,
-                 timings={"model_load_s": load_s}, actions=actions)
+    t = {"model_load_s": time.perf_counter() - t0}
+    table, summary = audit(ds, ckpt, top=top, device=dev, actions=actions, timings=t, on_progress=on_progress)
+    t.update(summary.pop("timing"))
+    with atomic_output_dir(out, force=force) as tmp:
+        write_tables(tmp, table, suspects(table))
+        t1 = time.perf_counter()
+        xy, rows = embed_2d(table, top)
+        t["tsne_s"] = time.perf_counter() - t1
+        t2 = time.perf_counter()
+        demos = [ds[int(e)] for e in table.head(top)["episode_index"]]
+        write_report_rrd(tmp / "report.rrd", table, demos, xy, rows, ds.fps, f"democheck audit of {ds.root}")
+        t["rrd_s"] = time.perf_counter() - t2
+        summary = finish_summary(summary, t)
+        write_json(tmp / "summary.json", summary)
+    return summary
+
+
+def bench_datasets(datasets: list[str | Path], out: str | Path, model: str | Path | None = None,
+                   tecnet: str | Path | None = None, device: str = "auto", seed: int = 0, force: bool = False,
+                   camera: str | None = None,
+                   on_progress: Callable[[str, int, int], None] | None = None) -> dict[str, Any]:
+    """Open the labelled ``datasets`` and the models, run ``audit.bench.bench`` and write bench.json, bench.md,
+    bench.rrd and scores.parquet into ``out`` (atomically); returns the summary."""
+    out = Path(out)
+    refuse_existing(out, force)
+    if not datasets:
+        raise DemocheckError("bench needs at least one labelled dataset")
+    dev = resolve_device(device)
+    ckpt = load_checkpoint(model, device=dev)
+    tec = load_checkpoint(tecnet, device=dev) if tecnet is not None else None
+    sets = [open_dataset(p, camera=camera) for p in datasets]
+    table, summary = bench(sets, ckpt, tecnet=tec, device=dev, seed=seed, on_progress=on_progress)
+    with atomic_output_dir(out, force=force) as tmp:
+        table.to_parquet(tmp / "scores.parquet", index=False)
+        write_json(tmp / "bench.json", summary)
+        text = bench_markdown(summary)
+        (tmp / "bench.md").write_text(text)
+        write_bench_rrd(tmp / "bench.rrd", summary, text)
+    return summary
+
+
+def evaluate_model(model: str | Path | None, dataset: str | Path, out: str | Path, split: str = "test",
+                   trials: int = 6, shots: int = 1, workers: int = 2, seed: int = 0, device: str = "auto",
+                   force: bool = False, on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """The closed-loop meta-test (``evaluate.meta_test``), written as eval.json, eval.md, trials.parquet and
+    eval.rrd into ``out`` (atomically); returns the summary."""
+    out = Path(out)
+    refuse_existing(out, force)
+    dev = resolve_device(device)
+    ckpt = load_checkpoint(model, device=dev)
+    ds = open_dataset(dataset)
+    result = meta_test(ckpt, ds, split=split, trials=trials, shots=shots, workers=workers, seed=seed, device=dev,
+                       on_progress=on_progress)
+    with atomic_output_dir(out, force=force) as tmp:
+        result.trials.to_parquet(tmp / "trials.parquet", index=False)
+        write_json(tmp / "eval.json", result.summary)
+        (tmp / "eval.md").write_text(eval_markdown(result.summary))
+        write_eval_rrd(tmp / "eval.rrd", result.summary, result.kept, ds.fps)
+    return result.summary
 
 
 DEMO_PLANT = {"idle": 4, "random": 4}
@@ -136,28 +209,23 @@ DEMO_PLANT = {"idle": 4, "random": 4}
 def run_demo(out: str | Path, model: str | Path | None = None, workers: int = 2, force: bool = False,
              on_stage: Callable[[str], None] | None = None,
              on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
-    """The main job, small: push-mini with planted idle and random demos, audited with the shipped model."""
-    import pandas as pd
-
-    from democheck.audit.metrics import by_label
-    from democheck.fsutil import refuse_existing
-    from democheck.sim.suite import generate, load_recipe
-
+    """The main job, small: push-mini with planted idle and random demos, audited with the shipped model.
+    ``on_stage(text)`` starts each stage, ``on_progress(done, total)`` counts its demos."""
     out = Path(out)
     refuse_existing(out, force)
-    recipe = load_recipe("push-mini").with_overrides(defects=DEMO_PLANT)
+    recipe = load_suite("push-mini").with_overrides(defects=DEMO_PLANT)
     if on_stage:
         on_stage(f"generating {recipe.n_episodes} demos of push-mini ({sum(DEMO_PLANT.values())} planted bad ones)")
     synth = generate(recipe, out / "data", workers=workers, force=True, on_progress=on_progress)
     if on_stage:
         on_stage("auditing with the model")
-    summary = audit_dataset(out / "data", out / "report", model=model, force=True, on_progress=on_progress)
+    summary = audit_dataset(out / "data", out / "report", model=model, force=True,
+                            on_progress=(lambda stage, d, n: on_progress(d, n)) if on_progress else None)
     table = pd.read_parquet(out / "report" / "scores.parquet")
     summary["planted"] = DEMO_PLANT
-    summary["detection"] = {col: by_label(table, col) for col in ("suspicion", "score", "consistency", "action_error")}
+    summary["detection"] = {col: by_label(table, col)
+                            for col in ("suspicion", "task_uncertainty", "consistency", "action_error")}
     summary["synth"] = {k: synth[k] for k in ("episodes", "wall_s", "frames_per_s")}
     planted = table[table["label"] != "clean"]
     summary["planted_ranks"] = planted[["episode_index", "label", "rank"]].to_dict(orient="records")
-    from democheck.audit.run import to_json
-
     return to_json(summary)

@@ -26,7 +26,8 @@ args = ap.parse_args()
 summary = audit_dataset(args.dataset, args.out, model=args.model, camera=args.camera, force=True)
 scores = pd.read_parquet(args.out / "scores.parquet")
 print(f"{summary['demos']} demos, {summary['flagged']} flagged")
-print(scores.head(10)[["rank", "episode_index", "task", "score", "consistency", "action_error", "suspicion", "is_anomaly"]])
+print(scores.head(10)[["rank", "episode_index", "task", "task_uncertainty", "consistency", "action_error", "suspicion",
+                        "is_anomaly", "reason"]])
 
 # The episodes to keep: everything not flagged. Feed this list to your dataset-editing tool.
 keep = sorted(scores.loc[~scores["is_anomaly"], "episode_index"])

@@ -44,8 +44,8 @@ def _audit(ds: Path | str, tmp: Path, model: Path, *extra: str) -> list[str]:
 
 
 def _train(ds: Path, tmp: Path) -> list[str]:
-    return ["train", str(ds), "--out", str(tmp / "out"), "--steps", "2", "--batch-tasks", "2", "--timesteps", "2",
-            "--device", "cpu", "--cache-dir", str(tmp / "cache")]
+    return ["train", str(ds), "--out", str(tmp / "out"), "--steps", "2", "--set", "batch_tasks=2", "--set",
+            "timesteps=2", "--device", "cpu", "--cache-dir", str(tmp / "cache")]
 
 
 def _rewrite_column(path: Path, key: str, fn) -> None:

@@ -7,8 +7,10 @@ import torch
 from typer.testing import CliRunner
 
 from democheck.audit.metrics import detection, precision_at_k
-from democheck.audit.scores import consistency, fit_ocsvm, ocsvm_margin, reference, score_table
+from democheck.audit.run import score_posteriors
+from democheck.audit.scores import consistency, fit_ocsvm, ocsvm_margin
 from democheck.cli import app
+from democheck.petnet.posterior import TaskPosterior, product_of_others
 
 runner = CliRunner()
 
@@ -16,6 +18,15 @@ runner = CliRunner()
 def _episodes(n_tasks=5, per=6):
     return pd.DataFrame({"episode_index": np.arange(n_tasks * per), "task": np.repeat([f"t{i}" for i in range(n_tasks)], per),
                          "label": "clean"})
+
+
+def _post(mu, var):
+    return TaskPosterior(mu, var, np.zeros_like(var))
+
+
+def score_table(eps, mu, var, action_error=None):
+    return score_posteriors(eps, _post(mu, var), behaviour={"action_error": action_error} if action_error is not None
+                            else None)
 
 
 def _posteriors(eps, rng, spread=0.05):
@@ -30,7 +41,7 @@ def test_planted_uncertain_demo_ranks_first():
     eps = _episodes()
     mu, var, _ = _posteriors(eps, rng)
     var[17] *= 30  # a cue that says nothing
-    table = score_table(eps, mu, var, None)
+    table = score_table(eps, mu, var)
     assert table.iloc[0]["episode_index"] == 17 and table.iloc[0]["rank"] == 1
     assert list(table["rank"]) == list(range(1, len(eps) + 1))
 
@@ -40,19 +51,19 @@ def test_planted_wrong_task_demo_ranks_first_by_consistency():
     eps = _episodes()
     mu, var, centres = _posteriors(eps, rng)
     mu[8] = centres["t3"] + rng.normal(0, 0.05, 10)  # a t1 demo that clearly shows task t3
-    table = score_table(eps, mu, var, None)
+    table = score_table(eps, mu, var)
     assert table.iloc[0]["episode_index"] == 8
     row = table.set_index("episode_index").loc[8]
     assert row["consistency"] > 5 * table["consistency"].median()
     # variance alone cannot see it
-    assert table.sort_values("score", ascending=False).iloc[0]["episode_index"] != 8
+    assert table.sort_values("task_uncertainty", ascending=False).iloc[0]["episode_index"] != 8
 
 
 def test_consistency_matches_brute_force_and_handles_singletons():
     rng = np.random.default_rng(2)
     mu, var = rng.normal(size=(4, 3)), rng.uniform(0.1, 1, (4, 3))
     tasks = np.array(["a", "a", "a", "b"])
-    c = consistency(mu, var, tasks)
+    c = consistency(_post(mu, var), tasks)
     p = 1 / var[1:3]
     m, v = (p * mu[1:3]).sum(0) / p.sum(0), 1 / p.sum(0)
     assert np.isclose(c[0], np.sqrt(((mu[0] - m) ** 2 / (v + var[0])).mean()))
@@ -60,13 +71,11 @@ def test_consistency_matches_brute_force_and_handles_singletons():
 
 
 def test_consistency_against_the_k_nearest_others_matches_brute_force():
-    from democheck.audit.scores import others_posterior
-
     rng = np.random.default_rng(5)
     n = 23
     mu, var = rng.normal(size=(n, 4)), rng.uniform(0.1, 1, (n, 4))
     tasks = np.array(["a"] * 20 + ["b"] * 3)
-    m, v = others_posterior(mu, var, tasks, k=5, chunk=7)  # several chunks of task a
+    m, v = product_of_others(mu, var, tasks, k=5, chunk=7)  # several chunks of task a
     for i in [0, 6, 7, 19, 21]:
         idx = np.flatnonzero(tasks == tasks[i])
         others = idx[idx != i]
@@ -74,7 +83,7 @@ def test_consistency_against_the_k_nearest_others_matches_brute_force():
         nn = others[np.argsort(d)[:5]]
         p = (1 / var[nn]).sum(0)
         assert np.allclose(m[i], (mu[nn] / var[nn]).sum(0) / p) and np.allclose(v[i], 1 / p)
-    m_all, _ = others_posterior(mu, var, tasks)
+    m_all, _ = product_of_others(mu, var, tasks)
     assert np.allclose(m[21], m_all[21])  # task b has 2 others, fewer than k: all of them
 
 
@@ -111,9 +120,11 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
                               "--top", "3", "--device", "cpu"])
     assert res.exit_code == 0, res.output
     table = pd.read_parquet(tmp_path / "r" / "scores.parquet")
-    for col in ("episode_index", "task", "score", "consistency", "suspicion", "rank", "is_anomaly", "sigma", "mu", "label"):
+    for col in ("episode_index", "task", "task_uncertainty", "consistency", "suspicion", "reason", "rank", "is_anomaly",
+                "sigma", "mu", "label", "score"):
         assert col in table
     assert len(table) == 12 and list(table["rank"]) == list(range(1, 13))
+    assert table["score"].equals(table["task_uncertainty"])  # the old name, kept for one release
     assert table["action_error"].notna().all()  # on by default
     assert (np.diff(table["suspicion"].to_numpy()) <= 1e-12).all()  # ranked by suspicion
     assert len(table["sigma"][0]) == 10 and (np.stack(table["sigma"]) > 0).all()
@@ -249,7 +260,7 @@ class _ZeroController:
 def test_action_error_is_the_controllers_mse_and_ranks_a_planted_flailing_demo_first():
     from types import SimpleNamespace
 
-    from democheck.audit.run import action_errors, controller_z
+    from democheck.audit.scorers import action_errors, controller_z
     from democheck.petnet.checkpoint import Normalisation
 
     rng = np.random.default_rng(3)
@@ -260,19 +271,19 @@ def test_action_error_is_the_controllers_mse_and_ranks_a_planted_flailing_demo_f
     norm = Normalisation(state_mean=[0.0] * 17, state_std=[1.0] * 17, action_mean=[0.0] * 7, action_std=[1.0] * 7)
     ckpt = SimpleNamespace(model=SimpleNamespace(controller=_ZeroController()), norm=norm)
     mu, var, _ = _posteriors(eps, rng)
-    err = action_errors(iter(demos), ckpt, controller_z(mu, var, eps["task"].to_numpy()), "cpu", steps=10, batch=4)
+    err = action_errors(iter(demos), ckpt, controller_z(_post(mu, var), eps["task"].to_numpy()), "cpu", steps=10, batch=4)
     t = np.linspace(0, 39, 10).round().astype(int)
     assert np.allclose(err, [np.mean(d.actions[t] ** 2) for d in demos], rtol=1e-5)
-    table = score_table(eps, mu, var, None, err)
+    table = score_table(eps, mu, var, err)
     assert table.iloc[0]["episode_index"] == 6 and "action_error" in table
     # No OCSVM here: the flag is the suspicion threshold alone, and only the flailing demo crosses it.
     assert table.loc[table["is_anomaly"], "episode_index"].tolist() == [6]
 
 
 def test_controller_z_is_the_other_demos_posterior_or_the_demos_own():
-    from democheck.audit.run import controller_z
+    from democheck.audit.scorers import controller_z
 
     mu = np.array([[0.0], [2.0], [4.0], [9.0]])
     var = np.array([[1.0], [1.0], [1.0], [1.0]])
-    z = controller_z(mu, var, np.array(["a", "a", "a", "b"]))
+    z = controller_z(_post(mu, var), np.array(["a", "a", "a", "b"]))
     assert np.allclose(z[:, 0], [3.0, 2.0, 1.0, 9.0])  # leave-one-out means; b's lone demo keeps its own

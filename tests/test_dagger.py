@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 from democheck.cli import app
 from democheck.errors import DemocheckError
 from democheck.petnet.checkpoint import load_checkpoint
-from democheck.petnet.dagger import DaggerConfig, MixedPolicy, dagger
+from democheck.evaluate.dagger import DaggerConfig, MixedPolicy, dagger
 
 FAST = dict(rounds=2, steps=3, batch_tasks=2, timesteps=2, workers=1, device="cpu")
 
@@ -85,7 +85,7 @@ def test_dagger_trains_a_tecnets_controller_too(tiny_dataset, tmp_path):
     from democheck.workflows import train_model
 
     root, _ = tiny_dataset
-    train_model(root, tmp_path / "tec", TrainConfig(steps=2, batch_tasks=2, timesteps=2, device="cpu"),
-                model_type="tecnet", cache_dir=tmp_path / "cache")
+    train_model(root, tmp_path / "tec", TrainConfig(model_type="tecnet", steps=2, batch_tasks=2, timesteps=2,
+                                                    device="cpu"), cache_dir=tmp_path / "cache")
     s = dagger(tmp_path / "tec", root, tmp_path / "d", DaggerConfig(**{**FAST, "rounds": 1}))
     assert isinstance(load_checkpoint(tmp_path / "d").model, TecNet) and np.isfinite(s["history"][0]["demo_mse"])

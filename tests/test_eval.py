@@ -10,7 +10,8 @@ import torch
 from typer.testing import CliRunner
 
 from democheck.cli import app
-from democheck.evaluate.meta_test import ControllerPolicy, sigma_quartiles, wilson
+from democheck.evaluate.meta_test import sigma_quartiles, wilson
+from democheck.evaluate.rollout import ControllerPolicy
 from democheck.petnet.checkpoint import Normalisation
 from democheck.sim import scene
 from democheck.sim.catalog import make_tasks

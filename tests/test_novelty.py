@@ -16,7 +16,8 @@ from democheck.petnet.card import model_card
 from democheck.petnet.checkpoint import load_checkpoint
 from democheck.petnet.model import ModelConfig, build_model, cue_input
 from democheck.petnet.novelty import QUANTILE, conv_features, fit_novelty
-from democheck.petnet.train import TrainConfig, nonsense_cues, train
+from democheck.petnet.finish import nonsense_cues
+from democheck.petnet.train import TrainConfig, train
 
 FAST = dict(batch_tasks=2, timesteps=4, val_every=5, ckpt_every=5, device="cpu")
 CPU = torch.device("cpu")
@@ -130,6 +131,6 @@ def test_fit_novelty_cli_adds_it_to_a_trained_model(tiny_dataset, tmp_path):
     # The same folder again needs --force; a TecNets model and the wrong data are refused in one line.
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 2 and "already exists" in res.output
-    train(arrays, tmp_path / "tec", TrainConfig(steps=2, seed=0, **FAST), model_type="tecnet")
+    train(arrays, tmp_path / "tec", TrainConfig(model_type="tecnet", steps=2, seed=0, **FAST))
     res = CliRunner().invoke(app, ["fit-novelty", str(tmp_path / "tec"), *args[2:4], "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "PETNet" in res.output

@@ -10,10 +10,15 @@ from democheck.data import open_dataset
 from democheck.data.cache import build_cache
 from democheck.errors import DemocheckError
 from democheck.petnet.checkpoint import CheckpointError, Normalisation, load_checkpoint
-from democheck.petnet.model import (ModelConfig, PETNet, TecNet, build_model, cue_input, hinge_embedding_loss,
-                                    product_of_gaussians)
-from democheck.petnet.train import (Batches, TrainConfig, augment, broken_cue_loss, broken_cues, losses,
-                                    random_shift, task_rows, to_device, train)
+from democheck.petnet.batches import Batches, augment, random_shift, task_rows, to_device
+from democheck.petnet.model import ModelConfig, PETNet, TecNet, build_model, cue_input, hinge_embedding_loss
+from democheck.petnet.posterior import product_of_gaussians
+from democheck.petnet.regularisers import broken_cue_loss, broken_cues
+from democheck.petnet.train import TrainConfig, objective, train
+
+
+def losses(model, batch, tc, sample=True, teacher=None):
+    return objective(model, batch, tc, sample=sample, teacher=teacher)
 
 FAST = dict(batch_tasks=2, timesteps=4, val_every=5, ckpt_every=5, device="cpu")
 
@@ -158,15 +163,15 @@ def test_broken_cue_weight_adds_its_loss(arrays):
     norm = Normalisation.fit(arrays.state, arrays.actions)
     batch = to_device(Batches(arrays, task_rows(arrays, "train", 0), norm).sample(np.random.default_rng(0), 2, 3),
                       torch.device("cpu"))
-    out = losses(build_model(cfg), batch, TrainConfig(broken_cue_weight=2.0))
-    assert out["broken"] > 0
-    assert out["loss"].item() == pytest.approx((out["mse"] + 2.0 * out["broken"]).item(), rel=1e-5)
+    out = losses(build_model(cfg), batch, TrainConfig(regularisers={"broken_cue": 2.0}))
+    assert out["broken_cue"] > 0
+    assert out["loss"].item() == pytest.approx((out["mse"] + 2.0 * out["broken_cue"]).item(), rel=1e-5)
 
 
 def test_tecnet_trains(arrays, tmp_path):
-    result = train(arrays, tmp_path / "t", TrainConfig(steps=5, seed=0, **FAST), model_type="tecnet")
+    result = train(arrays, tmp_path / "t", TrainConfig(model_type="tecnet", steps=5, seed=0, **FAST))
     assert isinstance(load_checkpoint(tmp_path / "t").model, TecNet)
-    assert "val_embed" in result.history[-1]
+    assert "val_tecnet_hinge" in result.history[-1]
 
 
 def test_loading_untrusted_files_fails_cleanly(arrays, tmp_path):
@@ -194,14 +199,22 @@ def test_loading_untrusted_files_fails_cleanly(arrays, tmp_path):
 def test_train_cli(tiny_dataset, tmp_path, monkeypatch):
     monkeypatch.setenv("DEMOCHECK_CACHE", str(tmp_path / "cache"))
     root, _ = tiny_dataset
-    res = CliRunner().invoke(app, ["train", str(root), "--out", str(tmp_path / "m"), "--steps", "4", "--batch-tasks",
-                                   "2", "--timesteps", "2", "--val-every", "2", "--device", "cpu",
-                                   "--cache-dir", str(tmp_path / "cache")])
+    res = CliRunner().invoke(app, ["train", str(root), "--out", str(tmp_path / "m"), "--steps", "4", "--set",
+                                   "optim.batch_tasks=2", "--set", "timesteps=2", "--set", "schedule.val_every=2",
+                                   "--device", "cpu", "--cache-dir", str(tmp_path / "cache")])
     assert res.exit_code == 0, res.output
     card = (tmp_path / "m" / "README.md").read_text()
     assert "democheck" in card and "Intended use" in card and "fingerprint" in card
-    res = CliRunner().invoke(app, ["train", str(root), "--out", str(tmp_path / "m2"), "--model-type", "mlp"])
-    assert res.exit_code == 2 and "petnet or tecnet" in res.output
+    assert 'name = "paper"' in card and "batch_tasks = 2" in card  # the resolved recipe, overrides included
+    cfg = load_checkpoint(tmp_path / "m").meta
+    assert cfg["recipe"]["set"] == ["optim.batch_tasks=2", "timesteps=2", "schedule.val_every=2"]
+    assert cfg["recipe"]["config"]["steps"] == 4 and cfg["training"]["batch_tasks"] == 2
+    for args, msg in ((["--set", "model_type=mlp"], "petnet or tecnet"), (["--set", "lr"], "key=value"),
+                      (["--set", "optim.nope=1"], "unknown key"), (["--set", "regularisers.nope=1"], "unknown regulariser"),
+                      (["--set", "steps=many"], "steps must be int"), (["--recipe", "nope"], "no training recipe"),
+                      (["--set", "regularisers.kl_prior=1", "--set", "regularisers.kl_np=1"], "one of them")):
+        res = CliRunner().invoke(app, ["train", str(root), "--out", str(tmp_path / "m2"), *args])
+        assert res.exit_code == 2 and msg in res.output and "Traceback" not in res.output, (args, res.output)
 
 
 def test_hard_negative_batches_hold_both_orders_of_an_object_pair(tiny_dataset, arrays):
@@ -231,8 +244,8 @@ def test_partial_cues_cut_the_cue_demo_short_and_train(arrays, tmp_path):
     batch = Batches(arrays, rows, norm).sample(np.random.default_rng(0), 2, 4, partial=True)
     assert batch["partial_cue"].shape == batch["cue"].shape
     assert np.array_equal(batch["partial_cue"][:, 0], batch["cue"][:, 0])  # same demo, same first frame
-    result = train(arrays, tmp_path / "m", TrainConfig(steps=5, seed=0, partial_cue_weight=1.0, **FAST))
-    assert np.isfinite(result.history[-1]["train_partial"]) and "val_partial" in result.history[-1]
+    result = train(arrays, tmp_path / "m", TrainConfig(steps=5, seed=0, regularisers={"partial_cue": 1.0}, **FAST))
+    assert np.isfinite(result.history[-1]["train_partial_cue"]) and "val_partial_cue" in result.history[-1]
 
 
 def test_partial_kl_covers_the_starting_encoders_whole_cue_posterior(arrays, tmp_path):
@@ -252,7 +265,7 @@ def test_partial_kl_covers_the_starting_encoders_whole_cue_posterior(arrays, tmp
         for p in model.encoder.parameters():
             p.normal_(0.0, 0.3)
     teacher = copy.deepcopy(model.encoder).requires_grad_(False)
-    tc = TrainConfig(partial_kl_weight=1.0)
+    tc = TrainConfig(regularisers={"partial_kl": 1.0})
     cut = to_device(batches.gather(cue_rows, traj_rows, steps, np.zeros(2, np.int64)), torch.device("cpu"))
     with pytest.raises(ValueError, match="starting encoder"):
         losses(model, cut, tc)
@@ -272,8 +285,8 @@ def test_partial_kl_covers_the_starting_encoders_whole_cue_posterior(arrays, tmp
 
 def test_init_starts_from_a_model_and_the_partial_kl_needs_it(arrays, tmp_path):
     base = train(arrays, tmp_path / "base", TrainConfig(steps=3, seed=0, **FAST))
-    with pytest.raises(DemocheckError, match="needs --init"):
-        train(arrays, tmp_path / "x", TrainConfig(steps=1, seed=0, partial_kl_weight=1.0, **FAST))
+    with pytest.raises(DemocheckError, match="needs a starting model"):
+        train(arrays, tmp_path / "x", TrainConfig(steps=1, seed=0, regularisers={"partial_kl": 1.0}, **FAST))
     with pytest.raises(DemocheckError, match="architecture differs"):
         train(arrays, tmp_path / "x", TrainConfig(steps=1, seed=0, init=str(tmp_path / "base"), keypoints=True, **FAST))
     # A step at learning rate 0 keeps the starting model exactly, normalisation included.
@@ -282,5 +295,5 @@ def test_init_starts_from_a_model_and_the_partial_kl_needs_it(arrays, tmp_path):
     for (k, a), b in zip(base.model.state_dict().items(), same.model.state_dict().values()):
         assert torch.equal(a, b), k
     tuned = train(arrays, tmp_path / "ft", TrainConfig(steps=5, seed=0, init=str(tmp_path / "base"),
-                                                       partial_kl_weight=1.0, **FAST))
+                                                       regularisers={"partial_kl": 1.0}, **FAST))
     assert np.isfinite(tuned.history[-1]["train_partial_kl"]) and "val_partial_sigma" in tuned.history[-1]

@@ -218,8 +218,8 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
 
     _, probe_root, _ = probes
     tec = tmp_path / "tec"
-    train_model(defect_dataset, tec, TrainConfig(steps=4, batch_tasks=2, timesteps=2, val_every=2, device="cpu"),
-                model_type="tecnet", cache_dir=tmp_path / "cache")
+    train_model(defect_dataset, tec, TrainConfig(model_type="tecnet", steps=4, batch_tasks=2, timesteps=2, val_every=2,
+                                                 device="cpu"), cache_dir=tmp_path / "cache")
     out = tmp_path / "bench"
     res = runner.invoke(app, ["bench", str(defect_dataset), str(probe_root), "--out", str(out), "--model",
                               str(tiny_model), "--tecnet", str(tec)])
@@ -227,8 +227,8 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     doc = json.loads((out / "bench.json").read_text())
     kinds = {"idle", "random", "wrong-object", "no-action", "no-objects", "hidden"}
     assert kinds <= set(doc["kinds"])
-    assert set(doc["scorers"]) == {"sigma", "sigma_head", "consistency", "action_error", "suspicion", "ocsvm_flag",
-                                   "tecnet_knn", "heuristic", "random"}
+    assert list(doc["scorers"]) == ["task_uncertainty", "task_uncertainty_head", "novelty", "consistency",
+                                    "action_error", "suspicion", "ocsvm_flag", "tecnet_knn", "heuristic", "random"]
     for name, per in doc["scorers"].items():
         for kind in kinds:
             assert set(per[kind]) == {"auroc", "auprc", "p_at_k", "n"}
@@ -236,8 +236,9 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     table = pd.read_parquet(out / "scores.parquet")
     assert len(table) == len(open_dataset(defect_dataset)) + len(open_dataset(probe_root))
     # The paper's sigma (the head alone) is the total without the novelty part: never larger, larger somewhere.
-    assert (table["sigma_head"] <= table["sigma"] * (1 + 1e-6)).all() and (table["sigma_head"] < table["sigma"]).any()
-    for name in ("sigma", "heuristic", "tecnet_knn"):
+    head, total = table["task_uncertainty_head"], table["task_uncertainty"]
+    assert (head <= total * (1 + 1e-6)).all() and (head < total).any()
+    for name in ("task_uncertainty", "heuristic", "tecnet_knn"):
         for kind in ("idle", "hidden"):
             keep = table["label"].isin([kind, "clean"])
             y, s = (table["label"][keep] == kind).to_numpy(), table[name][keep].to_numpy()

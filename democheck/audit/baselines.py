@@ -34,21 +34,28 @@ def motion_features(state: np.ndarray, actions: np.ndarray) -> np.ndarray:
 
 def heuristic_table(demos) -> np.ndarray:
     """[N, 3] idle fraction, action energy and jerk of each demo (an iterable of Demos)."""
-    motions, rest = [], []
-    for d in demos:
-        m, e, j = motion_features(d.state, d.actions)
-        motions.append(m)
-        rest.append((e, j))
+    return summarise_motion([motion_features(d.state, d.actions) for d in demos])
+
+
+def summarise_motion(parts: list[tuple[np.ndarray, float, float]]) -> np.ndarray:
+    """[N, 3] idle fraction, action energy and jerk from each demo's ``motion_features``; a step is idle when the
+    arm moves less than ``IDLE_FRACTION_OF_MEDIAN`` of the median step of all these demos."""
+    motions = [m for m, _, _ in parts]
+    rest = [(e, j) for _, e, j in parts]
     typical = float(np.median(np.concatenate(motions))) if motions else 0.0
     idle = [float(np.mean(m < IDLE_FRACTION_OF_MEDIAN * typical)) if len(m) else 1.0 for m in motions]
     return np.column_stack([idle, np.asarray(rest).reshape(-1, 2)]) if motions else np.zeros((0, 3))
 
 
+def heuristic_z(features: np.ndarray) -> np.ndarray:
+    """Absolute robust z-score of each feature [N, 3], standardised against all demos given."""
+    return np.column_stack([np.abs(standardise(features[:, i], robust_stats(features[:, i])))
+                            for i in range(features.shape[1])])
+
+
 def heuristic_score(features: np.ndarray) -> np.ndarray:
-    """Largest absolute robust z-score over the features, each standardised against all demos given."""
-    z = np.column_stack([np.abs(standardise(features[:, i], robust_stats(features[:, i])))
-                         for i in range(features.shape[1])])
-    return z.max(axis=1)
+    """Largest absolute robust z-score over the features."""
+    return heuristic_z(features).max(axis=1)
 
 
 def knn_same_task(emb: np.ndarray, tasks: np.ndarray, k: int = 5) -> np.ndarray:

@@ -3,10 +3,9 @@
 The datasets given are pooled (e.g. a suite with injected defects plus the
 probes made from it); every demo keeps its task, so task consistency and the
 kNN baseline compare it with the other demos of its task across the pool.
-For every scorer and every label kind versus ``clean``: AUROC, AUPRC and
-precision at k (k = the number of that kind).  Scorers: democheck's own
-(sigma, the paper's; consistency; suspicion; the OCSVM flag, a single operating
-point) and the baselines of ``democheck.audit.baselines``.
+For every registered scorer (``democheck.audit.scorers``: democheck's own and
+the baselines) and every label kind versus ``clean``: AUROC, AUPRC and
+precision at k (k = the number of that kind).
 
 Figure 5A of the paper: mean and spread of the task standard deviation per
 kind.  Figure 5B: the task standard deviation of the product of Gaussians of
@@ -15,37 +14,28 @@ kind.  Figure 5B: the task standard deviation of the product of Gaussians of
 
 from __future__ import annotations
 
-import json
 import time
-from pathlib import Path
-from types import SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
 
+from democheck.audit import scorers as registry
+from democheck.audit.metrics import by_label
+from democheck.audit.run import check_compatible, gather_evidence, score_table
+from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
+from democheck.fsutil import to_json
+from democheck.petnet.checkpoint import Checkpoint
+from democheck.petnet.posterior import product_of_gaussians
 
-OURS = ("sigma", "sigma_head", "consistency", "action_error", "suspicion", "ocsvm_flag")
-BASELINES = ("tecnet_knn", "heuristic", "random")
-SCORER_NOTES = {
-    "sigma": "PETNet task uncertainty: mean task standard deviation of the cue, both parts of the variance",
-    "sigma_head": "the paper's task uncertainty: sigma from the variance head alone, without the novelty part",
-    "consistency": "distance of the cue's task mean from the other demos of its task (democheck)",
-    "action_error": "how badly PETNet's controller, told the task by the other demos, explains the demo's actions",
-    "suspicion": "max of sigma, consistency and action error, robustly standardised (democheck's ranking)",
-    "ocsvm_flag": "linear one-class SVM flag, nu from the model (one operating point)",
-    "tecnet_knn": "TecNets embedding: mean distance to the 5 nearest other demos of the task",
-    "heuristic": "linter rules: max |robust z| of idle fraction, action energy, jerk",
-    "random": "uniform random score",
-}
 MAX_CUES = 6
 
 
 def figure_5a(table: pd.DataFrame) -> dict[str, dict[str, float]]:
-    """Mean, standard deviation and quartiles of the task standard deviation (score) per label."""
+    """Mean, standard deviation and quartiles of the task standard deviation (task uncertainty) per label."""
     out = {}
-    for kind, s in table.groupby("label")["score"]:
+    for kind, s in table.groupby("label")["task_uncertainty"]:
         q = np.percentile(s, [25, 50, 75])
         out[str(kind)] = {"mean": float(s.mean()), "std": float(s.std(ddof=0)), "q25": float(q[0]),
                           "median": float(q[1]), "q75": float(q[2]), "n": int(len(s))}
@@ -65,7 +55,7 @@ def figure_5b(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray, draws: int = 2
                 continue
             for _ in range(draws):
                 pick = rng.choice(idx, size=n, replace=False)
-                v = 1.0 / (1.0 / var[pick]).sum(0)
+                _, v = product_of_gaussians(mu[pick], var[pick])
                 vals.append(float(np.sqrt(v).mean()))
         if vals:
             out.append({"cues": n, "mean_sigma": float(np.mean(vals)), "std": float(np.std(vals)),
@@ -75,8 +65,6 @@ def figure_5b(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray, draws: int = 2
 
 def detection_table(table: pd.DataFrame, scorers: list[str]) -> dict[str, dict[str, dict[str, float]]]:
     """{scorer: {kind: {auroc, auprc, p_at_k, n}}} for every non-clean label (and ``all``) versus clean."""
-    from democheck.audit.metrics import by_label
-
     return {name: by_label(table, name) for name in scorers}
 
 
@@ -84,11 +72,13 @@ def verdicts(results: dict[str, dict[str, dict[str, float]]], kinds: list[str]) 
     """Per kind: democheck's best scorer and AUROC, the best baseline and AUROC, and whether ours is at least as good."""
     out = {}
     for kind in kinds:
-        def best(names):
-            got = [(results[n][kind]["auroc"], n) for n in names if n in results and kind in results[n]
-                   and np.isfinite(results[n][kind]["auroc"])]
-            return max(got) if got else (float("nan"), None)
-        ours, base = best(OURS), best(BASELINES)
+        def best(names):  # the highest AUROC; of equals, the ranking (suspicion), else the first in the registry
+            got = [(results[n][kind]["auroc"], n == "suspicion", -i, n) for i, n in enumerate(names) if n in results
+                   and kind in results[n] and np.isfinite(results[n][kind]["auroc"])]
+            top = max(got) if got else (float("nan"), False, 0, None)
+            return top[0], top[3]
+        ours = best([n for n, sc in registry.SCORERS.items() if sc.family == "democheck"])
+        base = best([n for n, sc in registry.SCORERS.items() if sc.family == "baseline"])
         out[kind] = {"best_democheck": ours[1], "auroc": ours[0], "best_baseline": base[1],
                      "baseline_auroc": base[0], "democheck_at_least_as_good": bool(ours[0] >= base[0])}
     return out
@@ -120,111 +110,48 @@ def markdown(summary: dict[str, Any]) -> str:
               "| cues | mean sigma | std | tasks |", "|---:|---:|---:|---:|"]
     for f in summary["figure_5b"]:
         lines.append(f"| {f['cues']} | {f['mean_sigma']:.4f} | {f['std']:.4f} | {f['tasks']} |")
-    lines += ["", "## Scorers", ""] + [f"- `{n}`: {SCORER_NOTES[n]}" for n in res]
+    lines += ["", "## Scorers", ""] + [f"- `{n}`: {registry.SCORERS[n].description}" for n in res]
     return "\n".join(lines) + "\n"
 
 
-def bench(datasets: list[str | Path], out: str | Path, model: str | Path | None = None,
-          tecnet: str | Path | None = None, device: str = "auto", seed: int = 0, force: bool = False,
-          camera: str | None = None,
-          on_progress: Callable[[str, int, int], None] | None = None) -> dict[str, Any]:
-    """Score every demo of the pooled ``datasets`` with every scorer and write bench.json/bench.md/bench.rrd."""
-    import torch
-
-    from democheck.audit.baselines import heuristic_score, heuristic_table, knn_same_task, random_score
-    from democheck.audit.run import _counting, action_errors, check_compatible, controller_z, posteriors, to_json
-    from democheck.audit.scores import score_table, task_score
-    from democheck.data import open_dataset
-    from democheck.fsutil import atomic_output_dir
-    from democheck.petnet.checkpoint import load_checkpoint
-    from democheck.petnet.train import resolve_device
-    from democheck.viz.report import write_bench_rrd
-
-    if not datasets:
+def bench(sets: list[DemoSet], ckpt: Checkpoint, tecnet: Checkpoint | None = None, device: Any = "cpu",
+          seed: int = 0, on_progress: Callable[[str, int, int], None] | None = None
+          ) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Score every demo of the pooled labelled datasets ``sets`` with every registered scorer the evidence can
+    feed; returns the scores table (one row per demo, ranked) and the summary (bench.json)."""
+    if not sets:
         raise DemocheckError("bench needs at least one labelled dataset")
-    dev = resolve_device(device)
-    ckpt = load_checkpoint(model, device=dev)
-    tec = load_checkpoint(tecnet, device=dev) if tecnet is not None else None
-    if tec is not None and tec.config.model_type != "tecnet":
-        raise DemocheckError(f"{tecnet}: --tecnet needs a TecNets model (democheck train --model-type tecnet)")
-    sets = [open_dataset(p, camera=camera) for p in datasets]
+    if tecnet is not None and tecnet.config.model_type != "tecnet":
+        raise DemocheckError(f"{tecnet.path}: --tecnet needs a TecNets model (democheck train --recipe tecnet)")
     for ds in sets:
         check_compatible(ds, ckpt)
         if "label" not in ds.episodes:
             raise DemocheckError(f"{ds.root}: no labels; bench needs labelled demos (democheck synth --defect-rate, "
                                  "democheck probe)")
     t0 = time.perf_counter()
-    parts, mus, vars_, heads, feats, embs, errs = [], [], [], [], [], [], []
-
-    def report(stage: str, ds) -> Callable[[int, int], None] | None:
-        return (lambda d, n: on_progress(f"{stage} {ds.root.name}", d, n)) if on_progress else None
-
-    for ds in sets:
-        # Every per-demo array below is in ds.episode_indices order, the order of ds.episodes' rows.
-        mu, var_task, var_novel = posteriors(ds, ckpt.model, dev, on_progress=report("PETNet", ds), parts=True)
-        mus.append(mu)
-        vars_.append(var_task + var_novel)
-        heads.append(var_task)
-        if tec is not None:
-            embs.append(posteriors(ds, tec.model, dev, on_progress=report("TecNets", ds))[0])
-        parts.append(ds.episodes.reset_index().assign(dataset=str(ds.root)))
-    episodes = pd.concat(parts, ignore_index=True)
+    episodes = pd.concat([ds.episodes.reset_index().assign(dataset=str(ds.root)) for ds in sets], ignore_index=True)
     episodes["label"] = episodes["label"].fillna("clean").astype(str)
     episodes = episodes.rename(columns={"episode_index": "source_index"})
     episodes.insert(0, "episode_index", np.arange(len(episodes)))  # pooled id: unique across datasets
-    mu, var = np.concatenate(mus), np.concatenate(vars_)
-    z = controller_z(mu, var, episodes["task"].to_numpy())  # each demo judged under its task across the pool
-    start = 0
-    for ds in sets:
-        # One decoding pass: the controller sees the frames, the heuristic keeps only state and actions.
-        light: list[SimpleNamespace] = []
-
-        def each(ds=ds, light=light):
-            for demo in _counting(ds, report("actions", ds)):
-                light.append(SimpleNamespace(state=demo.state, actions=demo.actions))
-                yield demo
-
-        errs.append(action_errors(each(), ckpt, z[start:start + len(ds)], dev))
-        feats.append(heuristic_table(light))
-        start += len(ds)
-    table = score_table(episodes, mu, var, ckpt.meta.get("reference"), np.concatenate(errs))
-    order = table["episode_index"].to_numpy()  # score_table sorts by suspicion: map pooled ids back
-    # The scorer "sigma" is the paper's score (mean task standard deviation); the vector moves to sigma_vec.
-    table = table.rename(columns={"sigma": "sigma_vec"})
-    table["sigma"] = table["score"]
-    table["sigma_head"] = task_score(np.sqrt(np.concatenate(heads)))[order]
-    table["ocsvm_flag"] = (table["ocsvm_margin"] < 0).astype(float)  # the paper's flag alone
-    table["heuristic"] = heuristic_score(np.concatenate(feats))[order]
-    table["random"] = random_score(len(table), seed)
-    scorers = list(OURS)
-    if tec is not None:
-        emb = np.concatenate(embs)
-        table["tecnet_knn"] = knn_same_task(emb, episodes["task"].to_numpy())[order]
-        scorers.append("tecnet_knn")
-    scorers += ["heuristic", "random"]
-    table["dataset"] = episodes["dataset"].to_numpy()[order]
-    table["source_index"] = episodes["source_index"].to_numpy()[order]
+    ev = gather_evidence(sets, ckpt, registry.select(audit=False), device, tecnet=tecnet, episodes=episodes,
+                         seed=seed, on_progress=on_progress)
+    table = score_table(ev)
+    names = [n for n in registry.SCORERS if n in ev.scores]
     kinds = sorted(set(table["label"]) - {"clean"})
     if not kinds or "clean" not in set(table["label"]):
         raise DemocheckError("bench needs clean demos and at least one other label among the datasets given")
-    results = detection_table(table, scorers)
+    results = detection_table(table, names)
     kinds_all = kinds + (["all"] if len(kinds) > 1 else [])
     clean = (episodes["label"] == "clean").to_numpy()
+    post = ev.posterior.take(clean)
     summary = {
-        "datasets": [str(ds.root) for ds in sets], "model": str(ckpt.path), "tecnet": str(tec.path) if tec else None,
+        "datasets": [str(ds.root) for ds in sets], "model": str(ckpt.path), "tecnet": str(tecnet.path) if tecnet else None,
         "labels": table["label"].value_counts().sort_index().to_dict(), "kinds": kinds_all,
         "scorers": results, "verdicts": verdicts(results, kinds_all),
         "figure_5a": figure_5a(table),
-        "figure_5b": figure_5b(mu[clean], var[clean], episodes["task"].to_numpy()[clean], seed=seed),
-        "notes": {n: SCORER_NOTES[n] for n in scorers}, "seed": seed,
+        "figure_5b": figure_5b(post.mu, post.var, episodes["task"].to_numpy()[clean], seed=seed),
+        "notes": {n: registry.SCORERS[n].description for n in names}, "seed": seed,
         "wall_s": round(time.perf_counter() - t0, 3),
     }
-    summary = to_json(summary)
-    with atomic_output_dir(out, force=force) as tmp:
-        keep = ["episode_index", "dataset", "source_index", "task", "label", *scorers, "sigma_vec", "mu"]
-        table[keep].to_parquet(tmp / "scores.parquet", index=False)
-        (tmp / "bench.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
-        text = markdown(summary)
-        (tmp / "bench.md").write_text(text)
-        write_bench_rrd(tmp / "bench.rrd", summary, text)
-    return summary
+    keep = ["episode_index", "dataset", "source_index", "task", "label", *names, "reason", "sigma", "mu"]
+    return table[keep], to_json(summary)

@@ -1,12 +1,14 @@
-"""Audit a dataset with a PETNet model: score every demo, rank, flag, and write the report folder.
+"""Audit demos with a PETNet model: gather the evidence, run the registered scorers, rank, flag, summarise.
 
-Demos are streamed in batches (cue frames only: first and last frame), so
-memory does not grow with the dataset beyond one row of numbers per demo.
+The cue pass reads only the first and last frame of each demo, in batches,
+so memory does not grow with the dataset beyond one row of numbers per demo;
+scorers that need every frame (the action error, the linter heuristics)
+share one decoding pass.  ``democheck.workflows`` writes what this computes
+into a report folder (tables, summary, Rerun recording).
 """
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -14,13 +16,22 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
+from democheck.audit import scorers as registry
+from democheck.audit.scorers import Evidence, Scorer
+from democheck.audit.scores import SUSPICION_FLAG, flags, ocsvm_margin, rank_order
+from democheck.data.cache import dataset_fingerprint
 from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
+from democheck.fsutil import to_json
+from democheck.petnet.checkpoint import Checkpoint
+from democheck.petnet.model import encode
+from democheck.petnet.posterior import TaskPosterior
 
 REPORT_FILES = ("scores.parquet", "scores.csv", "summary.json", "suspects.txt", "report.rrd")
+Progress = Callable[[str, int, int], None]  # (stage, done, total)
 
 
-def check_compatible(ds: DemoSet, ckpt) -> None:
+def check_compatible(ds: DemoSet, ckpt: Checkpoint) -> None:
     """One clear line when the model cannot read this dataset."""
     cfg = ckpt.config
     where = f"{ds.root}"
@@ -36,87 +47,114 @@ def check_compatible(ds: DemoSet, ckpt) -> None:
                              f"{cfg.action_dim}; train a model on this data: democheck train {ds.root} --out models/<name>")
 
 
-def posteriors(ds: DemoSet, model, device, batch: int = 256,
-               on_progress: Callable[[int, int], None] | None = None, parts: bool = False) -> tuple[np.ndarray, ...]:
-    """Task posterior (mu, var) of every demo's cue, in ``ds.episode_indices`` order; ``parts``: (mu, var_task,
-    var_novel), as ``task_posteriors``."""
-    from democheck.petnet.train import task_posteriors
-
+def cue_posteriors(ds: DemoSet, model, device, batch: int = 256,
+                   on_progress: Callable[[int, int], None] | None = None) -> TaskPosterior:
+    """The task posterior of every demo's cue, in ``ds.episode_indices`` order."""
     eps = ds.episode_indices
-    cols: list[list[np.ndarray]] = []
+    parts = []
     for s in range(0, len(eps), batch):
-        out = task_posteriors(model, ds.cue_frames_many(eps[s:s + batch]), device, parts=parts)
-        cols = cols or [[] for _ in out]
-        for col, x in zip(cols, out):
-            col.append(x)
+        parts.append(encode(model, ds.cue_frames_many(eps[s:s + batch]), device))
         if on_progress:
             on_progress(min(s + batch, len(eps)), len(eps))
-    return tuple(np.concatenate(c) for c in cols)
+    return TaskPosterior.concat(parts)
 
 
-ACTION_STEPS = 25  # timesteps per demo at which the controller's actions are compared with the demo's
+def decoding_pass(ds: DemoSet, consumers: list, on_progress: Callable[[int, int], None] | None = None) -> None:
+    """Decode every demo of ``ds`` once, in ``ds.episode_indices`` order, and feed it to each consumer."""
+    n = len(ds)
+    for i, demo in enumerate(ds):
+        for c in consumers:
+            c.add(demo)
+        if on_progress and (i % 50 == 49 or i == n - 1):
+            on_progress(i + 1, n)
 
 
-def controller_z(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray) -> np.ndarray:
-    """The task variable each demo's actions are judged under: its task's other demos' posterior mean (own mu if alone)."""
-    from democheck.audit.scores import others_posterior
+def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint, scorers: list[Scorer], device: Any,
+                    tecnet: Checkpoint | None = None, episodes: pd.DataFrame | None = None, seed: int = 0,
+                    on_progress: Progress | None = None, timings: dict[str, float] | None = None) -> Evidence:
+    """Score the demos of ``sets``, pooled in order, with ``scorers``: the cue pass (PETNet, and TecNets when
+    given), one decoding pass per dataset for the scorers that need every frame, then each scorer.
 
-    m, _ = others_posterior(mu, var, tasks)
-    return np.where(np.isfinite(m), m, mu).astype(np.float32)
+    ``episodes``: the pooled demos' table (default: the datasets' episode tables one after the other).
+    ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).
+    """
+    t = timings if timings is not None else {}
+
+    def stage(name: str, ds: DemoSet) -> Callable[[int, int], None] | None:
+        return (lambda d, n: on_progress(f"{name} {ds.root.name}", d, n)) if on_progress else None
+
+    t0 = time.perf_counter()
+    post = TaskPosterior.concat([cue_posteriors(ds, ckpt.model, device, on_progress=stage("PETNet", ds))
+                                 for ds in sets])
+    embedding = None
+    if tecnet is not None:
+        embedding = np.concatenate([cue_posteriors(ds, tecnet.model, device, on_progress=stage("TecNets", ds)).mu
+                                    for ds in sets])
+    t["score_s"] = time.perf_counter() - t0
+    if episodes is None:
+        episodes = pd.concat([ds.episodes.reset_index() for ds in sets], ignore_index=True)
+    ev = Evidence(episodes=episodes, posterior=post, model=ckpt, embedding=embedding, seed=seed)
+    decoding = [s for s in scorers if s.can_decode(ev)]
+    if decoding:
+        t1 = time.perf_counter()
+        parts: dict[str, list] = {s.name: [] for s in decoding}
+        start = 0
+        for ds in sets:
+            rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
+            consumers = {s.name: s.decode(ev, rows, device) for s in decoding}
+            decoding_pass(ds, list(consumers.values()), stage("actions", ds))
+            for name, consumer in consumers.items():
+                parts[name].append(consumer.finish())
+            start += len(ds)
+        for name, got in parts.items():
+            ev.behaviour[name] = _concat(got)
+        t["actions_s"] = time.perf_counter() - t1
+    return registry.compute(ev, scorers)
 
 
-def action_errors(demos, ckpt, z: np.ndarray, device, steps: int = ACTION_STEPS, batch: int = 32) -> np.ndarray:
-    """Per demo (an iterable, in ``z``'s order): mean squared error between its normalised actions and the
-    controller's under its ``z``, at ``steps`` evenly spaced timesteps (all of them when it is shorter)."""
-    import torch
-
-    out = np.full(len(z), np.nan)
-    pending: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
-
-    def flush() -> None:
-        frames = torch.from_numpy(np.stack([p[1] for p in pending])).to(device)
-        state = torch.from_numpy(np.stack([p[2] for p in pending])).to(device)
-        rows = np.array([p[0] for p in pending])
-        with torch.no_grad():
-            pred = ckpt.model.controller.act(frames, state, torch.from_numpy(z[rows]).to(device)).cpu().numpy()
-        out[rows] = ((pred - np.stack([p[3] for p in pending])) ** 2).mean(axis=(1, 2))
-        pending.clear()
-
-    for i, demo in enumerate(demos):
-        t = np.unique(np.linspace(0, len(demo.actions) - 1, steps).round().astype(np.int64))
-        if len(t) < steps:  # a short demo: repeat its timesteps so a batch stacks
-            t = np.resize(t, steps)
-        pending.append((i, demo.frames[t], ckpt.norm.state(demo.state[t]).astype(np.float32),
-                        ckpt.norm.action(demo.actions[t]).astype(np.float32)))
-        if len(pending) == batch:
-            flush()
-    if pending:
-        flush()
-    return out
+def _concat(parts: list) -> Any:
+    """Per-dataset results of one consumer, pooled: arrays, or (values, reasons) pairs."""
+    if isinstance(parts[0], tuple):
+        return np.concatenate([p[0] for p in parts]), [r for p in parts for r in p[1]]
+    return np.concatenate(parts)
 
 
-def embed_2d(table: pd.DataFrame, top: int, max_points: int = 1500, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """t-SNE of the task means; above ``max_points`` demos, the suspects plus a random sample of the rest."""
-    from sklearn.manifold import TSNE
-    from threadpoolctl import threadpool_limits
+def score_posteriors(episodes: pd.DataFrame, post: TaskPosterior, model: Checkpoint | None = None,
+                     behaviour: dict[str, Any] | None = None, scorers: list[Scorer] | None = None) -> pd.DataFrame:
+    """The ScoreTable of task posteriors already computed (one per row of ``episodes``: episode_index, task),
+    with the decoding pass's results when given (e.g. ``{"action_error": values}``): the Python API's way to
+    rank demos without a dataset on disk."""
+    ev = Evidence(episodes=episodes.reset_index(drop=True), posterior=post, model=model,
+                  behaviour=dict(behaviour or {}))
+    return score_table(registry.compute(ev, scorers or registry.select()))
 
-    n = len(table)
-    rows = np.arange(n)
-    if n > max_points:
-        rng = np.random.default_rng(seed)
-        rest = rng.choice(np.arange(top, n), size=max_points - top, replace=False)
-        rows = np.sort(np.concatenate([np.arange(min(top, n)), rest]))
-    if len(rows) < 5:
-        return np.zeros((len(rows), 2)), rows
-    mu = np.stack(table["mu"].to_numpy()[rows]).astype(np.float64)
-    # One thread: with torch's OpenMP pool in the same process, sklearn's threads spin against it (20x slower).
-    with threadpool_limits(1):
-        xy = TSNE(n_components=2, perplexity=min(30.0, (len(rows) - 1) / 3), init="pca",
-                  random_state=seed).fit_transform(mu)
-    return xy, rows
+
+def score_table(ev: Evidence) -> pd.DataFrame:
+    """The ScoreTable: one row per demo, every computed score, ranked by suspicion (rank 1 = most suspect)."""
+    eps = ev.episodes
+    table = pd.DataFrame({"episode_index": eps["episode_index"].to_numpy(np.int64), "task": ev.tasks})
+    for name in registry.SCORERS:
+        if name in ev.scores:
+            table[name] = ev.scores[name]
+    table["reason"] = ev.reasons.get("suspicion", [""] * len(table))
+    ref = (ev.model.meta.get("reference") or {}).get("ocsvm") if ev.model is not None else None
+    sigma = ev.posterior.sigma
+    margin = ocsvm_margin(ref, sigma) if ref else np.full(len(table), np.nan)
+    table["ocsvm_margin"] = margin
+    table["is_anomaly"] = flags(margin, table["suspicion"].to_numpy())
+    table["sigma"] = list(sigma.astype(np.float32))
+    table["mu"] = list(ev.posterior.mu.astype(np.float32))
+    for col in ("label", "split", "dataset", "source_index"):
+        if col in eps:
+            table[col] = eps[col].to_numpy()
+    table = table.iloc[rank_order(table["suspicion"].to_numpy(), table["episode_index"].to_numpy())]
+    table = table.reset_index(drop=True)
+    table.insert(2, "rank", np.arange(1, len(table) + 1))
+    return table
 
 
 def write_tables(folder: Path, table: pd.DataFrame, suspects: list[int]) -> None:
+    """scores.parquet, scores.csv (vectors as space-separated numbers) and suspects.txt."""
     table.to_parquet(folder / "scores.parquet", index=False)
     csv = table.copy()
     for col in ("sigma", "mu"):
@@ -125,101 +163,51 @@ def write_tables(folder: Path, table: pd.DataFrame, suspects: list[int]) -> None
     (folder / "suspects.txt").write_text("".join(f"{e}\n" for e in suspects))
 
 
-def audit(ds: DemoSet, ckpt, out: Path, top: int = 20, device: str = "cpu", force: bool = False,
-          on_progress: Callable[[int, int], None] | None = None, timings: dict[str, float] | None = None,
-          actions: bool = True) -> dict[str, Any]:
-    """Score ``ds`` with ``ckpt`` and write the report folder ``out`` atomically; returns the summary.
-
-    ``actions`` adds the action error (every demo decoded in full: slower than the cue-only scores)."""
-    import torch
-
-    from democheck.audit.scores import SUSPICION_FLAG, score_table
-    from democheck.data.cache import dataset_fingerprint
-    from democheck.fsutil import atomic_output_dir
-    from democheck.viz.report import write_report_rrd
-
+def audit(ds: DemoSet, ckpt: Checkpoint, top: int = 20, device: Any = "cpu", actions: bool = True,
+          on_progress: Progress | None = None, timings: dict[str, float] | None = None
+          ) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Score every demo of ``ds`` with ``ckpt``: the ScoreTable (with the old column ``score`` kept for one
+    release) and the summary.  ``actions`` adds the action error (every demo decoded: slower)."""
     check_compatible(ds, ckpt)
     t = dict(timings or {})
-    t0 = time.perf_counter()
-    mu, var_task, var_novel = posteriors(ds, ckpt.model, torch.device(device), on_progress=on_progress, parts=True)
-    var = var_task + var_novel
-    t["score_s"] = time.perf_counter() - t0
-    episodes = ds.episodes.reset_index()  # rows in ds.episode_indices order, as mu and var are
-    ref = ckpt.meta.get("reference")
-    err = None
-    if actions:
-        t1 = time.perf_counter()
-        z = controller_z(mu, var, episodes["task"].to_numpy())
-        err = action_errors(_counting(ds, on_progress), ckpt, z, torch.device(device))
-        t["actions_s"] = time.perf_counter() - t1
-    table = score_table(episodes, mu, var, ref, err)
-    if ckpt.config.novelty:
-        # How unfamiliar the cue's images are: d2 / d2_ref (1 = the 90th percentile of held-out real cues).
-        ratio = (var_novel / ckpt.model.encoder.prior_var.cpu().numpy()).mean(1)
-        table["novelty"] = ratio[pd.Index(episodes["episode_index"]).get_indexer(table["episode_index"])]
-    # suspects.txt: what a dataset-editing tool should drop -- the flagged demos, most suspect first.
-    suspects = table.loc[table["is_anomaly"], "episode_index"].tolist()
+    chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
+    ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t)
+    table = score_table(ev)
+    for old, new in registry.RENAMED.items():
+        if new in table:
+            table[old] = table[new]
     fingerprint = dataset_fingerprint(ds) if (ds.root / "meta").is_dir() else None
     trained_on = ckpt.meta.get("data", {}).get("fingerprint")
-    with atomic_output_dir(out, force=force) as tmp:
-        write_tables(tmp, table, suspects)
-        t1 = time.perf_counter()
-        xy, rows = embed_2d(table, top)
-        t["tsne_s"] = time.perf_counter() - t1
-        t2 = time.perf_counter()
-        demos = [ds[int(e)] for e in table.head(top)["episode_index"]]
-        write_report_rrd(tmp / "report.rrd", table, demos, xy, rows, ds.fps, f"democheck audit of {ds.root}")
-        t["rrd_s"] = time.perf_counter() - t2
-        summary = {
-            "dataset": str(ds.root), "format": ds.format, "camera": ds.camera, "dataset_fingerprint": fingerprint,
-            "model": str(ckpt.path), "model_trained_on_this_dataset": fingerprint is not None and fingerprint == trained_on,
-            "demos": len(table), "tasks": int(table["task"].nunique()), "flagged": int(table["is_anomaly"].sum()),
-            "suspects_txt": len(suspects), "top": top,
-            "scores": {
-                "score": "mean over embedding dimensions of the task standard deviation sqrt(var) of the demo's cue",
-                "consistency": "RMS over dimensions of (mu - m)/sqrt(v + var), (m, v) the product-of-Gaussians "
-                               "posterior of the other demos of the same task",
-                "suspicion": "max of score, consistency (and action_error) each standardised by the median and "
-                             "1.4826*MAD of this dataset's demos",
-                "is_anomaly": "linear one-class SVM on 1/sigma^2, fitted on the model's training demos, or suspicion "
-                              f"above {SUSPICION_FLAG:g}",
-            } | ({"novelty": "squared Mahalanobis distance of the cue's conv features from the training cues', over "
-                             "the model's reference distance (the novelty part of the variance is prior_var times "
-                             "this); above 1: less familiar than 9 in 10 real cues of new tasks"}
-                 if ckpt.config.novelty else {}) | ({"action_error": f"mean squared error between the demo's normalised actions and the controller's at "
-                                  f"{ACTION_STEPS} evenly spaced timesteps, under the task posterior mean of the other "
-                                  "demos of its task"} if actions else {}),
-            "reference": {k: v for k, v in (ref or {}).items() if k != "ocsvm"},
-            "ocsvm": {k: (ref or {}).get("ocsvm", {}).get(k) for k in ("nu", "offset", "n_fit", "flagged_fraction_on_fit")},
-            "top_suspects": table.head(top)[["rank", "episode_index", "task", "score", "consistency",
-                                             *(["action_error"] if actions else []), "suspicion",
-                                             "is_anomaly"]].to_dict(orient="records"),
-            "timing": {k: round(v, 3) for k, v in t.items()} | {"demos_per_s": round(len(table) / max(t["score_s"], 1e-9), 1)},
-        }
-        if "label" in table:
-            summary["labels"] = table["label"].value_counts().to_dict()
-        summary = to_json(summary)
-        (tmp / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
-    return summary
+    ref = ckpt.meta.get("reference") or {}
+    shown = [n for n in registry.SCORERS if n in ev.scores]
+    summary = {
+        "dataset": str(ds.root), "format": ds.format, "camera": ds.camera, "dataset_fingerprint": fingerprint,
+        "model": str(ckpt.path), "model_trained_on_this_dataset": fingerprint is not None and fingerprint == trained_on,
+        "demos": len(table), "tasks": int(table["task"].nunique()), "flagged": int(table["is_anomaly"].sum()),
+        "suspects_txt": int(table["is_anomaly"].sum()), "top": top,
+        "scores": {n: registry.SCORERS[n].description for n in shown} | {
+            "reason": "what put the demo where it ranks: the score with the largest robust z, and where it is worst",
+            "is_anomaly": "linear one-class SVM on 1/sigma^2, fitted on the model's training demos, or suspicion "
+                          f"above {SUSPICION_FLAG:g}",
+            "score": "the old name of task_uncertainty, kept for one release"},
+        "reference": {k: v for k, v in ref.items() if k != "ocsvm"},
+        "ocsvm": {k: ref.get("ocsvm", {}).get(k) for k in ("nu", "offset", "n_fit", "flagged_fraction_on_fit")},
+        "top_suspects": table.head(top)[["rank", "episode_index", "task", *[n for n in shown if n != "novelty"],
+                                         "is_anomaly", "reason", "score"]].to_dict(orient="records"),
+        "timing": t,
+    }
+    if "label" in table:
+        summary["labels"] = table["label"].value_counts().to_dict()
+    return table, summary
 
 
-def _counting(ds: DemoSet, on_progress: Callable[[int, int], None] | None):
-    """Iterate a DemoSet's demos in ``ds.episode_indices`` order, reporting progress."""
-    n = len(ds)
-    for i, demo in enumerate(ds):
-        yield demo
-        if on_progress and (i % 50 == 49 or i == n - 1):
-            on_progress(i + 1, n)
+def suspects(table: pd.DataFrame) -> list[int]:
+    """What a dataset-editing tool should drop (suspects.txt): the flagged demos, most suspect first."""
+    return table.loc[table["is_anomaly"], "episode_index"].tolist()
 
 
-def to_json(x: Any) -> Any:
-    """Plain JSON values: numpy scalars unwrapped, NaN and inf as null."""
-    if isinstance(x, dict):
-        return {str(k): to_json(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [to_json(v) for v in x]
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    return x
+def finish_summary(summary: dict[str, Any], timings: dict[str, float]) -> dict[str, Any]:
+    """The summary with its timings rounded and demos per second, as plain JSON."""
+    t = {k: round(v, 3) for k, v in timings.items()}
+    return to_json({**summary, "timing": t | {"demos_per_s": round(summary["demos"] / max(timings["score_s"], 1e-9),
+                                                                     1)}})

@@ -1,6 +1,8 @@
-"""Scores: one number per demo, higher = more suspect, plus a flag.
+"""The arithmetic of democheck's scores (the registry of scorers, ``democheck.audit.scorers``, calls it).
 
-- ``score`` (task uncertainty, the paper): the mean over embedding dimensions
+Every score is one number per demo, higher = more suspect:
+
+- ``task_uncertainty`` (the paper's score): the mean over embedding dimensions
   of the task standard deviation sqrt(var) of the demo's cue.
 - ``consistency``: how far the demo's ``mu`` lies from the product-of-Gaussians
   posterior of its ``CONSISTENCY_K`` nearest *other* demos of the same task
@@ -15,7 +17,7 @@
   also the kNN baseline's k; ``benchmarks/score_choices.py``).  Variance catches cues that say nothing;
   consistency catches cues that clearly say the wrong thing.  NaN for a task
   with a single demo.
-- ``action_error`` (optional, ``audit --actions``): how badly the model's
+- ``action_error`` (on by default; ``audit --no-actions`` skips it): how badly the model's
   own controller, told the task by the other demos of the same task (their
   product-of-Gaussians mean; the demo's own mu for a task's only demo),
   explains what the demo did: the mean squared error, in normalised action
@@ -51,48 +53,24 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import pandas as pd
 
-
-def task_score(sigma: np.ndarray) -> np.ndarray:
-    """The paper's task uncertainty of each demo: mean task standard deviation, [N, z] -> [N]."""
-    return sigma.mean(axis=1)
+from democheck.petnet.posterior import TaskPosterior
 
 
 CONSISTENCY_K = 5
 SUSPICION_FLAG = 8.0  # robust standard deviations; see ``is_anomaly`` above
 
 
-def others_posterior(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray, k: int | None = None,
-                     chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
-    """For each demo, the product of Gaussians of the *other* demos of its task -- all of them, or its ``k``
-    nearest by RMS (mu_i - mu_j) / sqrt(var_i + var_j): (m, v), NaN for a task's only demo."""
-    m_out, v_out = np.full(mu.shape, np.nan), np.full(mu.shape, np.nan)
-    prec = 1.0 / var
-    for task in np.unique(tasks):
-        idx = np.flatnonzero(tasks == task)
-        if len(idx) < 2:
-            continue
-        if k is None or k >= len(idx) - 1:
-            p_rest = prec[idx].sum(0)[None] - prec[idx]  # precision of the others, per demo
-            m_out[idx] = ((prec[idx] * mu[idx]).sum(0)[None] - prec[idx] * mu[idx]) / p_rest
-            v_out[idx] = 1.0 / p_rest
-            continue
-        for s in range(0, len(idx), chunk):  # [chunk, n, z] at a time: a task may hold thousands of demos
-            rows = idx[s:s + chunk]
-            d = ((mu[rows, None] - mu[None, idx]) ** 2 / (var[rows, None] + var[None, idx])).mean(-1)
-            d[np.arange(len(rows)), s + np.arange(len(rows))] = np.inf  # not itself
-            nn = idx[np.argpartition(d, k - 1, axis=1)[:, :k]]  # [rows, k]
-            p = prec[nn].sum(1)
-            m_out[rows] = (prec[nn] * mu[nn]).sum(1) / p
-            v_out[rows] = 1.0 / p
-    return m_out, v_out
+def consistency_terms(post: TaskPosterior, tasks: np.ndarray, k: int | None = CONSISTENCY_K) -> np.ndarray:
+    """Per demo and dimension, (mu - m)^2 / (v + var) against the product of its k nearest other demos of the
+    task (see the module docstring): [N, z], NaN for a task's only demo."""
+    m, v = post.others(tasks, k)
+    return (post.mu - m) ** 2 / (v + post.var)
 
 
-def consistency(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray, k: int | None = CONSISTENCY_K) -> np.ndarray:
+def consistency(post: TaskPosterior, tasks: np.ndarray, k: int | None = CONSISTENCY_K) -> np.ndarray:
     """Task consistency of each demo against its k nearest other demos of the task (see module docstring)."""
-    m, v = others_posterior(mu, var, tasks, k)
-    return np.sqrt(((mu - m) ** 2 / (v + var)).mean(1))
+    return np.sqrt(consistency_terms(post, tasks, k).mean(1))
 
 
 def robust_stats(x: np.ndarray) -> dict[str, float]:
@@ -107,10 +85,15 @@ def standardise(x: np.ndarray, stats: dict[str, float]) -> np.ndarray:
     return (x - stats["median"]) / stats["scale"]
 
 
+def standardised(scores: dict[str, np.ndarray]) -> np.ndarray:
+    """Each score robustly standardised against the demos given: [N, len(scores)], -inf where a score is NaN."""
+    z = np.column_stack([standardise(x, robust_stats(x)) for x in scores.values()])
+    return np.where(np.isfinite(z), z, -np.inf)
+
+
 def suspicion(scores: dict[str, np.ndarray]) -> np.ndarray:
     """The largest robust z-score of each demo over the scores it has (NaN ones, e.g. a lone demo's, skipped)."""
-    z = np.column_stack([standardise(x, robust_stats(x)) for x in scores.values()])
-    return np.nanmax(np.where(np.isfinite(z), z, -np.inf), axis=1)
+    return np.nanmax(standardised(scores), axis=1)
 
 
 # ---------------------------------------------------------------------------
@@ -139,34 +122,17 @@ def ocsvm_margin(params: dict[str, Any], sigma: np.ndarray) -> np.ndarray:
     return x @ np.asarray(params["coef"]) - params["offset"]
 
 
-def reference(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray, nu: float = 0.01) -> dict[str, Any]:
+def reference(post: TaskPosterior, tasks: np.ndarray, nu: float = 0.01) -> dict[str, Any]:
     """What an audit of new data keeps from the training demos: the OCSVM, and their score scales (reported)."""
-    sigma = np.sqrt(var)
-    return {"score": robust_stats(task_score(sigma)), "consistency": robust_stats(consistency(mu, var, tasks)),
-            "ocsvm": fit_ocsvm(sigma, nu)}
+    return {"score": robust_stats(post.task_uncertainty()), "consistency": robust_stats(consistency(post, tasks)),
+            "ocsvm": fit_ocsvm(post.sigma, nu)}
 
 
-def score_table(episodes: pd.DataFrame, mu: np.ndarray, var: np.ndarray, ref: dict[str, Any] | None,
-                action_error: np.ndarray | None = None) -> pd.DataFrame:
-    """The ScoreTable: one row per demo, ranked by suspicion (rank 1 = most suspect)."""
-    sigma = np.sqrt(var)
-    tasks = episodes["task"].to_numpy()
-    scores = {"score": task_score(sigma), "consistency": consistency(mu, var, tasks)}
-    if action_error is not None:
-        scores["action_error"] = action_error
-    susp = suspicion(scores)
-    table = pd.DataFrame({"episode_index": episodes["episode_index"].to_numpy(np.int64), "task": tasks, **scores,
-                          "suspicion": susp})
-    ref = ref or {}
-    margin = ocsvm_margin(ref["ocsvm"], sigma) if ref.get("ocsvm") else np.full(len(table), np.nan)
-    table["ocsvm_margin"] = margin
-    table["is_anomaly"] = (margin < 0) | (susp > SUSPICION_FLAG)
-    table["sigma"] = list(sigma.astype(np.float32))
-    table["mu"] = list(mu.astype(np.float32))
-    for col in ("label", "split"):
-        if col in episodes:
-            table[col] = episodes[col].to_numpy()
-    order = np.lexsort((table["episode_index"].to_numpy(), -np.nan_to_num(susp, nan=-np.inf)))
-    table = table.iloc[order].reset_index(drop=True)
-    table.insert(2, "rank", np.arange(1, len(table) + 1))
-    return table
+def flags(margin: np.ndarray, suspicion_z: np.ndarray) -> np.ndarray:
+    """``is_anomaly``: on the anomalous side of the one-class SVM, or a suspicion above ``SUSPICION_FLAG``."""
+    return (margin < 0) | (suspicion_z > SUSPICION_FLAG)
+
+
+def rank_order(suspicion_z: np.ndarray, episode_index: np.ndarray) -> np.ndarray:
+    """Row order of a ranking: most suspect first, ties by episode index (NaN last)."""
+    return np.lexsort((episode_index, -np.nan_to_num(suspicion_z, nan=-np.inf)))

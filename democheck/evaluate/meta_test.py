@@ -17,12 +17,22 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+import pandas as pd
 
+from democheck import pool
+from democheck.audit.scores import ocsvm_margin
+from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
+from democheck.evaluate.rollout import ControllerPolicy, init_worker
+from democheck.fsutil import to_json
+from democheck.petnet.checkpoint import Checkpoint
+from democheck.petnet.model import encode
+from democheck.sim.catalog import OBJECTS
+from democheck.sim.expert import ScriptedExpert
+from democheck.sim.variants import record_demo
 
 # Rollouts of trial 0 of every KEEP_EVERY-th task come back with their frames, for the recording.
 KEEP_EVERY = 4
@@ -89,23 +99,20 @@ def plan_trials(ds, split: str, trials: int, shots: int, seed: int) -> list[Tria
     return out
 
 
-def infer_tasks(ds, ckpt, trials: list[Trial], device) -> None:
+def infer_tasks(ds: DemoSet, ckpt: Checkpoint, trials: list[Trial], device) -> None:
     """Fill each trial's z (and for PETNet its sigma and OCSVM verdict) from its cue demos."""
-    from democheck.audit.scores import ocsvm_margin
-    from democheck.petnet.train import task_posteriors
-
     eps = sorted({e for t in trials for e in t.cues})
     pos = {e: i for i, e in enumerate(eps)}
-    mu, var = task_posteriors(ckpt.model, ds.cue_frames_many(eps), device)
+    post = encode(ckpt.model, ds.cue_frames_many(eps), device)
     ref = (ckpt.meta.get("reference") or {}).get("ocsvm")
     for t in trials:
-        rows = [pos[e] for e in t.cues]
+        cues = post.take([pos[e] for e in t.cues])
         if ckpt.config.model_type == "tecnet":
-            z = mu[rows].mean(0)
+            z = cues.mu.mean(0)
             t.z = (z / max(np.linalg.norm(z), 1e-12)).tolist()
             continue
-        v = 1.0 / (1.0 / var[rows]).sum(0)
-        t.z = (v * (mu[rows] / var[rows]).sum(0)).tolist()
+        z, v = cues.combined()
+        t.z = z.tolist()
         sig = np.sqrt(v)
         t.sigma, t.sigma_vec = float(sig.mean()), sig.tolist()
         if ref:
@@ -113,48 +120,12 @@ def infer_tasks(ds, ckpt, trials: list[Trial], device) -> None:
             t.flagged = t.ocsvm_margin < 0
 
 
-class ControllerPolicy:
-    """The model's controller acting on the env's latest observation under a fixed task variable z."""
-
-    def __init__(self, env, model, norm, z: np.ndarray):
-        import torch
-
-        self.env, self.model, self.norm = env, model, norm
-        self.z = torch.as_tensor(np.asarray(z, np.float32))[None]
-
-    def act(self) -> np.ndarray:
-        import torch
-
-        obs = self.env.last_obs
-        frame = torch.from_numpy(np.ascontiguousarray(obs["image"]))[None, None]
-        state = torch.from_numpy(self.norm.state(obs["state"]).astype(np.float32))[None, None]
-        with torch.no_grad():
-            y = self.model.controller.act(frame, state, self.z)[0, 0].numpy()
-        return np.clip(self.norm.unaction(y), -1.0, 1.0).astype(np.float32)
-
-
-def _eval_init(model: str, image_size: int) -> None:
-    import torch
-
-    from democheck.petnet.checkpoint import load_checkpoint
-    from democheck.sim.suite import _W
-    from democheck.sim.variants import EnvCache
-
-    torch.set_num_threads(1)  # one core per worker process
-    _W.update(ckpt=load_checkpoint(model), envs=EnvCache(image_size))
-
-
 def _eval_shard(job: tuple[int, int, list[Trial]]) -> list[dict[str, Any]]:
-    from democheck.sim.catalog import OBJECTS
-    from democheck.sim.expert import ScriptedExpert
-    from democheck.sim.suite import _W, tick
-    from democheck.sim.variants import record_demo
-
     _, steps, trials = job
-    ckpt = _W["ckpt"]
+    ckpt = pool.state["ckpt"]
     out = []
     for t in trials:
-        env = _W["envs"].get(OBJECTS[t.target], OBJECTS[t.distractor])
+        env = pool.state["envs"].get(OBJECTS[t.target], OBJECTS[t.distractor])
         rec = record_demo(env, ControllerPolicy(env, ckpt.model, ckpt.norm, np.asarray(t.z)).act, steps, seed=t.seed)
         row = {"task": t.task, "trial": t.trial, "success": rec["success"],
                "final_distance": float(env.target_to_goal()), "steps_in_goal": int(env.steps_in_goal)}
@@ -163,7 +134,7 @@ def _eval_shard(job: tuple[int, int, list[Trial]]) -> list[dict[str, Any]]:
         if t.keep_frames:
             row["frames"], row["actions"], row["state"] = rec["frames"], rec["actions"], rec["state"]
         out.append(row)
-        tick()
+        pool.tick()
     return out
 
 
@@ -205,37 +176,33 @@ def markdown(summary: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def evaluate(model: str | Path | None, dataset: str | Path, out: str | Path, split: str = "test", trials: int = 6,
-             shots: int = 1, workers: int = 2, seed: int = 0, device: str = "auto", force: bool = False,
-             on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
-    """Run the meta-test and write eval.json, eval.md, trials.parquet and eval.rrd into ``out`` (atomically)."""
-    import pandas as pd
+@dataclass
+class MetaTest:
+    """A meta-test's results: the summary (eval.json), one row per trial, and the rollouts kept with frames."""
 
-    from democheck.audit.run import to_json
-    from democheck.data import open_dataset
-    from democheck.fsutil import atomic_output_dir
-    from democheck.petnet.checkpoint import DEFAULT_MODEL, load_checkpoint
-    from democheck.petnet.train import resolve_device
-    from democheck.sim.suite import run_shards
-    from democheck.viz.report import write_eval_rrd
+    summary: dict[str, Any]
+    trials: pd.DataFrame
+    kept: list[tuple[Trial, dict[str, Any]]]
 
+
+def meta_test(ckpt: Checkpoint, ds: DemoSet, split: str = "test", trials: int = 6, shots: int = 1, workers: int = 2,
+              seed: int = 0, device: Any = "cpu", on_progress: Callable[[int, int], None] | None = None) -> MetaTest:
+    """Roll ``ckpt``'s controller out ``trials`` times on every task of ``split``, cued by ``shots`` clean demos
+    of the task, with the scripted expert on the same layouts."""
     if min(trials, shots, workers) < 1:
         raise DemocheckError("--trials, --shots and --workers must be at least 1")
-    model = Path(model) if model is not None else DEFAULT_MODEL
-    ckpt = load_checkpoint(model, device=resolve_device(device))
-    ds = open_dataset(dataset)
     if ds.image_shape[:2] != (ckpt.config.image_size,) * 2:
         raise DemocheckError(f"{ds.root}: {ds.image_shape[0]} px cues, the model takes {ckpt.config.image_size} px")
     plan = plan_trials(ds, split, trials, shots, seed)
-    infer_tasks(ds, ckpt, plan, resolve_device(device))
+    infer_tasks(ds, ckpt, plan, device)
     steps = int(ds.episodes["length"].iloc[0])
     by_task: dict[str, list[Trial]] = {}
     for t in plan:
         by_task.setdefault(t.task, []).append(t)
     jobs = [(i, steps, ts) for i, ts in enumerate(by_task.values())]
     t0 = time.perf_counter()
-    rows = run_shards(jobs, _eval_shard, _eval_init, (str(model), ckpt.config.image_size), workers, len(plan),
-                      on_progress)
+    rows = pool.run_shards(jobs, _eval_shard, init_worker, (str(ckpt.path), ckpt.config.image_size), workers,
+                           len(plan), on_progress)
     wall = time.perf_counter() - t0
     res = {(r["task"], r["trial"]): r for r in rows}
     table = pd.DataFrame([{**{k: v for k, v in asdict(t).items() if k not in ("keep_frames",)},
@@ -243,7 +210,7 @@ def evaluate(model: str | Path | None, dataset: str | Path, out: str | Path, spl
                           for t in plan])
     success = table["success"].to_numpy(bool)
     summary: dict[str, Any] = {
-        "model": str(model), "model_type": ckpt.config.model_type, "dataset": str(ds.root), "split": split,
+        "model": str(ckpt.path), "model_type": ckpt.config.model_type, "dataset": str(ds.root), "split": split,
         "shots": shots, "trials": trials, "seed": seed, "tasks": len(by_task), "n_trials": len(plan),
         "model_success": rate(success), "expert": rate(table["expert_success"].to_numpy(bool)),
         "per_task": {task: {"success": int(g["success"].sum()), "expert": int(g["expert_success"].sum()),
@@ -256,11 +223,5 @@ def evaluate(model: str | Path | None, dataset: str | Path, out: str | Path, spl
         flagged = table["flagged"].to_numpy(bool)
         summary["flagged"], summary["unflagged"] = rate(success[flagged]), rate(success[~flagged])
         summary["sigma_quartiles"] = sigma_quartiles(table["sigma"].to_numpy(float), success)
-    summary = to_json(summary)
     kept = [(t, res[(t.task, t.trial)]) for t in plan if "frames" in res[(t.task, t.trial)]]
-    with atomic_output_dir(out, force=force) as tmp:
-        table.to_parquet(tmp / "trials.parquet", index=False)
-        (tmp / "eval.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
-        (tmp / "eval.md").write_text(markdown(summary))
-        write_eval_rrd(tmp / "eval.rrd", summary, kept, ds.fps)
-    return summary
+    return MetaTest(to_json(summary), table, kept)

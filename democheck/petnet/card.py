@@ -1,10 +1,14 @@
-"""The model card written beside every checkpoint."""
+"""The model card (README.md) written beside every checkpoint."""
 
 from __future__ import annotations
 
 import subprocess
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
+
+from democheck.petnet.recipe import recipe_toml, training_config
+from democheck.petnet.regularisers import REGULARISERS
 
 
 def git_commit(path: Path) -> str:
@@ -33,7 +37,9 @@ def novelty_lines(nov: dict[str, Any] | None) -> list[str]:
 
 
 def model_card(name: str, meta: dict[str, Any]) -> str:
-    tr, m, data = meta["training"], meta["metrics"], meta["data"]
+    """The card of a model from its ``config.json`` record (``meta``): data, command, recipe, results, limits."""
+    tr, m, data = asdict(training_config(meta["training"])), meta["metrics"], meta["data"]
+    regs = tr["regularisers"]
     final = m.get("final", {})
     lines = [
         f"# {name}",
@@ -60,16 +66,15 @@ def model_card(name: str, meta: dict[str, Any]) -> str:
         "",
         f"    {meta.get('command', '?')}",
         "",
+        *(["The resolved recipe (`democheck train DATA --out M --recipe recipe.toml` makes the same run):", "",
+           "```toml", recipe_toml(meta["recipe"]).rstrip(), "```", ""] if meta.get("recipe") else []),
         f"- commit `{meta.get('commit', 'unknown')}`, democheck {meta.get('democheck_version', '?')}, "
         f"torch {meta.get('torch_version', '?')}, device {meta.get('device', '?')}",
         f"- {m['steps']} steps of {tr['batch_tasks']} tasks x {tr['timesteps']} timesteps, Adam lr {tr['lr']}, "
-        f"seed {tr['seed']}, KL weight {tr['kl_weight']}" + (f" ({tr['kl_target']})" if tr['kl_weight'] else "")
-        + (f", contrastive weight {tr['contrastive_weight']}" if tr.get('contrastive_weight') else "")
-        + ("" if tr['kl_weight'] or tr.get('contrastive_weight') else " (the paper's loss)"),
+        f"seed {tr['seed']}" + ("" if regs or tr["model_type"] != "petnet" else " (the paper's loss)"),
+        *[f"- regulariser `{name}`, weight {w:g}: {REGULARISERS[name].description}" for name, w in regs.items()],
         *([f"- started from `{tr['init']}` (its weights and normalisation)"] if tr.get("init") else []),
-        *([f"- broken-cue loss weight {tr['broken_cue_weight']} (spliced and reversed cues made at least twice as "
-            "uncertain as real ones; none of the nonsense cues below is one of them)"]
-          if tr.get("broken_cue_weight") else []),
+        *(["- batches of look-alike tasks (hard negatives)"] if tr.get("hard_negatives") else []),
         *([f"- training images shifted at random by up to {tr['shift']} px"] if tr.get("shift") else []),
         f"- wall time {m['wall_s'] / 60:.1f} min",
         *(novelty_lines(meta.get("novelty")) if tr["model_type"] == "petnet" else []),
@@ -79,7 +84,8 @@ def model_card(name: str, meta: dict[str, Any]) -> str:
         "| metric | value |",
         "|---|---|",
     ]
-    for key in ("train_mse", "val_mse", "train_embed", "val_embed", "train_sigma", "val_sigma"):
+    for key in ("train_mse", "val_mse", *(f"{s}_{r}" for r in ("task_matching", "tecnet_hinge", "embed") for s in
+                                          ("train", "val")), "train_sigma", "val_sigma"):
         if key in final:
             lines.append(f"| final {key.replace('_', ' ')} | {final[key]:.4f} |")
     if "task_sigma" in m:

@@ -16,12 +16,12 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from democheck import resources
 from democheck.errors import DemocheckError
 from democheck.petnet.model import ModelConfig, build_model
 
 FORMAT = "democheck-model"
 FORMAT_VERSION = 1
-DEFAULT_MODEL = Path(__file__).resolve().parents[2] / "models" / "petnet-push-v1"
 
 
 class CheckpointError(DemocheckError):
@@ -78,12 +78,26 @@ def save_checkpoint(folder: Path, model: torch.nn.Module, config: ModelConfig, n
         (folder / "README.md").write_text(card)
 
 
+def model_folder(folder: str | Path | None = None) -> Path:
+    """A model folder: the path given, else the shipped model of that name (``democheck.resources``), else
+    (``None``) the default shipped model."""
+    if folder is None:
+        return resources.shipped_model()
+    path = Path(folder)
+    if not path.exists() and len(path.parts) == 1 and resources.shipped_model(path.name).is_dir():
+        return resources.shipped_model(path.name)
+    return path
+
+
 def load_checkpoint(folder: str | Path | None = None, device: str | torch.device = "cpu") -> Checkpoint:
-    """Build the module from ``config.json`` and load ``model.safetensors``; clear errors otherwise."""
-    folder = Path(folder) if folder is not None else DEFAULT_MODEL
+    """Build the module from ``config.json`` and load ``model.safetensors``; clear errors otherwise.
+
+    ``folder``: a model folder, the name of a shipped model, or None for the default shipped model."""
+    folder = model_folder(folder)
     if not folder.exists():
-        hint = " (the shipped model is missing: train one with `democheck train`)" if folder == DEFAULT_MODEL else ""
-        raise CheckpointError(f"{folder}: no such model folder{hint}")
+        shipped = ", ".join(resources.shipped_models()) or "none"
+        raise CheckpointError(f"{folder}: no such model folder (shipped models: {shipped}; train one with "
+                              "`democheck train`)")
     if folder.is_file():
         raise CheckpointError(f"{folder}: a model is a folder holding config.json and model.safetensors, not a file")
     cfg_path, weights = folder / "config.json", folder / "model.safetensors"

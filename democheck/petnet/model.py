@@ -19,10 +19,14 @@ loss plus the same control loss.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Callable
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from democheck.petnet.posterior import TaskPosterior, product_of_gaussians
 
 
 @dataclass
@@ -207,13 +211,6 @@ class Controller(nn.Module):
         return out.reshape(b, k, -1)
 
 
-def product_of_gaussians(mu: torch.Tensor, var: torch.Tensor, dim: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Combine Gaussians along ``dim``: 1/var = sum 1/var_i, mu = var * sum mu_i/var_i."""
-    precision = (1.0 / var).sum(dim)
-    var_c = 1.0 / precision
-    return var_c * (mu / var).sum(dim), var_c
-
-
 def kl_diag(mu_q: torch.Tensor, var_q: torch.Tensor, mu_p: torch.Tensor, var_p: torch.Tensor) -> torch.Tensor:
     """KL(q || p) for diagonal Gaussians, summed over the last dimension."""
     return 0.5 * (torch.log(var_p / var_q) + (var_q + (mu_q - mu_p) ** 2) / var_p - 1.0).sum(-1)
@@ -241,6 +238,30 @@ class PETNet(nn.Module):
         z = mu + var.sqrt() * torch.randn_like(mu) if sample else mu
         return self.controller.act(frames, state, z), mu, var
 
+    def loss(self, batch: dict[str, torch.Tensor], sample: bool = True,
+             z_posterior: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]] | None = None,
+             terms: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], dict[str, torch.Tensor]] | None = None
+             ) -> dict[str, torch.Tensor]:
+        """The paper's objective on a batch: z ~ N(mu, var) of each task's cue by reparameterisation (z = mu when
+        not ``sample``), then the mean squared error of the controller's actions on the demonstrated trajectory
+        of another demo of the task.  Returns ``loss`` (= ``mse``) and the cues' mean ``sigma``.
+
+        batch: ``cue`` uint8 [B, 2, H, W, 3]; ``frames`` uint8 [B, K, H, W, 3], ``state`` [B, K, S] and
+        normalised ``actions`` [B, K, A] at K timesteps of the trajectory.  Hooks for the optional terms
+        (``democheck.petnet.regularisers``): ``z_posterior(mu, var)`` replaces the Gaussian z is drawn from;
+        ``terms(mu, var, sigma)`` adds named terms, computed after z is drawn and before the controller runs.
+        """
+        mu, var = self.encoder(cue_input(batch["cue"]))
+        mu_s, var_s = z_posterior(mu, var) if z_posterior is not None and sample else (mu, var)
+        z = mu_s + var_s.sqrt() * torch.randn_like(mu_s) if sample else mu_s
+        sigma = var.sqrt()
+        out = {"sigma": sigma.mean()}
+        if terms is not None:
+            out.update(terms(mu, var, sigma))
+        out["mse"] = ((self.controller.act(batch["frames"], batch["state"], z) - batch["actions"]) ** 2).mean()
+        out["loss"] = out["mse"]
+        return out
+
 
 class TecNet(nn.Module):
     """TecNets baseline: deterministic normalised embedding + controller."""
@@ -261,6 +282,18 @@ class TecNet(nn.Module):
         e = self.encoder(cue_input(cue))
         return self.controller.act(frames, state, e), e, None
 
+    def loss(self, batch: dict[str, torch.Tensor], sample: bool = True, margin: float = 0.1,
+             hinge_weight: float = 10.0) -> dict[str, torch.Tensor]:
+        """TecNets' objective: the control MSE under the cue's embedding plus ``hinge_weight`` times the hinge
+        loss that keeps each demonstrated trajectory's embedding nearest its own task's cue (batch as
+        ``PETNet.loss``, plus ``traj_cue``, the trajectory's own cue).  ``sample`` is ignored: the embedding is
+        deterministic."""
+        z = self.encoder(cue_input(batch["cue"]))
+        out = {"tecnet_hinge": hinge_embedding_loss(z, self.encoder(cue_input(batch["traj_cue"])), margin)}
+        out["mse"] = ((self.controller.act(batch["frames"], batch["state"], z) - batch["actions"]) ** 2).mean()
+        out["loss"] = out["mse"] + hinge_weight * out["tecnet_hinge"]
+        return out
+
 
 def hinge_embedding_loss(cue_emb: torch.Tensor, target_emb: torch.Tensor, margin: float = 0.1) -> torch.Tensor:
     """TecNets: each target demo must be closer (cosine) to its own task's cue than to any other task's by ``margin``."""
@@ -280,5 +313,26 @@ def build_model(cfg: ModelConfig) -> nn.Module:
     return model.to(memory_format=torch.channels_last)
 
 
-__all__ = ["ModelConfig", "PETNet", "TecNet", "TaskEncoder", "Controller", "product_of_gaussians", "kl_diag",
-           "hinge_embedding_loss", "build_model", "cue_input", "to_input"]
+@torch.no_grad()
+def encode(model: torch.nn.Module, cues: np.ndarray, device: torch.device | str = "cpu", chunk: int = 256
+           ) -> TaskPosterior:
+    """The task posterior of each of uint8 cues [N, 2, H, W, 3] under ``model`` (PETNet or TecNets).
+
+    A TecNets model has no variance: its embedding comes back as ``mu``, the variances zero.
+    """
+    cols: list[list[np.ndarray]] = [[], [], []]
+    for s in range(0, len(cues), chunk):
+        x = cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device))
+        if isinstance(model.encoder, TaskEncoder):
+            out = model.encoder.parts(x)
+        else:
+            emb = model.encoder(x)
+            out = (emb, torch.zeros_like(emb), torch.zeros_like(emb))
+        for col, t in zip(cols, out):
+            col.append(t.cpu().numpy())
+    empty = np.zeros((0, model.cfg.embed_dim), np.float32)
+    return TaskPosterior(*(np.concatenate(c) if c else empty for c in cols))
+
+
+__all__ = ["ModelConfig", "PETNet", "TecNet", "TaskEncoder", "Controller", "kl_diag", "hinge_embedding_loss",
+           "build_model", "encode", "cue_input", "to_input"]

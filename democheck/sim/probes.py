@@ -20,8 +20,15 @@ from typing import Any, Callable
 
 import numpy as np
 
+from democheck import pool
+from democheck.data import open_dataset
+from democheck.data.demo import Demo
+from democheck.data.lerobot import VideoOptions, write_meta, write_shard
+from democheck.data.video import DEFAULT_CRF, DEFAULT_PIX_FMT
 from democheck.errors import DatasetError, DemocheckError
-from democheck.sim.variants import IMAGE_PROBES, PROBES
+from democheck.fsutil import atomic_output_dir
+from democheck.sim.env import ACTION_NAMES, ENV_STATE_DIM, ENV_STATE_NAMES, STATE_NAMES
+from democheck.sim.variants import IMAGE_PROBES, PROBES, EnvCache, resimulate
 
 EPISODES_PER_FILE = 50
 HIDDEN_COVER = (0.5, 0.7)  # share of the image the squares cover, drawn per probe
@@ -65,23 +72,14 @@ def pick_sources(episodes: Any, kinds: list[str], per_kind: int, seed: int) -> l
 
 
 def _probe_init(source: str, camera: str | None, root: str, context: dict[str, Any]) -> None:
-    from democheck.data import open_dataset
-    from democheck.sim.suite import _W
-    from democheck.sim.variants import EnvCache
-
     ds = open_dataset(source, camera=camera)
-    _W.update(ds=ds, root=Path(root), envs=EnvCache(ds.image_shape[0]), **context)
+    pool.state.update(ds=ds, root=Path(root), envs=EnvCache(ds.image_shape[0]), **context)
 
 
 def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[dict[str, Any]]:
-    from democheck.data.demo import Demo
-    from democheck.data.lerobot import VideoOptions, write_shard
-    from democheck.sim.env import ENV_STATE_DIM
-    from democheck.sim.suite import _W, tick
-    from democheck.sim.variants import resimulate
-
     file_index, first_index, episodes = job
-    ds = _W["ds"]
+    w = pool.state
+    ds = w["ds"]
     demos = []
     for episode_index, kind, src, probe_seed in episodes:
         source = ds[src]
@@ -97,7 +95,7 @@ def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[
             frames = np.repeat(source.frames[:1], T, 0)
             state, actions, env_state = np.repeat(source.state[:1], T, 0), np.zeros_like(source.actions), None
         else:
-            rec = resimulate(_W["envs"], source.sim, kind, seed=probe_seed,
+            rec = resimulate(w["envs"], source.sim, kind, seed=probe_seed,
                              actions=source.actions if kind == "no-objects" else None)
             frames, state, actions, env_state = rec["frames"], rec["state"], rec["actions"], rec["env_state"]
             sim = {**source.sim, "policy": kind, "seed": probe_seed}
@@ -107,22 +105,15 @@ def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[
         demos.append(Demo(episode_index=episode_index, task=source.task, frames=frames, state=state, actions=actions,
                           success=None, label=kind, split=source.split, sim=sim, env_state=env_state,
                           source_episode=src))
-        tick()
-    return write_shard(_W["root"], file_index, demos, _W["task_index"], first_index, _W["fps"],
-                       VideoOptions(_W["pix_fmt"], _W["crf"]))
+        pool.tick()
+    return write_shard(w["root"], file_index, demos, w["task_index"], first_index, w["fps"],
+                       VideoOptions(w["pix_fmt"], w["crf"]))
 
 
 def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = None, per_kind: int = 50,
                 seed: int = 0, workers: int = 2, camera: str | None = None, force: bool = False,
                 on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Write a probe dataset made from ``source`` under ``out`` (atomically); returns its summary."""
-    from democheck.data import open_dataset
-    from democheck.data.lerobot import VideoOptions, write_meta
-    from democheck.data.video import DEFAULT_CRF, DEFAULT_PIX_FMT
-    from democheck.fsutil import atomic_output_dir
-    from democheck.sim.env import ACTION_NAMES, ENV_STATE_NAMES, STATE_NAMES
-    from democheck.sim.suite import run_shards
-
     kinds = list(kinds or PROBES)
     unknown = [k for k in kinds if k not in PROBES]
     if unknown:
@@ -152,7 +143,7 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
                "pix_fmt": DEFAULT_PIX_FMT, "crf": DEFAULT_CRF}
     t0 = time.perf_counter()
     with atomic_output_dir(out, force=force) as tmp:
-        rows = run_shards(jobs, _probe_shard, _probe_init, (str(ds.root), camera, str(tmp), context), workers,
+        rows = pool.run_shards(jobs, _probe_shard, _probe_init, (str(ds.root), camera, str(tmp), context), workers,
                           len(episodes), on_progress)
         sim_layout = ds.state_dim == len(STATE_NAMES) and ds.action_dim == len(ACTION_NAMES)
         state_names = STATE_NAMES if sim_layout else [f"state.{i}" for i in range(ds.state_dim)]

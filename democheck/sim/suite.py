@@ -9,8 +9,6 @@ depend on the number of workers.
 
 from __future__ import annotations
 
-import multiprocessing as mp
-import queue as queue_mod
 import time
 import tomllib
 from dataclasses import asdict, dataclass, replace
@@ -19,10 +17,15 @@ from typing import Any, Callable
 
 import numpy as np
 
+from democheck import pool, resources
+from democheck.data.demo import Demo
+from democheck.data.lerobot import VideoOptions, write_meta, write_shard
 from democheck.errors import RecipeError
-from democheck.sim.variants import DEFECTS, PLANT_KINDS
-
-SYNTH_DIR = Path(__file__).resolve().parents[2] / "synth"
+from democheck.fsutil import atomic_output_dir
+from democheck.sim.catalog import CATALOG_VERSION, make_tasks
+from democheck.sim.env import ACTION_NAMES, ENV_STATE_NAMES, EPISODE_STEPS, STATE_NAMES
+from democheck.sim.scene import FPS, SCENE_VERSION
+from democheck.sim.variants import DEFECTS, PLANT_KINDS, EnvCache, make_policy, record_demo, sim_record
 
 
 @dataclass(frozen=True)
@@ -61,8 +64,6 @@ class Recipe:
 
     def tasks(self) -> list:
         """The suite's tasks (``democheck.sim.catalog.Task``), train, then val, then test."""
-        from democheck.sim.catalog import make_tasks
-
         return make_tasks(self.train_tasks, self.val_tasks, self.test_tasks, self.seed, self.test_object_fraction,
                           split_seed=self.split_seed)
 
@@ -147,14 +148,14 @@ def _apportion(total: int, weights: list[int], keep_all: bool = True) -> list[in
 
 
 def available_recipes() -> list[str]:
-    return sorted(p.stem for p in SYNTH_DIR.glob("*.toml"))
+    return resources.recipe_names("synth")
 
 
 def load_recipe(name_or_path: str) -> Recipe:
-    """A recipe by name (``synth/<name>.toml``) or by path to a TOML file."""
+    """A recipe by name (``democheck/recipes/synth/<name>.toml``) or by path to a TOML file."""
     path = Path(name_or_path)
     if not (path.suffix == ".toml" and path.exists()):
-        path = SYNTH_DIR / f"{name_or_path}.toml"
+        path = resources.recipe_file("synth", name_or_path)
     if not path.exists():
         raise RecipeError(f"no suite recipe {name_or_path!r}; known: {', '.join(available_recipes()) or 'none'}"
                           " (or give a path to a .toml file)")
@@ -204,81 +205,23 @@ def planted_episodes(recipe: Recipe) -> dict[int, str]:
     return {int(e): k for e, k in zip(picks, kinds)}
 
 
-# ---------------------------------------------------------------------------
-# workers
-# ---------------------------------------------------------------------------
-
-_W: dict[str, Any] = {}
-
-
-def _init_worker(progress: Any, init: Callable[..., None], args: tuple) -> None:
-    _W.clear()
-    _W["progress"] = progress
-    init(*args)
-
-
-def tick() -> None:
-    """One episode done (reported to the parent's progress bar)."""
-    if _W.get("progress") is not None:
-        _W["progress"].put(1)
-
-
-def run_shards(jobs: list, shard: Callable[[Any], list[dict[str, Any]]], init: Callable[..., None], args: tuple,
-               workers: int, total: int, on_progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
-    """Run ``shard(job)`` for every job in ``workers`` spawned processes (each first calls ``init(*args)``).
-
-    Each shard writes its own files and returns its metadata rows; the rows of all shards are returned.
-    """
-    rows: list[dict[str, Any]] = []
-    done = 0
-    if workers <= 1:
-        _init_worker(None, init, args)
-        for job in jobs:
-            rows += shard(job)
-            done += len(job[2])
-            if on_progress:
-                on_progress(done, total)
-        return rows
-    ctx = mp.get_context("spawn")  # never fork a process that may hold a GL context
-    progress_q = ctx.Queue()
-    with ctx.Pool(workers, initializer=_init_worker, initargs=(progress_q, init, args)) as pool:
-        pending = pool.map_async(shard, jobs, chunksize=1)
-        while not pending.ready() or not progress_q.empty():
-            try:
-                done += progress_q.get(timeout=0.2)
-                if on_progress:
-                    on_progress(done, total)
-            except queue_mod.Empty:
-                pass
-        for part in pending.get():
-            rows += part
-    return rows
-
-
 def _suite_init(recipe: Recipe, root: str) -> None:
-    from democheck.sim.variants import EnvCache
-
     tasks = recipe.tasks()
     names = sorted({t.name for t in tasks})
-    _W.update(recipe=recipe, root=Path(root), envs=EnvCache(recipe.image_size), tasks=tasks,
+    pool.state.update(recipe=recipe, root=Path(root), envs=EnvCache(recipe.image_size), tasks=tasks,
               task_index={n: i for i, n in enumerate(names)}, planted=planted_episodes(recipe))
 
 
 def _suite_shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, Any]]:
-    from democheck.data.demo import Demo
-    from democheck.data.lerobot import VideoOptions, write_shard
-    from democheck.sim.env import EPISODE_STEPS
-    from democheck.sim.scene import FPS
-    from democheck.sim.variants import make_policy, record_demo, sim_record
-
     file_index, first_index, episodes = job
-    r: Recipe = _W["recipe"]
-    tasks, task_index, planted = _W["tasks"], _W["task_index"], _W["planted"]
+    w = pool.state
+    r: Recipe = w["recipe"]
+    tasks, task_index, planted = w["tasks"], w["task_index"], w["planted"]
     demos, attempts_log = [], []
     for episode_index, task_id in episodes:
         task = tasks[task_id]
         kind = planted.get(episode_index, "expert")
-        env = _W["envs"].get(task.target, task.distractor, kind)
+        env = w["envs"].get(task.target, task.distractor, kind)
         # Re-draw layouts the expert fails on (only when episodes are long enough to succeed).
         tries = r.max_attempts if kind in ("expert", "occluded") and r.steps >= EPISODE_STEPS else 1
         for attempt in range(tries):
@@ -292,8 +235,8 @@ def _suite_shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, 
         demos.append(Demo(episode_index=episode_index, task=task.name, frames=rec["frames"], state=rec["state"],
                           actions=rec["actions"], success=rec["success"], label=label, split=task.split,
                           sim=sim, env_state=rec["env_state"]))
-        tick()
-    rows = write_shard(_W["root"], file_index, demos, task_index, first_index, FPS, VideoOptions(r.pix_fmt, r.crf))
+        pool.tick()
+    rows = write_shard(w["root"], file_index, demos, task_index, first_index, FPS, VideoOptions(r.pix_fmt, r.crf))
     for row, n in zip(rows, attempts_log):
         row["attempts"] = n
     return rows
@@ -313,18 +256,12 @@ def plan_shards(recipe: Recipe) -> list[tuple[int, int, list[tuple[int, int]]]]:
 def generate(recipe: Recipe, out: str | Path, workers: int = 2, force: bool = False,
              on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Write the suite as a LeRobot v3 dataset under ``out`` (atomically); returns the summary."""
-    from democheck.data.lerobot import VideoOptions, write_meta
-    from democheck.fsutil import atomic_output_dir
-    from democheck.sim.catalog import CATALOG_VERSION
-    from democheck.sim.env import ACTION_NAMES, ENV_STATE_NAMES, STATE_NAMES
-    from democheck.sim.scene import FPS, SCENE_VERSION
-
     recipe.validate()
     tasks = recipe.tasks()
     jobs = plan_shards(recipe)
     t0 = time.perf_counter()
     with atomic_output_dir(out, force=force) as tmp:
-        rows = run_shards(jobs, _suite_shard, _suite_init, (recipe, str(tmp)), workers, recipe.n_episodes,
+        rows = pool.run_shards(jobs, _suite_shard, _suite_init, (recipe, str(tmp)), workers, recipe.n_episodes,
                           on_progress)
         wall = time.perf_counter() - t0
         expert_rows = [r for r in rows if r["label"] == "clean"]

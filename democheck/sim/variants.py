@@ -24,6 +24,9 @@ import numpy as np
 
 from democheck.errors import DatasetError
 from democheck.sim import scene
+from democheck.sim.catalog import CATALOG_VERSION, OBJECTS
+from democheck.sim.env import ENV_STATE_DIM, PushEnv
+from democheck.sim.expert import ScriptedExpert
 
 BAD_OPERATORS = ("idle", "random")
 DEFECTS = ("wrong-object", "both-objects", "occluded", "gave-up")
@@ -78,7 +81,6 @@ class GaveUpPolicy:
     """The expert, until the target has covered half its way to the goal; then hands off the controls."""
 
     def __init__(self, env, seed: int = 0):
-        from democheck.sim.expert import ScriptedExpert
 
         self.env, self.expert = env, ScriptedExpert(env)
         self.start: float | None = None
@@ -96,7 +98,6 @@ class BothObjectsPolicy:
     """Pushes the distractor towards the goal first, then the target (both objects end up moved)."""
 
     def __init__(self, env, seed: int = 0, switch_step: int = 50):
-        from democheck.sim.expert import ScriptedExpert
 
         self.env, self.switch_step = env, switch_step
         self.first, self.second = ScriptedExpert(env, role="distractor"), ScriptedExpert(env, role="target")
@@ -117,7 +118,6 @@ def scene_options(kind: str) -> dict[str, bool]:
 
 def make_policy(kind: str, env, seed: int, actions: np.ndarray | None = None) -> Any:
     """The policy that records ``kind`` in ``env`` (freshly reset); ``actions`` are replayed by ``no-objects``."""
-    from democheck.sim.expert import ScriptedExpert
 
     if kind in ("expert", "occluded"):
         return ScriptedExpert(env)
@@ -146,7 +146,6 @@ class EnvCache:
         self.env = None
 
     def get(self, target, distractor, kind: str = "expert"):
-        from democheck.sim.env import PushEnv
 
         opts = scene_options(kind)
         env = self.env
@@ -160,7 +159,6 @@ class EnvCache:
 
     def for_record(self, sim: dict[str, Any], kind: str | None = None):
         """The env an episode's sim record was recorded in (or ``kind``'s scene for it), checking versions."""
-        from democheck.sim.catalog import CATALOG_VERSION, OBJECTS
 
         if sim.get("scene_version") != scene.SCENE_VERSION or sim.get("catalog_version") != CATALOG_VERSION:
             raise DatasetError(f"sim record from scene v{sim.get('scene_version')}/catalog v{sim.get('catalog_version')};"
@@ -173,7 +171,6 @@ class EnvCache:
 def record_demo(env, policy: Callable[[], np.ndarray], steps: int, seed: int | None = None,
                 layout: Any = None) -> dict[str, Any]:
     """Roll one episode out: observation t, then action t, for ``steps`` steps."""
-    from democheck.sim.env import ENV_STATE_DIM
 
     obs, info = env.reset(seed=seed, options={"layout": layout} if layout is not None else None)
     frames = np.empty((steps, env.image_size, env.image_size, 3), np.uint8)
@@ -191,7 +188,6 @@ def record_demo(env, policy: Callable[[], np.ndarray], steps: int, seed: int | N
 def sim_record(suite: str, task, kind: str, seed: int, layout, image_size: int, steps: int,
                attempt: int = 0) -> dict[str, Any]:
     """What an episode's ``sim`` column holds: enough to re-simulate it (``resimulate``)."""
-    from democheck.sim.catalog import CATALOG_VERSION
 
     return {"suite": suite, "catalog_version": CATALOG_VERSION, "scene_version": scene.SCENE_VERSION,
             "target": task.target.key, "distractor": task.distractor.key, "seed": int(seed), "attempt": attempt,

@@ -8,7 +8,7 @@ Entities:
     suspects/<rank>_ep<e>/state   its robot state, one series per dimension
     map/demos                     2-D t-SNE map of every demo's task mean, size ~ sigma, colour = task
     map/suspects                  the top suspects on that map, labelled
-    scores/score                  histogram of the task-uncertainty scores
+    scores/task_uncertainty       histogram of the task-uncertainty scores
     scores/ocsvm_margin           histogram of the one-class SVM margin (below 0 = flagged)
 
 The bench's recording (``write_bench_rrd``):
@@ -33,7 +33,10 @@ import pandas as pd
 import rerun as rr
 import rerun.blueprint as rrb
 
+from democheck.audit.scorers import SCORERS
 from democheck.data.demo import Demo
+from democheck.data.video import VideoWriter
+from democheck.evaluate.meta_test import fmt_rate
 
 
 def _task_colours(tasks: np.ndarray) -> np.ndarray:
@@ -45,23 +48,43 @@ def _task_colours(tasks: np.ndarray) -> np.ndarray:
     return out
 
 
+def embed_2d(table: pd.DataFrame, top: int, max_points: int = 1500, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The map's layout: t-SNE of the task means; above ``max_points`` demos, the suspects plus a random sample
+    of the rest.  Returns positions [M, 2] and the ``table`` rows they are of."""
+    from sklearn.manifold import TSNE
+    from threadpoolctl import threadpool_limits
+
+    n = len(table)
+    rows = np.arange(n)
+    if n > max_points:
+        rng = np.random.default_rng(seed)
+        rest = rng.choice(np.arange(top, n), size=max_points - top, replace=False)
+        rows = np.sort(np.concatenate([np.arange(min(top, n)), rest]))
+    if len(rows) < 5:
+        return np.zeros((len(rows), 2)), rows
+    mu = np.stack(table["mu"].to_numpy()[rows]).astype(np.float64)
+    # One thread: with torch's OpenMP pool in the same process, sklearn's threads spin against it (20x slower).
+    with threadpool_limits(1):
+        xy = TSNE(n_components=2, perplexity=min(30.0, (len(rows) - 1) / 3), init="pca",
+                  random_state=seed).fit_transform(mu)
+    return xy, rows
+
+
 def suspect_path(rank: int, episode_index: int) -> str:
     return f"suspects/{rank:03d}_ep{episode_index}"
 
 
 def suspects_markdown(table: pd.DataFrame, top: int, title: str) -> str:
-    acts = "action_error" in table
-    lines = [f"# {title}", "", "| rank | episode | task | score | consistency | " + ("action error | " if acts else "")
-             + "suspicion | flagged |", "|---:|---:|---|---:|---:|" + ("---:|" if acts else "") + "---:|:---:|"]
-    for r in table.head(top).itertuples():
-        cons = "n/a" if not np.isfinite(r.consistency) else f"{r.consistency:.2f}"
-        act = f"{r.action_error:.2f} | " if acts else ""
-        lines.append(f"| {r.rank} | {r.episode_index} | {r.task} | {r.score:.4f} | {cons} | {act}{r.suspicion:.2f} | "
-                     f"{'yes' if r.is_anomaly else ''} |")
-    lines += ["", "score: mean task standard deviation; consistency: distance of the demo's task mean from the other "
-              "demos of its task; " + ("action error: how badly the model's controller explains the demo's actions; "
-                                       if acts else "")
-              + "suspicion: the largest of these, robustly standardised. flagged: one-class SVM."]
+    """The ranked list: every registered score the table has, the reason, the flag, and what each column means."""
+    cols = [n for n, s in SCORERS.items() if s.in_audit and n in table]
+    lines = [f"# {title}", "", "| rank | episode | task | " + " | ".join(c.replace("_", " ") for c in cols)
+             + " | flagged | reason |", "|---:|---:|---|" + "---:|" * len(cols) + ":---:|---|"]
+    for r in table.head(top).to_dict(orient="records"):
+        cells = ["n/a" if not np.isfinite(r[c]) else f"{r[c]:.4g}" for c in cols]
+        lines.append(f"| {r['rank']} | {r['episode_index']} | {r['task']} | " + " | ".join(cells)
+                     + f" | {'yes' if r['is_anomaly'] else ''} | {r.get('reason', '')} |")
+    lines += ["", *[f"- {c.replace('_', ' ')}: {SCORERS[c].description}" for c in cols],
+              "- flagged: the one-class SVM, or a suspicion above the flag threshold (see summary.json)"]
     return "\n".join(lines)
 
 
@@ -77,8 +100,6 @@ def _histogram(rec: rr.RecordingStream, path: str, values: np.ndarray, bins: int
 
 
 def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray, fps: float) -> None:
-    from democheck.data.video import VideoWriter
-
     t = np.arange(len(demo))
     with tempfile.TemporaryDirectory() as tmp:
         size = demo.frames.shape[1]
@@ -114,7 +135,7 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
     rec.log("suspects", rr.TextDocument(suspects_markdown(table, max(top, 20), title),
                                         media_type=rr.MediaType.MARKDOWN), static=True)
     sigma = np.stack(table["sigma"].to_numpy()) if len(table) else np.zeros((0, 1))
-    score = table["score"].to_numpy()
+    score = table["task_uncertainty"].to_numpy()
     if len(embedded_rows):
         sub = table.iloc[embedded_rows]
         s = score[embedded_rows]
@@ -128,7 +149,7 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
                                                 labels=[f"#{r} ep{e}" for r, e in zip(sub["rank"][is_top],
                                                                                       sub["episode_index"][is_top])]),
                     static=True)
-    _histogram(rec, "scores/score", score)
+    _histogram(rec, "scores/task_uncertainty", score)
     _histogram(rec, "scores/ocsvm_margin", table["ocsvm_margin"].to_numpy(dtype=float))
     tabs = []
     for demo, row in zip(suspects, table.head(top).itertuples()):
@@ -142,7 +163,7 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
             name=f"#{row.rank} ep{row.episode_index}"))
     left = rrb.Vertical(rrb.TextDocumentView(origin="suspects", name="ranked suspects"),
                         rrb.Spatial2DView(origin="map", name="task embedding (t-SNE of mu)"),
-                        rrb.Horizontal(rrb.BarChartView(origin="scores/score", name="score histogram"),
+                        rrb.Horizontal(rrb.BarChartView(origin="scores/task_uncertainty", name="task uncertainty histogram"),
                                        rrb.BarChartView(origin="scores/ocsvm_margin",
                                                         name="OCSVM margin (below 0 = flagged)")))
     body = rrb.Horizontal(left, rrb.Tabs(*tabs, name="suspects")) if tabs else left
@@ -179,8 +200,6 @@ def write_eval_rrd(path: Path, summary: dict, rollouts: list, fps: float, per_ou
     """A few closed-loop rollouts per outcome (success/failure) with the cue's sigma, and the success rates."""
     rec = rr.RecordingStream("democheck_eval")
     rec.save(str(path))
-    from democheck.evaluate.meta_test import fmt_rate
-
     lines = ["# democheck eval", "", f"model {summary['model']}: success {fmt_rate(summary['model_success'])}; "
              f"scripted expert on the same layouts {fmt_rate(summary['expert'])}"]
     if summary.get("flagged"):

@@ -40,7 +40,21 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from democheck import pool
+from democheck.data import open_dataset
+from democheck.data.cache import build_cache
 from democheck.errors import DemocheckError
+from democheck.evaluate.rollout import ControllerPolicy, init_worker
+from democheck.fsutil import atomic_output_dir
+from democheck.petnet.batches import Batches, task_rows, uniform_steps
+from democheck.petnet.card import git_commit, model_card
+from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
+from democheck.petnet.model import encode
+from democheck.petnet.run_state import load_state, save_state, work_dir
+from democheck.petnet.train import resolve_device
+from democheck.sim.catalog import OBJECTS
+from democheck.sim.expert import ScriptedExpert
+from democheck.sim.variants import record_demo
 
 
 @dataclass
@@ -72,23 +86,17 @@ class MixedPolicy:
 
 
 def _rollout_shard(job: tuple[int, int, list[dict[str, Any]]]) -> list[dict[str, Any]]:
-    from democheck.evaluate.meta_test import ControllerPolicy
-    from democheck.sim.catalog import OBJECTS
-    from democheck.sim.expert import ScriptedExpert
-    from democheck.sim.suite import _W, tick
-    from democheck.sim.variants import record_demo
-
     _, steps, specs = job
-    ckpt = _W["ckpt"]
+    ckpt = pool.state["ckpt"]
     out = []
     for s in specs:
-        env = _W["envs"].get(OBJECTS[s["target"]], OBJECTS[s["distractor"]])
+        env = pool.state["envs"].get(OBJECTS[s["target"]], OBJECTS[s["distractor"]])
         learner = ControllerPolicy(env, ckpt.model, ckpt.norm, np.asarray(s["z"], np.float32))
         policy = MixedPolicy(learner.act, ScriptedExpert(env), s["beta"], s["seed"])
         rec = record_demo(env, policy.act, steps, seed=s["seed"])
         out.append({"row": s["row"], "frames": rec["frames"], "state": rec["state"],
                     "labels": np.stack(policy.labels).astype(np.float32), "success": rec["success"]})
-        tick()
+        pool.tick()
     return out
 
 
@@ -132,16 +140,6 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
            on_stage: Callable[[str], None] | None = None,
            on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Run ``cfg.rounds`` recovery rounds on ``model_dir`` with the training tasks of ``dataset``; write ``out``."""
-    from democheck.data import open_dataset
-    from democheck.data.cache import build_cache
-    from democheck.evaluate.meta_test import _eval_init
-    from democheck.fsutil import atomic_output_dir
-    from democheck.petnet.card import git_commit, model_card
-    from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
-    from democheck.petnet.train import (Batches, _load_state, _save_state, resolve_device, task_posteriors, task_rows,
-                                        uniform_steps, work_dir)
-    from democheck.sim.suite import run_shards
-
     if min(cfg.rounds, cfg.episodes_per_task, cfg.steps, cfg.batch_tasks, cfg.timesteps, cfg.workers) < 1:
         raise DemocheckError("--rounds, --episodes-per-task, --steps, --batch-tasks, --timesteps and --workers "
                              "must be at least 1")
@@ -176,7 +174,7 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
     recovery, history, done, wall_before = RecoverySet(), [], 0, 0.0
     if resume and any((work / d / "state.json").exists() for d in ("state", "state.old")):
         # Weights, Adam moments and both RNGs as after the last complete round (saved like train's state).
-        done, rng, doc = _load_state(work, model, opt)
+        done, rng, doc = load_state(work, model, opt)
         if doc["config"] != {**asdict(cfg), "rounds": doc["config"]["rounds"], "workers": doc["config"]["workers"]}:
             raise DemocheckError(f"{work}: saved with other options; resume with the same options")
         history, wall_before = doc["history"], doc["wall_s"]
@@ -185,8 +183,9 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
 
     # z of every training demo once: the encoder does not change.
     all_rows = np.concatenate(batches.rows)
-    mu_all, var_all = task_posteriors(model, arrays.cue(all_rows), device)
-    post = {int(r): i for i, r in enumerate(all_rows)}
+    post = encode(model, arrays.cue(all_rows), device)
+    mu_all, var_all = post.mu, post.var
+    row_of = {int(r): i for i, r in enumerate(all_rows)}
     t0 = time.perf_counter()
     for rd in range(done, cfg.rounds):
         save_checkpoint(work / "current", model, ckpt.config, norm, meta)  # what the workers roll out
@@ -195,12 +194,12 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
             for _ in range(cfg.episodes_per_task):
                 cue = int(rng.choice(batches.rows[ti]))
                 specs.append({"row": ti, "target": sims[t]["target"], "distractor": sims[t]["distractor"],
-                              "z": mu_all[post[cue]].tolist(), "beta": cfg.beta, "seed": int(rng.integers(1 << 31))})
+                              "z": mu_all[row_of[cue]].tolist(), "beta": cfg.beta, "seed": int(rng.integers(1 << 31))})
         if on_stage:
             on_stage(f"round {rd + 1}/{cfg.rounds}: rollouts")
         jobs = [(i, steps_per_ep, specs[i::cfg.workers * 4]) for i in range(min(len(specs), cfg.workers * 4))]
-        res = sorted(run_shards(jobs, _rollout_shard, _eval_init, (str(work / "current"), ckpt.config.image_size),
-                                cfg.workers, len(specs), on_progress), key=lambda r: r["row"])
+        res = sorted(pool.run_shards(jobs, _rollout_shard, init_worker, (str(work / "current"), ckpt.config.image_size),
+                                     cfg.workers, len(specs), on_progress), key=lambda r: r["row"])
         recovery.add({"task": np.array([r["row"] for r in res], np.int64),
                       "frames": np.stack([r["frames"] for r in res]),
                       "state": norm.state(np.stack([r["state"] for r in res])).astype(np.float32),
@@ -217,7 +216,7 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
             # z ~ N(mu, var) as in training: from each demo's cue, and from a demo of each recovery episode's task,
             # both looked up (the encoder is frozen).  A TecNets model's embedding is deterministic: "var" is zero.
             rec_cues = [rng.choice(batches.rows[ti]) for ti in rec["task"]]
-            at = np.array([post[int(r)] for r in [*cue_rows, *rec_cues]])
+            at = np.array([row_of[int(r)] for r in [*cue_rows, *rec_cues]])
             mu, sd = torch.from_numpy(mu_all[at]).to(device), torch.from_numpy(np.sqrt(var_all[at])).to(device)
             z = mu + sd * torch.randn_like(sd)
             n = cfg.batch_tasks
@@ -238,8 +237,8 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
                         "demo_mse": round(run_demo, 4), "recovery_mse": round(run_rec, 4)})
         done = rd + 1
         recovery.save_last(work / "recovery")  # before the state that counts the round: a kill redoes the round
-        _save_state(work, model, opt, done, rng, {"config": asdict(cfg), "history": history,
-                                                  "wall_s": wall_before + time.perf_counter() - t0})
+        save_state(work, model, opt, done, rng, {"config": asdict(cfg), "history": history,
+                                                 "wall_s": wall_before + time.perf_counter() - t0})
     wall = wall_before + time.perf_counter() - t0
     summary = {"base_model": str(model_dir), "dataset": str(ds.root), "config": asdict(cfg), "history": history,
                "wall_s": round(wall, 1), "command": command, "commit": git_commit(Path(__file__).parent)}

@@ -1,0 +1,313 @@
+"""The registry of scorers: every way democheck (and the baselines it is measured against) scores a demo.
+
+One contract, in the spirit of cleanlab's issue managers: a scorer has a
+``name`` (its column in every table), a one-line ``description``, what it
+``needs``, and a ``score`` function that returns one number per demo --
+higher is more suspect, always -- and, where it can, a reason per demo
+(which timestep, which dimension, which score).  ``democheck audit``,
+``democheck bench``, the audit's summary, the terminal table and the Rerun
+report all read ``SCORERS``; adding a scorer is one entry here plus its test
+(``tests/test_scorers.py`` runs every entry on a planted bad demo).
+
+Scorers that need every frame (``needs`` has ``demos``) also give a
+``decode`` function: it returns a consumer fed each decoded demo of one
+dataset once, in order, so all of them share one decoding pass per dataset;
+what the consumers return lands in ``Evidence.behaviour``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol
+
+import numpy as np
+import pandas as pd
+import torch
+
+from democheck.audit.baselines import (HEURISTIC_FEATURES, heuristic_z, knn_same_task, motion_features, random_score,
+                                       summarise_motion)
+from democheck.audit.scores import CONSISTENCY_K, consistency_terms, ocsvm_margin, rank_order, standardised
+from democheck.data.demo import Demo
+from democheck.petnet.checkpoint import Checkpoint
+from democheck.petnet.posterior import TaskPosterior
+
+NEEDS = {
+    "cues": "the task posterior of each demo's cue, its first and last frame (the fast pass of a PETNet model)",
+    "demos": "every frame, state and action of each demo (one decoding pass)",
+    "model": "a PETNet model",
+    "novelty": "a PETNet model with a novelty density (democheck train fits one)",
+    "reference": "the model's reference of its training demos (the one-class SVM)",
+    "tecnet": "a TecNets model trained on the same data (democheck bench --tecnet)",
+    "scores": "other scorers' scores",
+}
+ACTION_STEPS = 25  # timesteps per demo at which the controller's actions are compared with the demo's
+
+
+@dataclass
+class Evidence:
+    """What scorers read about the demos being scored, one row of ``episodes`` per demo, in one order."""
+
+    episodes: pd.DataFrame  # episode_index, task (+ label, split, ...)
+    posterior: TaskPosterior | None = None  # each demo's cue under the PETNet model
+    model: Checkpoint | None = None
+    embedding: np.ndarray | None = None  # each demo's cue under the TecNets model
+    behaviour: dict[str, Any] = field(default_factory=dict)  # results of the decoding pass, by scorer name
+    scores: dict[str, np.ndarray] = field(default_factory=dict)  # computed so far, by scorer name
+    reasons: dict[str, list[str]] = field(default_factory=dict)
+    seed: int = 0
+
+    @property
+    def tasks(self) -> np.ndarray:
+        return self.episodes["task"].to_numpy()
+
+    def has(self, need: str) -> bool:
+        """Whether this evidence can feed a scorer that needs ``need``."""
+        return {"cues": self.posterior is not None, "model": self.model is not None,
+                "novelty": self.model is not None and bool(self.model.config.novelty),
+                "reference": self.model is not None and bool((self.model.meta.get("reference") or {}).get("ocsvm")),
+                "tecnet": self.embedding is not None, "demos": True, "scores": True}[need]
+
+
+Scores = tuple[np.ndarray, list[str] | None]  # one number per demo, and a reason per demo (or None)
+
+
+class DemoConsumer(Protocol):
+    def add(self, demo: Demo) -> None: ...
+
+    def finish(self) -> Any: ...
+
+
+@dataclass(frozen=True)
+class Scorer:
+    name: str
+    description: str
+    needs: tuple[str, ...]
+    score: Callable[[Evidence], Scores]
+    family: str = "democheck"  # "democheck" or "baseline" (what users would pick instead)
+    in_audit: bool = True  # computed by ``democheck audit`` (False: ``bench`` only)
+    in_suspicion: bool = False  # one of the scores the ranking takes the largest of
+    # For "demos": (evidence, its rows of one dataset, device) -> a consumer of that dataset's decoded demos.
+    decode: Callable[[Evidence, slice, Any], DemoConsumer] | None = None
+    short: str = ""  # header in narrow terminal tables
+    higher_is_more_suspect: bool = True  # the contract: every scorer's direction
+
+    def can_run(self, ev: Evidence) -> bool:
+        """Whether ``ev`` has what this scorer needs: for one that needs every frame, its decoding pass's result
+        (``ev.behaviour``); for the others, every need."""
+        if "demos" in self.needs:
+            return self.name in ev.behaviour
+        return all(ev.has(n) for n in self.needs)
+
+    def can_decode(self, ev: Evidence) -> bool:
+        """Whether this scorer's decoding pass can run on ``ev`` (it needs every frame, and has the rest)."""
+        return self.decode is not None and all(ev.has(n) for n in self.needs if n != "demos")
+
+
+# ---------------------------------------------------------------------------
+# PETNet's scores
+# ---------------------------------------------------------------------------
+
+def _dimension_reasons(values: np.ndarray, what: str) -> list[str]:
+    """'<what> on dimension k' for the largest entry of each row of [N, z] values."""
+    out = []
+    for row in values:
+        ok = np.isfinite(row)
+        out.append(f"{what} on dimension {int(np.argmax(np.where(ok, row, -np.inf)))}" if ok.any() else "")
+    return out
+
+
+def _task_uncertainty(ev: Evidence) -> Scores:
+    return ev.posterior.task_uncertainty(), _dimension_reasons(ev.posterior.sigma, "widest")
+
+
+def _task_uncertainty_head(ev: Evidence) -> Scores:
+    return ev.posterior.task_uncertainty(head_only=True), None
+
+
+def _novelty(ev: Evidence) -> Scores:
+    # d2 / d2_ref of each cue: the novelty part of the variance is the prior's variance times this.
+    return (ev.posterior.var_novel / ev.model.model.encoder.prior_var.cpu().numpy()).mean(1), None
+
+
+def _consistency(ev: Evidence) -> Scores:
+    terms = consistency_terms(ev.posterior, ev.tasks)
+    return np.sqrt(terms.mean(1)), _dimension_reasons(terms, "furthest from its task")
+
+
+def controller_z(post: TaskPosterior, tasks: np.ndarray) -> np.ndarray:
+    """The task variable each demo's actions are judged under: its task's other demos' posterior mean (own mu
+    if alone)."""
+    m, _ = post.others(tasks)
+    return np.where(np.isfinite(m), m, post.mu).astype(np.float32)
+
+
+class ActionErrors:
+    """Consumer of decoded demos: the mean squared error between each demo's normalised actions and the
+    controller's under its task variable ``z``, at ``steps`` evenly spaced timesteps (all of them when the demo
+    is shorter), and the timestep where they differ most."""
+
+    def __init__(self, ckpt: Checkpoint, z: np.ndarray, device: Any, steps: int = ACTION_STEPS, batch: int = 32):
+        self.ckpt, self.z, self.device, self.steps, self.batch = ckpt, z, device, steps, batch
+        self.out = np.full(len(z), np.nan)
+        self.worst: list[str] = [""] * len(z)
+        self.pending: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.seen = 0
+
+    def add(self, demo: Demo) -> None:
+        t = np.unique(np.linspace(0, len(demo.actions) - 1, self.steps).round().astype(np.int64))
+        if len(t) < self.steps:  # a short demo: repeat its timesteps so a batch stacks
+            t = np.resize(t, self.steps)
+        norm = self.ckpt.norm
+        self.pending.append((self.seen, demo.frames[t], norm.state(demo.state[t]).astype(np.float32),
+                             norm.action(demo.actions[t]).astype(np.float32), t))
+        self.seen += 1
+        if len(self.pending) == self.batch:
+            self._flush()
+
+    def _flush(self) -> None:
+        p = self.pending
+        frames = torch.from_numpy(np.stack([x[1] for x in p])).to(self.device)
+        state = torch.from_numpy(np.stack([x[2] for x in p])).to(self.device)
+        rows = np.array([x[0] for x in p])
+        with torch.no_grad():
+            pred = self.ckpt.model.controller.act(frames, state, torch.from_numpy(self.z[rows]).to(self.device))
+        sq = (pred.cpu().numpy() - np.stack([x[3] for x in p])) ** 2
+        self.out[rows] = sq.mean(axis=(1, 2))
+        for row, per_t, (_, _, _, _, t) in zip(rows, sq.mean(axis=2), p):
+            self.worst[row] = f"worst at timestep {int(t[int(np.argmax(per_t))])}"
+        self.pending.clear()
+
+    def finish(self) -> tuple[np.ndarray, list[str]]:
+        if self.pending:
+            self._flush()
+        return self.out, self.worst
+
+
+def action_errors(demos, ckpt: Checkpoint, z: np.ndarray, device: Any, steps: int = ACTION_STEPS,
+                  batch: int = 32) -> np.ndarray:
+    """``ActionErrors`` over an iterable of demos, in ``z``'s order."""
+    consumer = ActionErrors(ckpt, z, device, steps, batch)
+    for demo in demos:
+        consumer.add(demo)
+    return consumer.finish()[0]
+
+
+def _action_error(ev: Evidence) -> Scores:
+    got = ev.behaviour["action_error"]  # (values, reasons) from ``ActionErrors``, or values given directly
+    return got if isinstance(got, tuple) else (np.asarray(got), None)
+
+
+def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors:
+    # Each demo is judged under its task across all the evidence (a bench pools datasets).
+    return ActionErrors(ev.model, controller_z(ev.posterior, ev.tasks)[rows], device)
+
+
+def _suspicion(ev: Evidence) -> Scores:
+    parts = {n: ev.scores[n] for n, s in SCORERS.items() if s.in_suspicion and n in ev.scores}
+    z = standardised(parts)
+    value = np.nanmax(z, axis=1)
+    names = list(parts)
+    reasons = []
+    for i, row in enumerate(z):
+        if not np.isfinite(value[i]):
+            reasons.append("")
+            continue
+        name = names[int(np.argmax(row))]
+        own = (ev.reasons.get(name) or [""] * len(z))[i]
+        reasons.append(f"{name} {value[i]:.3g} robust SD" + (f" ({own})" if own else ""))
+    return value, reasons
+
+
+def _ocsvm_flag(ev: Evidence) -> Scores:
+    margin = ocsvm_margin(ev.model.meta["reference"]["ocsvm"], ev.posterior.sigma)
+    return (margin < 0).astype(float), None
+
+
+# ---------------------------------------------------------------------------
+# baselines (``democheck.audit.baselines``): what users would pick instead
+# ---------------------------------------------------------------------------
+
+def _tecnet_knn(ev: Evidence) -> Scores:
+    return knn_same_task(ev.embedding, ev.tasks), None
+
+
+class MotionFeatures:
+    """Consumer of decoded demos: the linter heuristics' features (``baselines.summarise_motion``)."""
+
+    def __init__(self) -> None:
+        self.parts: list[tuple[np.ndarray, float, float]] = []
+
+    def add(self, demo: Demo) -> None:
+        self.parts.append(motion_features(demo.state, demo.actions))
+
+    def finish(self) -> np.ndarray:
+        return summarise_motion(self.parts)
+
+
+def _heuristic(ev: Evidence) -> Scores:
+    z = heuristic_z(ev.behaviour["heuristic"])
+    return z.max(axis=1), [f"{HEURISTIC_FEATURES[int(np.argmax(r))]} |z| {r.max():.3g}" for r in z]
+
+
+def _random(ev: Evidence) -> Scores:
+    # Dealt in ranking order (by suspicion), as benches have always done, so their random rows stay comparable.
+    draws = random_score(len(ev.episodes), ev.seed)
+    out = np.empty(len(draws))
+    out[rank_order(ev.scores["suspicion"], ev.episodes["episode_index"].to_numpy())] = draws
+    return out, None
+
+
+SCORERS: dict[str, Scorer] = {s.name: s for s in (
+    Scorer("task_uncertainty", "PETNet's task uncertainty (the paper's score): mean task standard deviation of the "
+           "demo's cue, both parts of the variance", ("cues",), _task_uncertainty, in_suspicion=True,
+           short="unc."),
+    Scorer("task_uncertainty_head", "the paper's variance head alone, without the novelty part",
+           ("cues",), _task_uncertainty_head, in_audit=False, short="head"),
+    Scorer("novelty", "how unfamiliar the cue's images are: squared feature distance from the training cues over "
+           "the model's reference (above 1: less familiar than 9 in 10 real cues of new tasks)",
+           ("cues", "novelty"), _novelty, short="novel."),
+    Scorer("consistency", f"distance of the demo's task mean from the product of its {CONSISTENCY_K} nearest other "
+           "demos of its task, RMS over dimensions of (mu - m) / sqrt(v + var)", ("cues",), _consistency,
+           in_suspicion=True, short="cons."),
+    Scorer("action_error", f"how badly PETNet's controller, told the task by the other demos of the task, explains "
+           f"the demo's normalised actions (MSE at {ACTION_STEPS} evenly spaced timesteps)", ("demos", "model"),
+           _action_error, in_suspicion=True, decode=_decode_action_error, short="act."),
+    Scorer("suspicion", "democheck's ranking: the largest of task uncertainty, consistency and action error, each "
+           "standardised by the median and 1.4826 x MAD of the demos scored", ("scores",), _suspicion,
+           short="susp."),
+    Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
+           "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),
+    Scorer("tecnet_knn", "TecNets embedding: mean distance to the 5 nearest other demos of the task", ("tecnet",),
+           _tecnet_knn, family="baseline", in_audit=False, short="tecnet"),
+    Scorer("heuristic", "linter rules: max |robust z| of idle fraction, action energy and jerk", ("demos",),
+           _heuristic, family="baseline", in_audit=False, decode=lambda ev, rows, device: MotionFeatures(),
+           short="heurist."),
+    Scorer("random", "a uniform random score, the floor every detector must clear", ("scores",), _random,
+           family="baseline", in_audit=False, short="random"),
+)}
+
+# Column names before the registry, readable for one release: the audit also writes ``score``.
+RENAMED = {"score": "task_uncertainty", "sigma_head": "task_uncertainty_head"}
+
+
+def select(names: list[str] | None = None, audit: bool = True) -> list[Scorer]:
+    """Scorers by name, in the registry's order; default: those ``democheck audit`` computes."""
+    if names is None:
+        return [s for s in SCORERS.values() if s.in_audit or not audit]
+    unknown = [n for n in names if n not in SCORERS]
+    if unknown:
+        raise KeyError(f"unknown scorer {', '.join(unknown)}; scorers: {', '.join(SCORERS)}")
+    return [s for s in SCORERS.values() if s.name in names]
+
+
+def compute(ev: Evidence, scorers: list[Scorer]) -> Evidence:
+    """Run ``scorers`` (whose decoding pass, if any, has filled ``ev.behaviour``) in the registry's order, each
+    that the evidence can feed; fills ``ev.scores`` and ``ev.reasons``."""
+    for s in scorers:
+        if not s.can_run(ev):
+            continue
+        values, reasons = s.score(ev)
+        ev.scores[s.name] = values  # as computed: float32 where the network's output is, float64 elsewhere
+        if reasons is not None:
+            ev.reasons[s.name] = reasons
+    return ev

@@ -1,0 +1,3 @@
+from democheck.cli import app
+
+app()

@@ -1,0 +1,123 @@
+"""``democheck audit``, ``view`` and ``demo``: score a dataset's demos, look at the report, run the whole job."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from democheck.cli.common import Bar, app, console, err_console, short, user_errors
+from democheck.errors import DemocheckError
+
+MODEL_HELP = "Model folder, or the name of a shipped model (default: petnet-push-v1, shipped with democheck)."
+
+
+@app.command()
+def audit(
+    dataset: Annotated[Path, typer.Argument(help="Dataset to audit: LeRobot v3.0/v2.1 folder or robomimic .hdf5 file.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Report folder: scores.parquet/.csv, summary.json, suspects.txt, report.rrd.")],
+    model: Annotated[Optional[Path], typer.Option(help=MODEL_HELP)] = None,
+    top: Annotated[int, typer.Option(help="How many top suspects to show and to record with their evidence.")] = 20,
+    fail_on: Annotated[Optional[int], typer.Option(help="Exit with status 3 when more than this many demos are flagged (for CI gates).")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON instead of a table.")] = False,
+    camera: Annotated[Optional[str], typer.Option(help="Image feature to use when there are several.")] = None,
+    task: Annotated[Optional[str], typer.Option(help="Task string for robomimic files that do not name their task.")] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    actions: Annotated[bool, typer.Option("--actions/--no-actions", help="Also score how badly the model's controller explains each demo's actions (catches arms that never moved, flailed or stopped half-way). Decodes every demo in full: --no-actions is the fast pass on cue frames only.")] = True,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
+) -> None:
+    """Score every demonstration by task uncertainty, consistency and action error; rank the suspects, flag anomalies."""
+    with user_errors():
+        if top < 1:
+            raise DemocheckError("--top must be at least 1")
+        from democheck.workflows import audit_dataset
+
+        with Bar("audit", "demos") as bar:
+            summary = audit_dataset(dataset, out, model=model, top=top, camera=camera, task=task, device=device,
+                                    force=force, on_progress=lambda stage, d, n: bar.update(d, n, stage),
+                                    actions=actions)
+    if json_out:
+        console.print_json(json.dumps(summary))
+    else:
+        print_audit(summary, out)
+    if fail_on is not None and summary["flagged"] > fail_on:
+        err_console.print(f"{summary['flagged']} demos flagged, more than --fail-on {fail_on}")
+        raise typer.Exit(3)
+
+
+def print_audit(summary: dict, out: Path) -> None:
+    """The top suspects as a table that fits 80 columns: every registered score the audit computed."""
+    from democheck.audit.scorers import SCORERS
+
+    table = Table(title=f"top suspects of {summary['demos']} demos ({summary['flagged']} flagged)")
+    cols = [n for n in SCORERS if n in summary["top_suspects"][0]] if summary["top_suspects"] else []
+    # Short headers and a clipped task column keep the table readable in an 80-column terminal.
+    for col in ("rank", "ep", "task", *(SCORERS[c].short for c in cols), "flag"):
+        table.add_column(col, justify="left" if col == "task" else "right", no_wrap=True, overflow="ellipsis",
+                         max_width=24 if col == "task" else None, min_width=None if col == "task" else 4)
+    for r in summary["top_suspects"]:
+        cells = ["n/a" if r[c] is None else short(r[c]) for c in cols]
+        table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"], *cells, "[red]yes[/]" if r["is_anomaly"] else "")
+    console.print(table)
+    top = summary["top_suspects"][0] if summary["top_suspects"] else None
+    if top and top.get("reason"):
+        console.print(f"rank 1 (episode {top['episode_index']}): {top['reason']}", highlight=False)
+    t = summary["timing"]
+    console.print(f"scored {summary['demos']} demos in {t['score_s']:.1f} s ({t['demos_per_s']:.0f}/s)"
+                  + (f", their actions in {t['actions_s']:.1f} s" if "actions_s" in t else "")
+                  + f"; model load {t['model_load_s']:.1f} s, t-SNE {t['tsne_s']:.1f} s")
+    console.print(f"report: {out}/ (scores.parquet, scores.csv, summary.json, suspects.txt)")
+    console.print(f"look at it: democheck view {out}")
+
+
+@app.command()
+def view(
+    report: Annotated[Path, typer.Argument(help="A report folder written by audit (or an .rrd file).")],
+) -> None:
+    """Open the Rerun viewer on a report's recording (prints the command when there is no display)."""
+    with user_errors():
+        rrd = report / "report.rrd" if report.is_dir() else report
+        if not rrd.is_file():
+            raise DemocheckError(f"{rrd}: no recording here; run democheck audit first")
+        viewer = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
+        has_display = sys.platform == "darwin" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+        if not has_display or not Path(viewer).exists():
+            console.print(f"no display here; on a machine with one (pip install rerun-sdk) run:\n  rerun {rrd}\n"
+                          f"or serve it to a browser from here:\n  rerun --web-viewer {rrd}")
+            return
+        subprocess.Popen([viewer, str(rrd)])
+        console.print(f"opened {rrd} in the Rerun viewer")
+
+
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the demo's dataset (data/) and report (report/).")] = Path("demo"),
+    model: Annotated[Optional[Path], typer.Option(help=MODEL_HELP)] = None,
+    workers: Annotated[int, typer.Option(help="Worker processes for generating the demos.")] = 2,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
+) -> None:
+    """The whole job, small: simulate push-mini with 8 planted bad demos, audit it, and show where they rank."""
+    t0 = time.perf_counter()
+    with user_errors():
+        from democheck.workflows import run_demo
+
+        with Bar("demo") as bar:
+            summary = run_demo(out, model=model, workers=workers, force=force, on_stage=bar.say,
+                               on_progress=bar.callback())
+    print_audit(summary, out / "report")
+    ranks = ", ".join(f"{r['label']} ep{r['episode_index']} #{r['rank']}"
+                      for r in sorted(summary["planted_ranks"], key=lambda r: r["rank"]))
+    console.print(f"planted demos rank: {ranks}")
+    det = summary["detection"]["suspicion"]
+    console.print("precision at k (k = number planted): " + ", ".join(
+        f"{kind} {d['p_at_k']:.2f}" for kind, d in det.items()) + "; AUROC " + ", ".join(
+        f"{kind} {d['auroc']:.2f}" for kind, d in det.items()))
+    console.print(f"done in {time.perf_counter() - t0:.0f} s")

@@ -1,0 +1,126 @@
+"""``democheck bench``, ``eval`` and ``dagger``: measure the detector and the controller, train the controller further."""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from democheck.cli.audit import MODEL_HELP
+from democheck.cli.common import Bar, app, console, user_errors
+from democheck.errors import DemocheckError
+
+
+@app.command()
+def bench(
+    datasets: Annotated[list[Path], typer.Argument(help="One or more labelled datasets, pooled (e.g. a suite made with --defect-rate and the probes made from it).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for bench.json, bench.md, bench.rrd and scores.parquet.")],
+    model: Annotated[Optional[Path], typer.Option(help=MODEL_HELP)] = None,
+    tecnet: Annotated[Optional[Path], typer.Option(help="TecNets model trained on the same data, for the kNN baseline (democheck train --recipe tecnet; shipped: tecnet-push-v1); left out if not given.")] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the random scorer and of Figure 5B's cue draws.")] = 0,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    camera: Annotated[Optional[str], typer.Option(help="Image feature to use when there are several.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
+) -> None:
+    """Measure every registered scorer (PETNet's and the baselines') on labelled bad demos: AUROC, AUPRC, precision at k."""
+    with user_errors():
+        from democheck.audit.scorers import SCORERS
+        from democheck.workflows import bench_datasets
+
+        with Bar("bench", "demos") as bar:
+            summary = bench_datasets(datasets, out, model=model, tecnet=tecnet, device=device, seed=seed, force=force,
+                                     camera=camera, on_progress=lambda stage, d, n: bar.update(d, n, stage))
+    table = Table(title="AUROC, each kind versus clean (bench.md: AUPRC, precision at k, scorers explained)")
+    table.add_column("kind", no_wrap=True)
+    for name in summary["scorers"]:
+        table.add_column(SCORERS[name].short, justify="right")
+    for kind in summary["kinds"]:
+        table.add_row(kind, *[f"{per[kind]['auroc']:.2f}" if per.get(kind, {}).get("auroc") is not None else "n/a"
+                              for per in summary["scorers"].values()])
+    console.print(table)
+    console.print(f"{out}/bench.md, bench.json, bench.rrd (Figures 5A and 5B), scores.parquet")
+
+
+@app.command(name="eval")
+def eval_(
+    model: Annotated[Optional[Path], typer.Argument(help=MODEL_HELP)] = None,
+    data: Annotated[Path, typer.Option(help="Suite to draw cue demos and tasks from (made by democheck synth; e.g. democheck synth push-v1 --out data/push-v1).")] = Path("data/push-v1"),
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for eval.json, eval.md, trials.parquet, eval.rrd.")] = Path("runs/eval"),
+    split: Annotated[str, typer.Option(help="Which tasks: test (meta-test, held-out objects), val or train.")] = "test",
+    trials: Annotated[int, typer.Option(help="Rollouts per task, each on a new layout with its own cue draw.")] = 6,
+    shots: Annotated[int, typer.Option(help="Cue demos per trial (combined by product of Gaussians).")] = 1,
+    workers: Annotated[int, typer.Option(help="Parallel rollout processes.")] = 2,
+    seed: Annotated[int, typer.Option(help="Seed for cue draws and layouts.")] = 0,
+    device: Annotated[str, typer.Option(help="Device for inferring z from the cues (rollouts run on CPU).")] = "auto",
+    force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
+) -> None:
+    """Closed-loop meta-test: one-shot success on held-out tasks, and success by cue uncertainty."""
+    with user_errors():
+        from democheck.evaluate.meta_test import fmt_rate
+        from democheck.workflows import evaluate_model
+
+        if not data.exists():
+            raise DemocheckError(f"{data}: no such dataset; generate it: democheck synth push-v1 --out {data}")
+        with Bar("eval", "rollouts") as bar:
+            s = evaluate_model(model, data, out, split=split, trials=trials, shots=shots, workers=workers, seed=seed,
+                               device=device, force=force, on_progress=bar.callback())
+    table = Table(title=f"{s['model']} on {s['tasks']} {split} tasks, {shots}-shot, {trials} trials each",
+                  show_header=False)
+    table.add_row("model success", fmt_rate(s["model_success"]))
+    table.add_row("expert, same layouts", fmt_rate(s["expert"]))
+    if s.get("flagged"):
+        table.add_row("cues flagged (OCSVM)", fmt_rate(s["flagged"]))
+        table.add_row("cues not flagged", fmt_rate(s["unflagged"]))
+    for q in s.get("sigma_quartiles", []):
+        table.add_row(f"sigma quartile {q['quartile']}", fmt_rate(q))
+    console.print(table)
+    console.print(f"{out}/eval.md, eval.json, trials.parquet, eval.rrd ({s['rollouts_per_s']:.1f} rollouts/s)")
+
+
+@app.command()
+def dagger(
+    model: Annotated[Path, typer.Argument(help="Model folder (PETNet or TecNets) trained on --data by democheck train.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write: the same model with the controller trained further.")],
+    data: Annotated[Path, typer.Option(help="The model's training suite (made by democheck synth): its training tasks are rolled out.")] = Path("data/push-v1"),
+    rounds: Annotated[int, typer.Option(help="DAgger rounds: each rolls the controller out, has the expert label what it saw, and trains on it.")] = 4,
+    episodes_per_task: Annotated[int, typer.Option(help="Rollouts per training task per round.")] = 1,
+    beta: Annotated[float, typer.Option(help="Probability that the expert takes a step of a rollout (0: the controller alone).")] = 0.3,
+    steps: Annotated[int, typer.Option(help="Controller training steps per round.")] = 2000,
+    batch_tasks: Annotated[int, typer.Option(help="Demo trajectories per step (and as many recovery trajectories).")] = 16,
+    timesteps: Annotated[int, typer.Option(help="Timesteps of each trajectory per step.")] = 8,
+    lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 5e-4,
+    seed: Annotated[int, typer.Option(help="Seed for cue draws, layouts, expert hand-overs and batches.")] = 0,
+    workers: Annotated[int, typer.Option(help="Parallel rollout processes.")] = 2,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda (training; rollouts run on CPU).")] = "auto",
+    resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last complete round.")] = False,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out, or discard an interrupted run and start over.")] = False,
+    cache_dir: Annotated[Optional[Path], typer.Option(help="Where decoded frames are cached (default ~/.cache/democheck).")] = None,
+) -> None:
+    """Recovery training: DAgger rounds that teach a model's controller to recover from its own mistakes.
+
+    The scripted expert labels the states the controller itself reaches; only the
+    controller learns, so the task encoder, sigma, consistency and the one-class SVM
+    stay as they were (the action error is the new controller's).
+    """
+    with user_errors():
+        from democheck.evaluate.dagger import DaggerConfig, dagger as run_dagger
+
+        cfg = DaggerConfig(rounds=rounds, episodes_per_task=episodes_per_task, beta=beta, steps=steps,
+                           batch_tasks=batch_tasks, timesteps=timesteps, lr=lr, seed=seed, workers=workers,
+                           device=device)
+        with Bar("dagger") as bar:
+            s = run_dagger(model, data, out, cfg, resume=resume, force=force, cache_dir=cache_dir,
+                           command="democheck " + shlex.join(sys.argv[1:]), on_stage=bar.say,
+                           on_progress=bar.callback())
+    table = Table(title=f"recovery training of {model} ({s['wall_s'] / 60:.1f} min)")
+    for col in ("round", "rollouts", "mixed success", "demo mse", "recovery mse"):
+        table.add_column(col, justify="right")
+    for h in s["history"]:
+        table.add_row(str(h["round"]), str(h["rollouts"]), f"{h['mixed_success']:.1%}", f"{h['demo_mse']:.4f}",
+                      f"{h['recovery_mse']:.4f}")
+    console.print(table)
+    console.print(f"{out}: measure it with democheck eval {out} --data {data}")

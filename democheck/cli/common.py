@@ -1,0 +1,106 @@
+"""What every command shares: the app, the consoles, one-line errors, and progress that also works off a terminal."""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from typing import Callable, Iterator
+
+import typer
+from rich.console import Console
+
+from democheck.errors import DemocheckError
+
+app = typer.Typer(
+    name="democheck",
+    help="Audit robot demonstration datasets: find the demos a learner cannot tell the task from.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+console = Console()
+err_console = Console(stderr=True)
+
+
+@contextmanager
+def user_errors() -> Iterator[None]:
+    """Bad input becomes one line on stderr and exit status 2, never a traceback."""
+    try:
+        yield
+    except DemocheckError as exc:
+        err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        raise typer.Exit(2) from None
+    except KeyboardInterrupt:
+        err_console.print("interrupted; nothing was written")
+        raise typer.Exit(130) from None
+
+
+class Bar:
+    """Progress of one command: a rich progress bar on a terminal; elsewhere (a log file, CI) a line on stderr
+    at every tenth of a stage and at least every 30 s, so long work is never silent."""
+
+    def __init__(self, label: str, unit: str = "", info: bool = False):
+        self.label, self.unit, self.tty = label, unit, err_console.is_terminal
+        self.stage, self.last, self.info = label, (0.0, -1), ""
+        self.progress = self.job = None
+        if self.tty:
+            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                       TimeRemainingColumn)
+
+            cols = [TextColumn("[bold]{task.description}[/]"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn(unit), *([TextColumn("{task.fields[info]}")] if info else []), TimeElapsedColumn(),
+                    TimeRemainingColumn()]
+            self.progress = Progress(*cols, console=err_console, transient=True)
+
+    def __enter__(self) -> "Bar":
+        if self.progress is not None:
+            self.progress.__enter__()
+            self.job = self.progress.add_task(self.label, total=None, info="")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.progress is not None:
+            self.progress.__exit__(*exc)
+
+    def update(self, done: int, total: int | None, stage: str | None = None, info: str | None = None) -> None:
+        if stage is not None and stage != self.stage:
+            self.stage, self.last = stage, (0.0, -1)
+        if info is not None:
+            self.info = info
+        if self.progress is not None:
+            self.progress.update(self.job, completed=done, total=total, description=self.stage, info=self.info)
+            return
+        now, tenth = time.monotonic(), (10 * done // total if total else -1)
+        if done == total or tenth > self.last[1] or now - self.last[0] > 30:
+            self.last = (now, tenth)
+            of = f"/{total}" if total else ""
+            err_console.print(f"{self.stage}: {done}{of} {self.unit} {self.info}".rstrip(), highlight=False)
+
+    def callback(self, stage: str | None = None) -> Callable[[int, int], None]:
+        """An ``on_progress(done, total)`` for library functions, optionally naming the stage."""
+        return lambda done, total: self.update(done, total, stage)
+
+    def say(self, text: str) -> None:
+        """A line above the bar (a new stage of a long command)."""
+        self.update(0, None, stage=text)
+        err_console.print(text, highlight=False)
+
+
+def parse_counts(text: str, option: str) -> dict[str, int]:
+    """``kind=count`` pairs separated by commas."""
+    out = {}
+    for part in text.split(","):
+        key, _, value = part.partition("=")
+        if not key.strip() or not value.strip().isdigit():
+            raise DemocheckError(f"{option} takes kind=count pairs separated by commas, e.g. idle=4,random=4; got {text!r}")
+        out[key.strip()] = int(value)
+    return out
+
+
+def short(x: float) -> str:
+    """A score in about 5 characters: 3 significant digits, 2 decimals when that is shorter, whole numbers from
+    100 up."""
+    if abs(x) >= 100:
+        return f"{x:.0f}"
+    text = f"{x:.3g}"
+    return text if len(text) <= 5 else f"{x:.2f}"

@@ -1,0 +1,87 @@
+"""``democheck train`` and ``fit-novelty``: make a model."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from democheck.cli.common import Bar, app, console, user_errors
+
+RECIPE_HELP = ("Training recipe: a shipped name (paper: the paper's loss, the default; petnet-push-v1: the shipped "
+               "model's; tecnet: the TecNets baseline) or a path to a .toml file. Every option of a run is in it.")
+SET_HELP = ("Override one recipe key, e.g. --set optim.lr=1e-3 --set regularisers.kl_prior=0.1 --set model.novelty=false "
+            "--set model.init=models/my-petnet (repeatable; keys: democheck/recipes/train/paper.toml).")
+
+
+@app.command()
+def train(
+    dataset: Annotated[Path, typer.Argument(help="Training dataset (LeRobot v3.0/v2.1); tasks need two or more demos.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write (config.json, model.safetensors, README.md).")],
+    recipe: Annotated[str, typer.Option(help=RECIPE_HELP)] = "paper",
+    set_: Annotated[Optional[list[str]], typer.Option("--set", help=SET_HELP)] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Optimiser steps (default: the recipe's).")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Seed for initialisation, sampling and noise (default: the recipe's, 0).")] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last saved state.")] = False,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out, or discard an interrupted run and start over.")] = False,
+    camera: Annotated[Optional[str], typer.Option(help="Image feature to train on when there are several.")] = None,
+    cache_dir: Annotated[Optional[Path], typer.Option(help="Where decoded frames are cached (default ~/.cache/democheck).")] = None,
+) -> None:
+    """Train PETNet (or the TecNets baseline) on a dataset from a recipe; writes a safetensors checkpoint with a model card.
+
+    The model's config.json and card record the whole resolved recipe, so the checkpoint says how to make it again.
+    """
+    with user_errors():
+        from democheck.workflows import train_from_recipe
+
+        with Bar("train", info=True) as bar:
+            val = {"text": ""}
+
+            def on_step(step: int, total: int, report: dict) -> None:
+                if "val_mse" in report:
+                    val["text"] = f"  val mse {report['val_mse']:.4f}"
+                bar.update(step, total, "train", f"loss {report.get('train_loss', float('nan')):.4f}{val['text']}")
+
+            result = train_from_recipe(dataset, out, recipe, set_, steps=steps, seed=seed, device=device,
+                                       resume=resume, force=force, camera=camera, cache_dir=cache_dir,
+                                       on_decode=bar.callback("decode frames"), on_step=on_step)
+    table = Table(title=f"{result.config.model_type} -> {out}", show_header=False)
+    final = result.metrics["final"]
+    for key in ("train_mse", "val_mse", "val_task_matching", "val_tecnet_hinge"):
+        if key in final:
+            table.add_row(key.replace("_", " "), f"{final[key]:.4f}")
+    for name, v in result.metrics.get("task_sigma", {}).items():
+        table.add_row(f"mean sigma: {name}", f"{v:.4f}")
+    table.add_row("wall time", f"{result.metrics['wall_s'] / 60:.1f} min")
+    console.print(table)
+
+
+@app.command(name="fit-novelty")
+def fit_novelty(
+    model: Annotated[Path, typer.Argument(help="A trained PETNet model folder.")],
+    data: Annotated[Path, typer.Option("--data", help="The dataset the model was trained on (its train split fits the density, its val split the reference distance).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write: the same weights with the density, the card's numbers and the audit's reference redone.")],
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    camera: Annotated[Optional[str], typer.Option(help="Image feature the model was trained on when there are several.")] = None,
+    cache_dir: Annotated[Optional[Path], typer.Option(help="Where decoded frames are cached (default ~/.cache/democheck).")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace --out.")] = False,
+) -> None:
+    """Give a trained PETNet model the epistemic part of its task variance, without retraining.
+
+    A Gaussian fitted to the encoder's conv features of the training cues; a cue far from them gets a wider task posterior. democheck train fits it itself; this is for models trained with --set model.novelty=false or before it existed.
+    """
+    with user_errors():
+        from democheck.workflows import refit_novelty
+
+        with Bar("decode frames", "episodes") as bar:
+            meta = refit_novelty(model, data, out, camera=camera, cache_dir=cache_dir, device=device, force=force,
+                                 on_decode=bar.callback())
+    table = Table(title=f"{model} + novelty -> {out}", show_header=False)
+    nov = meta["novelty"]
+    table.add_row("reference d2", f"{nov['d2_ref']:.1f} ({nov['quantile']:.0%} of {nov['held_out_cues']} held-out cues)")
+    for name, v in meta["metrics"]["task_sigma"].items():
+        table.add_row(f"mean sigma: {name}", f"{v:.4f}")
+    console.print(table)

@@ -1,0 +1,159 @@
+"""Training batches: which demos a step draws, and the images as the step sees them.
+
+A step takes ``n_tasks`` tasks; for each, a *cue* demo and a *demonstrated
+trajectory* that are different demos of the task, and ``k`` timesteps drawn
+uniformly from the trajectory.  Rows index ``EpisodeArrays`` (the decoded
+frame cache).  ``augment`` shifts training images at random.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from democheck.data.cache import EpisodeArrays
+from democheck.petnet.checkpoint import Normalisation
+
+
+def task_rows(arrays: EpisodeArrays, split: str, seed: int) -> dict[str, np.ndarray]:
+    """Rows of each task with at least two demos, in the given split.
+
+    Datasets without splits use every task for training and hold out 10% of
+    tasks (at least one, when there are ten or more) for validation.
+    """
+    eps = arrays.episodes
+    if "split" in eps and eps["split"].notna().any():
+        sel = eps[eps["split"] == split]
+    else:
+        tasks = np.array(sorted(eps["task"].unique()))
+        held = set(np.random.default_rng([seed, 7]).permutation(tasks)[: len(tasks) // 10]) if len(tasks) >= 10 else set()
+        sel = eps[eps["task"].isin(held)] if split == "val" else eps[~eps["task"].isin(held)] if split == "train" else eps[:0]
+    groups = {t: np.asarray(idx) for t, idx in sel.groupby("task").indices.items()} if len(sel) else {}
+    # groupby().indices are positions within ``sel``; map them back to rows of ``arrays``.
+    return {t: sel.index.to_numpy()[pos] for t, pos in groups.items() if len(pos) >= 2}
+
+
+def uniform_steps(rng: np.random.Generator, lengths: np.ndarray, k: int) -> np.ndarray:
+    """k timesteps drawn uniformly from each trajectory of the given lengths: int64 [len(lengths), k]."""
+    return (rng.random((len(lengths), k)) * lengths[:, None]).astype(np.int64)
+
+
+class Batches:
+    """Samples (cue, demonstrated trajectory) pairs of the same task.
+
+    ``groups`` (task -> group key) marks tasks that are easy to confuse, e.g.
+    the two orders of one object pair in a democheck suite; with it, a batch
+    is made of whole groups where it can be, so the embedding losses must tell
+    a task from its look-alikes, not only from random others.
+    """
+
+    def __init__(self, arrays: EpisodeArrays, rows: dict[str, np.ndarray], norm: Normalisation,
+                 groups: dict[str, str] | None = None):
+        self.a = arrays
+        self.tasks = sorted(rows)
+        self.rows = [rows[t] for t in self.tasks]
+        self.norm = norm
+        members: dict[str, list[int]] = {}
+        for i, t in enumerate(self.tasks):
+            if groups and t in groups:
+                members.setdefault(groups[t], []).append(i)
+        self.groups = [m for _, m in sorted(members.items()) if len(m) > 1]
+
+    def _pick_tasks(self, rng: np.random.Generator, n_tasks: int) -> np.ndarray:
+        if not self.groups:
+            return rng.choice(len(self.tasks), size=n_tasks, replace=len(self.tasks) < n_tasks)
+        picks: list[int] = []
+        for g in rng.permutation(len(self.groups)):
+            if len(picks) + 2 > n_tasks:
+                break
+            picks += list(rng.choice(self.groups[g], size=2, replace=False))
+        rest = np.setdiff1d(np.arange(len(self.tasks)), picks)
+        if len(picks) < n_tasks and len(rest):
+            picks += list(rng.choice(rest, size=min(n_tasks - len(picks), len(rest)), replace=False))
+        return np.asarray(picks[:n_tasks])
+
+    def pick_rows(self, rng: np.random.Generator, n_tasks: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of a cue demo and of a different demonstrated trajectory for each of ``n_tasks`` tasks."""
+        cue_rows, traj_rows = [], []
+        for t in self._pick_tasks(rng, n_tasks):
+            c, d = rng.choice(self.rows[t], size=2, replace=False)
+            cue_rows.append(c)
+            traj_rows.append(d)
+        return np.array(cue_rows), np.array(traj_rows)
+
+    def sample(self, rng: np.random.Generator, n_tasks: int, k: int, partial: bool = False) -> dict[str, np.ndarray]:
+        """A batch; ``partial`` adds ``partial_cue``: each cue cut short at a uniformly drawn timestep."""
+        cue_rows, traj_rows = self.pick_rows(rng, n_tasks)
+        steps = uniform_steps(rng, self.a.lengths[traj_rows], k)
+        ends = uniform_steps(rng, self.a.lengths[cue_rows], 1)[:, 0] if partial else None
+        return self.gather(cue_rows, traj_rows, steps, ends)
+
+    def gather(self, cue_rows: np.ndarray, traj_rows: np.ndarray, steps: np.ndarray,
+               cue_ends: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The batch of those rows at those trajectory timesteps; ``cue_ends`` adds the cues cut short there."""
+        a = self.a
+        lengths = a.lengths[traj_rows]
+        idx = a.offsets[traj_rows][:, None] + np.minimum(steps, lengths[:, None] - 1)
+        flat = idx.reshape(-1)
+        extra = {} if cue_ends is None else {"partial_cue": a.cue(cue_rows, end=cue_ends)}
+        return {**extra,
+            "cue": a.cue(cue_rows),
+            "traj_cue": a.cue(traj_rows),
+            "frames": a.frames[flat].reshape(*idx.shape, *a.frames.shape[1:]),
+            "state": self.norm.state(a.state[flat]).reshape(*idx.shape, -1),
+            "actions": self.norm.action(a.actions[flat]).reshape(*idx.shape, -1),
+        }
+
+
+def val_pairs(val: Batches, seed: int, per_task: int = 2, k: int = 10) -> dict[str, np.ndarray]:
+    """Fixed validation draws: ``per_task`` (cue, trajectory) pairs of every task, ``k`` timesteps each, and a
+    cut time per cue (for the partial-cue terms)."""
+    rng = np.random.default_rng([seed, 11])
+    cue_rows, traj_rows = [], []
+    for rows in val.rows:
+        for _ in range(per_task):
+            c, d = rng.choice(rows, size=2, replace=False)
+            cue_rows.append(c)
+            traj_rows.append(d)
+    cue_rows, traj_rows = np.array(cue_rows, dtype=np.int64), np.array(traj_rows, dtype=np.int64)
+    lengths = val.a.lengths[traj_rows] if len(traj_rows) else np.zeros(0, np.int64)
+    # Fixed draws from the same uniform distribution training samples from, so the two losses compare.
+    steps = uniform_steps(rng, lengths, k)
+    ends = uniform_steps(rng, val.a.lengths[cue_rows], 1)[:, 0] if len(cue_rows) else np.zeros(0, np.int64)
+    return {"cue_rows": cue_rows, "traj_rows": traj_rows, "steps": steps, "ends": ends}
+
+
+def random_shift(images: torch.Tensor, pad: int) -> torch.Tensor:
+    """Each item of uint8 ``images`` [N, M, H, W, C] moved by its own random whole-pixel offset of at most ``pad``
+    (the M images of an item, e.g. a cue's two frames, together); borders repeat the edge pixels.
+
+    The translation augmentation of image-based RL and imitation (DrQ's random shift): the network must find
+    things wherever they are in the frame instead of memorising pixel positions.  Draws from torch's RNG, which the
+    training state saves, so a resumed run shifts as the uninterrupted one would.
+    """
+    if pad <= 0:
+        return images
+    n, h, w = images.shape[0], images.shape[-3], images.shape[-2]
+    off = torch.randint(-pad, pad + 1, (2, n), device=images.device)
+    rows = (torch.arange(h, device=images.device)[None] + off[0][:, None]).clamp_(0, h - 1)  # [N, H]
+    cols = (torch.arange(w, device=images.device)[None] + off[1][:, None]).clamp_(0, w - 1)  # [N, W]
+    idx = torch.arange(n, device=images.device)[:, None, None]
+    moved = images.movedim(1, -1)[idx, rows[:, :, None], cols[:, None, :]]  # [N, H, W, C, M]
+    return moved.movedim(-1, 1)
+
+
+def augment(batch: dict[str, torch.Tensor], shift: int) -> dict[str, torch.Tensor]:
+    """A training batch with every image randomly shifted: each cue as a whole, each controller frame alone."""
+    if shift <= 0:
+        return batch
+    out = dict(batch)
+    for key in ("cue", "traj_cue", "partial_cue"):
+        if key in out:
+            out[key] = random_shift(out[key], shift)
+    frames = out["frames"]
+    out["frames"] = random_shift(frames.reshape(-1, 1, *frames.shape[2:]), shift).reshape(frames.shape)
+    return out
+
+
+def to_device(batch: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
+    return {k: torch.from_numpy(np.ascontiguousarray(v)).to(device, non_blocking=True) for k, v in batch.items()}

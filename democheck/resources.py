@@ -1,0 +1,44 @@
+"""What ships inside the package: the trained models and the recipes, found with ``importlib.resources``.
+
+    democheck/models/<name>/            config.json, model.safetensors, README.md (the model card)
+    democheck/recipes/synth/<name>.toml suite recipes (``democheck synth NAME``)
+    democheck/recipes/train/<name>.toml training recipes (``democheck train --recipe NAME``)
+
+They are package data, so a wheel installed anywhere finds them; nothing is
+looked up relative to a source checkout.
+"""
+
+from __future__ import annotations
+
+from importlib.resources import files
+from pathlib import Path
+
+DEFAULT_MODEL = "petnet-push-v1"
+RECIPE_KINDS = ("synth", "train")
+
+
+def _folder(*parts: str) -> Path:
+    # Wheels install unpacked, so the package's files are real paths (a zipped install is not supported).
+    return Path(str(files("democheck").joinpath(*parts)))
+
+
+def shipped_model(name: str = DEFAULT_MODEL) -> Path:
+    """The folder of a model shipped with democheck."""
+    return _folder("models", name)
+
+
+def shipped_models() -> list[str]:
+    root = _folder("models")
+    return sorted(p.name for p in root.iterdir() if (p / "config.json").is_file()) if root.is_dir() else []
+
+
+def recipe_file(kind: str, name: str) -> Path:
+    """``recipes/<kind>/<name>.toml`` (it may not exist)."""
+    if kind not in RECIPE_KINDS:
+        raise ValueError(f"recipe kind {kind!r}; kinds: {', '.join(RECIPE_KINDS)}")
+    return _folder("recipes", kind, f"{name}.toml")
+
+
+def recipe_names(kind: str) -> list[str]:
+    root = recipe_file(kind, "x").parent
+    return sorted(p.stem for p in root.glob("*.toml")) if root.is_dir() else []
