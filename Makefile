@@ -1,6 +1,7 @@
 # democheck: set-up, demo and tests on a fresh Debian machine with Python 3.11.
 #   make demo   - install, then run the main job
 #   make test   - install, then run the default (fast) tests
+#   make test-wheel - build the wheel, install it in a fresh venv outside the checkout, run the demo there
 # Override the interpreter with `make PYTHON=python3.12 ...`.
 
 PYTHON ?= python3
@@ -12,7 +13,7 @@ BIN    := $(VENV)/bin
 SYSDEPS := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0
 export MUJOCO_GL ?= egl
 
-.PHONY: setup sysdeps demo test bench clean
+.PHONY: setup sysdeps demo test test-wheel bench clean
 
 # Headless MuJoCo rendering needs EGL and Mesa; install them when missing and when we may.
 sysdeps:
@@ -47,6 +48,10 @@ demo: setup
 
 test: setup
 	$(BIN)/python -m pytest -q
+
+# Slow (about a minute, and it downloads democheck's dependencies into the fresh venv): CI runs it after `test`.
+test-wheel: setup
+	DEMOCHECK_TORCH='$(TORCH)' $(BIN)/python -m pytest -q -m slow benchmarks/test_slow.py -k wheel
 
 bench: setup
 	$(BIN)/python benchmarks/synth_speed.py --repeats 3

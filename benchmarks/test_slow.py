@@ -32,3 +32,40 @@ def test_random_kills_never_leave_an_accepted_half_result():
     res = subprocess.run([sys.executable, str(script), "--kills", "2", "--seed", "1"], capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
     print(res.stdout)
+
+
+@pytest.mark.slow
+def test_the_wheel_installs_whole_and_runs_the_demo_outside_the_checkout(tmp_path):
+    """pip wheel . -> a fresh virtual environment elsewhere -> democheck demo: the models and recipes travel."""
+    import os
+    import subprocess
+    import sys
+    import zipfile
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    wheels = tmp_path / "wheels"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(wheels), str(root)], check=True)
+    wheel = next(wheels.glob("democheck-*.whl"))
+    names = zipfile.ZipFile(wheel).namelist()
+    for need in ("democheck/models/petnet-push-v1/model.safetensors", "democheck/models/tecnet-push-v1/config.json",
+                 "democheck/recipes/synth/push-mini.toml", "democheck/recipes/train/petnet-push-v1.toml"):
+        assert need in names, need
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    pip = [str(venv / "bin" / "python"), "-m", "pip", "install", "-q"]
+    # The CPU build of torch first where it is at hand (as the Makefile does); DEMOCHECK_TORCH=torch lets pip choose.
+    subprocess.run([*pip, os.environ.get("DEMOCHECK_TORCH", "torch==2.13.0")], check=True)
+    subprocess.run([*pip, str(wheel)], check=True)
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    env = {**os.environ, "MUJOCO_GL": "egl", "PYTHONPATH": ""}
+    res = subprocess.run([str(venv / "bin" / "democheck"), "demo", "--out", "demo"], cwd=work, env=env,
+                         capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    summary = json.loads((work / "demo" / "report" / "summary.json").read_text())
+    assert "site-packages" in summary["model"] and str(root) not in summary["model"]  # the installed copy
+    assert sorted(r["rank"] for r in json.loads(json.dumps(summary["top_suspects"])) if r["is_anomaly"]) == list(range(1, 9))
+    res = subprocess.run([str(venv / "bin" / "democheck"), "train", "--help"], cwd=work, env=env, capture_output=True,
+                         text=True)
+    assert res.returncode == 0 and "--recipe" in res.stdout

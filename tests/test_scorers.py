@@ -1,0 +1,90 @@
+"""Every registered scorer keeps the contract and ranks a planted bad demo of the kind it is meant for first.
+
+The dataset is a slice of the pushing suite (8 tasks x 6 demos, the shipped models' camera and episode length)
+with one idle, one random, one occluded and one wrong-object demo planted; each scorer is judged, as bench
+judges it, on the clean demos plus its kind.
+"""
+
+import numpy as np
+import pytest
+
+from democheck.audit.run import gather_evidence
+from democheck.audit.scorers import NEEDS, SCORERS, Evidence, select
+from democheck.data import open_dataset
+from democheck.petnet.checkpoint import load_checkpoint
+from democheck.sim.suite import generate, load_recipe
+
+PLANTS = {"idle": 1, "random": 1, "occluded": 1, "wrong-object": 1}
+# The kind each scorer is for.  ``random`` is the floor, not a detector: CONTROLS holds what it must do instead.
+MEANT_FOR = {
+    "task_uncertainty": "occluded",  # a cue that cannot show the task
+    "task_uncertainty_head": "occluded",
+    "novelty": "occluded",  # images unlike the training cues
+    "consistency": "wrong-object",  # a cue that clearly shows another task
+    "action_error": "random",  # behaviour the controller cannot explain
+    "suspicion": "random",
+    "ocsvm_flag": "occluded",
+    "tecnet_knn": "occluded",  # a cue far from its task's others in the embedding
+    "heuristic": "random",  # what linters see: the motion
+}
+CONTROLS = {"random"}
+
+
+@pytest.fixture(scope="module")
+def evidence(tmp_path_factory) -> Evidence:
+    root = tmp_path_factory.mktemp("planted") / "push"
+    generate(load_recipe("push-mini").with_overrides(tasks=8, demos=6, defects=PLANTS, seed=4), root, workers=1)
+    ds = open_dataset(root)
+    ev = gather_evidence([ds], load_checkpoint(), select(audit=False), "cpu", tecnet=load_checkpoint("tecnet-push-v1"))
+    ev.episodes["label"] = ds.episodes["label"].fillna("clean").to_numpy()
+    return ev
+
+
+def test_every_scorer_has_a_planted_kind_or_is_a_control():
+    assert set(SCORERS) == set(MEANT_FOR) | CONTROLS
+
+
+@pytest.mark.parametrize("name", list(SCORERS))
+def test_scorer_keeps_the_contract(name, evidence):
+    s = SCORERS[name]
+    assert s.higher_is_more_suspect and s.description and "\n" not in s.description and s.short
+    assert set(s.needs) <= set(NEEDS) and s.family in ("democheck", "baseline")
+    assert ("demos" in s.needs) == (s.decode is not None)
+    values = evidence.scores[name]
+    assert values.shape == (len(evidence.episodes),) and not np.isinf(values).any()
+    assert np.isfinite(values).all()  # every task here has several demos: no scorer has a reason for NaN
+    if name in evidence.reasons:
+        assert len(evidence.reasons[name]) == len(values)
+
+
+@pytest.mark.parametrize("name", sorted(MEANT_FOR))
+def test_scorer_ranks_its_planted_demo_first(name, evidence):
+    labels = evidence.episodes["label"].to_numpy()
+    kind = MEANT_FOR[name]
+    values = evidence.scores[name]
+    planted = values[labels == kind]
+    clean = values[labels == "clean"]
+    assert len(planted) == 1
+    if set(np.unique(values)) <= {0.0, 1.0}:  # a flag: the planted demo is flagged, most clean ones are not
+        assert planted[0] == 1 and clean.mean() < 0.1
+    else:
+        assert planted[0] > clean.max(), (name, kind, planted[0], np.sort(clean)[-3:])
+
+
+def test_the_random_scorer_is_a_uniform_draw_that_ignores_the_data(evidence):
+    values = evidence.scores["random"]
+    assert ((0 <= values) & (values < 1)).all()
+    # The same draws for any data of the same size, dealt in ranking order.
+    order = np.lexsort((evidence.episodes["episode_index"].to_numpy(), -evidence.scores["suspicion"]))
+    from democheck.audit.baselines import random_score
+
+    assert np.array_equal(values[order], random_score(len(values), evidence.seed))
+
+
+def test_suspicion_reason_names_the_score_that_ranks_each_demo(evidence):
+    labels = evidence.episodes["label"].to_numpy()
+    reasons = np.asarray(evidence.reasons["suspicion"], dtype=object)
+    assert reasons[labels == "random"][0].startswith("action_error")
+    assert "worst at timestep" in reasons[labels == "random"][0]
+    drivers = {r.split()[0] for r in reasons if r}
+    assert drivers <= {n for n, s in SCORERS.items() if s.in_suspicion}
