@@ -87,7 +87,7 @@ def verdicts(results: dict[str, dict[str, dict[str, float]]], kinds: list[str]) 
 def markdown(summary: dict[str, Any]) -> str:
     res = summary["scorers"]
     kinds = summary["kinds"]
-    lines = [f"# democheck bench", "", f"datasets: {', '.join(summary['datasets'])}  ",
+    lines = ["# democheck bench", "", f"datasets: {', '.join(summary['datasets'])}  ",
              f"model: {summary['model']}" + (f"; TecNets baseline: {summary['tecnet']}" if summary["tecnet"] else ""),
              "", "demos per label: " + ", ".join(f"{k} {n}" for k, n in summary["labels"].items()), ""]
     for metric, title in (("auroc", "AUROC"), ("auprc", "AUPRC"), ("p_at_k", "precision at k (k = number of the kind)")):

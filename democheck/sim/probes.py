@@ -23,7 +23,7 @@ import numpy as np
 from democheck import pool
 from democheck.data import open_dataset
 from democheck.data.demo import Demo
-from democheck.data.lerobot import VideoOptions, write_meta, write_shard
+from democheck.data.lerobot_write import VideoOptions, write_meta, write_shard
 from democheck.data.video import DEFAULT_CRF, DEFAULT_PIX_FMT
 from democheck.errors import DatasetError, DemocheckError
 from democheck.fsutil import atomic_output_dir

@@ -17,7 +17,6 @@ Physics choices (see synth/README.md):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import mujoco
 import numpy as np

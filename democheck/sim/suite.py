@@ -19,7 +19,7 @@ import numpy as np
 
 from democheck import pool, resources
 from democheck.data.demo import Demo
-from democheck.data.lerobot import VideoOptions, write_meta, write_shard
+from democheck.data.lerobot_write import VideoOptions, write_meta, write_shard
 from democheck.errors import RecipeError
 from democheck.fsutil import atomic_output_dir
 from democheck.sim.catalog import CATALOG_VERSION, make_tasks
