@@ -27,7 +27,6 @@ from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.model import encode
 from democheck.petnet.posterior import TaskPosterior
 
-REPORT_FILES = ("scores.parquet", "scores.csv", "summary.json", "suspects.txt", "report.rrd")
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
 
 

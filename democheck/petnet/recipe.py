@@ -33,7 +33,6 @@ KEYS: dict[str, dict[str, str]] = {
     "tecnet": {"margin": "tecnet_margin", "weight": "tecnet_weight"},
     "schedule": {"val_every": "val_every", "ckpt_every": "ckpt_every"},
 }
-EVERYDAY = ("steps", "seed", "device")  # also command-line options of their own
 
 
 class RecipeError(DemocheckError):
