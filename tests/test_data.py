@@ -204,3 +204,15 @@ def test_paths_cannot_escape_the_dataset(tmp_path):
     (tmp_path / "v21/meta/info.json").write_text(json.dumps(info))
     with pytest.raises(DatasetError, match="outside the dataset"):
         open_dataset(tmp_path / "v21")[0]
+
+
+def test_a_video_whose_metadata_is_not_utf8_is_one_clear_error(tmp_path):
+    # Found by the byte-flipping fuzz test: PyAV decodes the container's tags as UTF-8 when it opens the file.
+    path = tmp_path / "v.mp4"
+    with VideoWriter(path, 20, 16) as w:
+        w.write(np.zeros((5, 16, 16, 3), np.uint8))
+    data = bytearray(path.read_bytes())
+    data[data.find(b"Lavf")] = 0xCC  # the encoder tag's first byte: no longer UTF-8
+    path.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match="not valid UTF-8"):
+        read_frames(path, [0], 20)
