@@ -22,7 +22,7 @@ import torch
 from democheck import __version__
 from democheck.audit.bench import bench, markdown as bench_markdown
 from democheck.audit.metrics import by_label
-from democheck.audit.run import audit, check_compatible, finish_summary, suspects, write_tables
+from democheck.audit.run import audit, finish_summary, for_model, suspects, write_tables
 from democheck.audit.scores import reference
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache
@@ -48,13 +48,13 @@ def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: b
 
     ``recipe``: the resolved training recipe ``tc`` came from (``petnet.recipe.load_recipe``), recorded in the
     model's config.json and card."""
-    ds = open_dataset(dataset, camera=camera)
+    ds = open_dataset(dataset, camera=camera, image_size=tc.image_size)
     if ds.episodes.groupby("task").size().max() < 2:
         raise DatasetError(f"{ds.root}: every task has a single demo; training needs two or more per task (a cue and "
                            "a trajectory to imitate); democheck audit can still score these demos with a trained model")
     arrays = build_cache(ds, cache_dir, on_progress=on_decode)
     data: dict[str, Any] = {"path": str(dataset), "episodes": len(ds), "tasks": len(ds.tasks), "camera": ds.camera,
-                            "fps": ds.fps, "format": ds.format}
+                            "camera_shape": list(ds.native_shape), "fps": ds.fps, "format": ds.format}
     suite = Path(dataset) / "meta" / "democheck" / "suite.json"
     if suite.exists():
         data["recipe"] = json.loads(suite.read_text())["recipe"]
@@ -71,8 +71,8 @@ def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: b
 def train_from_recipe(dataset: str | Path, out: str | Path, recipe: str | Path = DEFAULT_RECIPE,
                       sets: list[str] | None = None, **options: Any) -> TrainResult | None:
     """``train_model`` with the ``TrainConfig`` of a training recipe and its ``--set`` overrides; ``options``:
-    the everyday ones (``steps``, ``seed``, ``device``; None = the recipe's) and ``train_model``'s."""
-    everyday = {k: options.pop(k) for k in ("steps", "seed", "device") if k in options}
+    the everyday ones (``steps``, ``seed``, ``device``, ``image_size``; None = the recipe's) and ``train_model``'s."""
+    everyday = {k: options.pop(k) for k in ("steps", "seed", "device", "image_size") if k in options}
     tc, resolved = load_recipe(recipe, sets, **everyday)
     return train_model(dataset, out, tc, recipe=resolved, **options)
 
@@ -86,8 +86,7 @@ def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camer
     refuse_existing(out, force)  # before the decoding, not only when writing
     dev = resolve_device(device)
     ckpt = load_checkpoint(model, device=dev)
-    ds = open_dataset(dataset, camera=camera)
-    check_compatible(ds, ckpt)
+    ds = for_model(open_dataset(dataset, camera=camera), ckpt)
     arrays = build_cache(ds, cache_dir, on_progress=on_decode)
     trained_on = ckpt.meta.get("data", {}).get("fingerprint")
     if trained_on is not None and trained_on != arrays.fingerprint:

@@ -194,13 +194,12 @@ def checkpoint_is_a_torch_file(tmp, ds, model):
     return _audit(ds, tmp, f)
 
 
-def image_size_mismatch(tmp, ds, model):
-    from democheck.sim.suite import generate
-    from tests.conftest import TINY
+def state_width_mismatch(tmp, ds, model):
+    from tests.test_audit import _write_robomimic
 
-    d = tmp / "bigger"
-    generate(replace(TINY, image_size=24, train_tasks=1, val_tasks=0, test_tasks=0, demos_per_task=2), d, workers=1)
-    return _audit(d, tmp, model)
+    path = tmp / "narrow.hdf5"
+    _write_robomimic(path, joints=10)  # 10 joint positions + 3 end-effector: 13 state dimensions, not 17
+    return _audit(path, tmp, model)
 
 
 def path_escape(tmp, ds, model):
@@ -236,7 +235,7 @@ CASES = [
     Case("a pickle where model.safetensors should be", checkpoint_pickle, "not a safetensors file"),
     Case("random bytes where config.json should be", checkpoint_random_bytes, "not valid JSON"),
     Case("a torch pickle file given as the model", checkpoint_is_a_torch_file, "not a file"),
-    Case("image size the model was not trained for", image_size_mismatch, "24x24x3 images"),
+    Case("state width the model was not trained for", state_width_mismatch, "states have 13 dimensions"),
     Case("a ../../ video path in the metadata", path_escape, "points outside the dataset"),
     Case("a NUL character in a metadata path", path_nul, "holds a NUL character"),
 ]

@@ -173,7 +173,7 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
     assert len(pts) == 12
 
 
-def _write_robomimic(path, n=6, T=8, size=16):
+def _write_robomimic(path, n=6, T=8, size=16, joints=14):
     import h5py
 
     rng = np.random.default_rng(0)
@@ -185,7 +185,7 @@ def _write_robomimic(path, n=6, T=8, size=16):
             g.create_dataset("actions", data=rng.uniform(-1, 1, (T, 7)).astype(np.float32))
             g.create_dataset("obs/agentview_image", data=rng.integers(0, 255, (T, size, size, 3), dtype=np.uint8))
             g.create_dataset("obs/robot0_eef_pos", data=rng.normal(size=(T, 3)))
-            g.create_dataset("obs/robot0_joint_pos", data=rng.normal(size=(T, 14)))
+            g.create_dataset("obs/robot0_joint_pos", data=rng.normal(size=(T, joints)))
             if i == 5:
                 g.attrs["task"] = "another task"
         f.create_dataset("mask/train", data=np.array([b"demo_0", b"demo_1", b"demo_2", b"demo_5"]))
@@ -213,10 +213,18 @@ def test_robomimic_reader_and_audit(tiny_model, tmp_path):
 
 
 def test_audit_mismatch_and_fail_on(tiny_dataset, tiny_model, tmp_path):
+    # Another image size is read at the model's, as its training read its own data.
     path = tmp_path / "big.hdf5"
     _write_robomimic(path, size=32)
+    res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "big"), "--model", str(tiny_model),
+                              "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    frames = json.loads((tmp_path / "big" / "summary.json").read_text())["frames"]
+    assert frames == {"camera": [32, 32, 3], "model": [16, 16, 3], "resized": True}
+    path = tmp_path / "narrow.hdf5"
+    _write_robomimic(path, joints=10)
     res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "r"), "--model", str(tiny_model)])
-    assert res.exit_code == 2 and "32x32x3" in res.output and "democheck train" in res.output
+    assert res.exit_code == 2 and "states have 13 dimensions" in res.output and "democheck train" in res.output
     assert "Traceback" not in res.output and not (tmp_path / "r").exists()
     res = runner.invoke(app, ["audit", str(tiny_dataset[0]), "--out", str(tmp_path / "r"), "--model",
                               str(tmp_path / "nope")])

@@ -297,3 +297,68 @@ def test_init_starts_from_a_model_and_the_partial_kl_needs_it(arrays, tmp_path):
     tuned = train(arrays, tmp_path / "ft", TrainConfig(steps=5, seed=0, init=str(tmp_path / "base"),
                                                        regularisers={"partial_kl": 1.0}, **FAST))
     assert np.isfinite(tuned.history[-1]["train_partial_kl"]) and "val_partial_sigma" in tuned.history[-1]
+
+
+def test_no_task_is_left_out_of_training_unless_the_data_names_a_split():
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from democheck.petnet.batches import held_out_demos
+
+    tasks = np.repeat([f"task {i}" for i in range(12)], 10)
+    eps = pd.DataFrame({"episode_index": np.arange(len(tasks)), "task": tasks})
+    arrays = SimpleNamespace(episodes=eps)
+    train_rows, val_rows = task_rows(arrays, "train", 0), task_rows(arrays, "val", 0)
+    assert sorted(train_rows) == sorted(set(tasks))  # every task trained on
+    assert sorted(val_rows) == sorted(set(tasks)) and all(len(r) == 2 for r in val_rows.values())
+    every = np.sort(np.concatenate([*train_rows.values(), *val_rows.values()]))
+    assert np.array_equal(every, np.arange(len(tasks)))  # a partition of the demos
+    assert not held_out_demos(eps.iloc[:5], 0).any()  # a task of 5 demos keeps them all for training
+    one = eps[eps["task"] == "task 0"]  # a single-task dataset still validates on held-out demos
+    assert held_out_demos(one, 0).sum() == 2
+    # A dataset that names its split is split as it says (the user's choice).
+    named = eps.assign(split=np.where(eps["task"] == "task 3", "val", "train"))
+    assert "task 3" not in task_rows(SimpleNamespace(episodes=named), "train", 0)
+
+
+def test_the_model_records_the_tasks_it_learnt(arrays, tmp_path):
+    train(arrays, tmp_path / "m", TrainConfig(steps=2, seed=0, **FAST))
+    tasks = load_checkpoint(tmp_path / "m").meta["data"]["tasks"]
+    assert tasks["trained"] == sorted(task_rows(arrays, "train", 0))
+    assert set(tasks["left_out"]) == set(arrays.episodes["task"]) - set(tasks["trained"])  # the suite's val/test
+    assert tasks["validation"] == "the data's val split"
+
+
+def test_train_at_another_image_size_and_audit_reads_the_same_way(tiny_dataset, tmp_path):
+    from democheck.data.demo import resize_frames
+
+    root, _ = tiny_dataset
+    res = CliRunner().invoke(app, ["train", str(root), "--out", str(tmp_path / "m"), "--steps", "2", "--image-size",
+                                   "8", "--set", "batch_tasks=2", "--set", "timesteps=2", "--device", "cpu",
+                                   "--cache-dir", str(tmp_path / "cache")])
+    assert res.exit_code == 0, res.output
+    ckpt = load_checkpoint(tmp_path / "m")
+    assert ckpt.config.image_size == 8 and ckpt.meta["training"]["image_size"] == 8
+    assert ckpt.meta["data"]["camera_shape"] == [16, 16, 3]
+    ds = open_dataset(root, image_size=8)
+    assert ds.image_shape == (8, 8, 3) and ds[0].frames.shape[1:] == (8, 8, 3)
+    np.testing.assert_array_equal(ds.cue_frames(0), resize_frames(open_dataset(root).cue_frames(0), 8))
+    res = CliRunner().invoke(app, ["audit", str(root), "--out", str(tmp_path / "r"), "--model", str(tmp_path / "m"),
+                                   "--device", "cpu", "--json"])
+    assert res.exit_code == 0, res.output
+    import json
+
+    frames = json.loads((tmp_path / "r" / "summary.json").read_text())["frames"]
+    assert frames == {"camera": [16, 16, 3], "model": [8, 8, 3], "resized": True}
+
+
+def test_resize_frames_averages_areas():
+    from democheck.data.demo import resize_frames
+
+    img = np.zeros((2, 4, 4, 3), np.uint8)
+    img[:, :2, :2] = 200  # one quadrant bright
+    out = resize_frames(img, 2)
+    assert out.shape == (2, 2, 2, 3) and out[0, 0, 0, 0] == 200 and out[0, 1, 1, 0] == 0
+    assert resize_frames(img, 4) is img
+    assert resize_frames(np.zeros((3, 6, 8, 3), np.uint8), 4).shape == (3, 4, 4, 3)  # a wide camera, squeezed

@@ -22,7 +22,7 @@ import pandas as pd
 
 from democheck.audit import scorers as registry
 from democheck.audit.metrics import by_label
-from democheck.audit.run import check_compatible, gather_evidence, score_table
+from democheck.audit.run import for_model, gather_evidence, score_table
 from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
 from democheck.fsutil import to_json
@@ -123,8 +123,8 @@ def bench(sets: list[DemoSet], ckpt: Checkpoint, tecnet: Checkpoint | None = Non
         raise DemocheckError("bench needs at least one labelled dataset")
     if tecnet is not None and tecnet.config.model_type != "tecnet":
         raise DemocheckError(f"{tecnet.path}: --tecnet needs a TecNets model (democheck train --recipe tecnet)")
+    sets = [for_model(ds, ckpt) for ds in sets]
     for ds in sets:
-        check_compatible(ds, ckpt)
         if "label" not in ds.episodes:
             raise DemocheckError(f"{ds.root}: no labels; bench needs labelled demos (democheck synth --defect-rate, "
                                  "democheck probe)")

@@ -30,20 +30,21 @@ from democheck.petnet.posterior import TaskPosterior
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
 
 
-def check_compatible(ds: DemoSet, ckpt: Checkpoint) -> None:
-    """One clear line when the model cannot read this dataset."""
+def for_model(ds: DemoSet, ckpt: Checkpoint) -> DemoSet:
+    """``ds`` as ``ckpt`` reads it -- frames resized to the model's input size, as its training resized them --
+    or one clear line when the model cannot read this dataset at all."""
     cfg = ckpt.config
-    where = f"{ds.root}"
+    train = f"train a model on this data: democheck train {ds.root} --out models/<name>"
     if cfg.model_type != "petnet":
         raise DemocheckError(f"{ckpt.path}: a {cfg.model_type} model has no task uncertainty; audit needs a PETNet model")
-    h, w, c = ds.image_shape
-    if (h, w) != (cfg.image_size, cfg.image_size) or c != 3:
-        raise DemocheckError(f"{where}: camera {ds.camera} gives {h}x{w}x{c} images but {ckpt.path} was trained on "
-                             f"{cfg.image_size}x{cfg.image_size}x3; train a model on this data: "
-                             f"democheck train {ds.root} --out models/<name>")
-    if ds.action_dim != cfg.action_dim:
-        raise DemocheckError(f"{where}: actions have {ds.action_dim} dimensions but {ckpt.path} was trained on "
-                             f"{cfg.action_dim}; train a model on this data: democheck train {ds.root} --out models/<name>")
+    if ds.image_shape[2] != 3:
+        raise DemocheckError(f"{ds.root}: camera {ds.camera} gives {ds.image_shape[2]}-channel images; the model "
+                             f"reads RGB")
+    for what, have, want in (("actions", ds.action_dim, cfg.action_dim), ("states", ds.state_dim, cfg.state_dim)):
+        if have != want:
+            raise DemocheckError(f"{ds.root}: {what} have {have} dimensions but {ckpt.path} was trained on {want}; "
+                                 + train)
+    return ds.resized(cfg.image_size)
 
 
 def cue_posteriors(ds: DemoSet, model, device, batch: int = 256,
@@ -167,7 +168,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint, top: int = 20, device: Any = "cpu", act
           ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Score every demo of ``ds`` with ``ckpt``: the ScoreTable (with the old column ``score`` kept for one
     release) and the summary.  ``actions`` adds the action error (every demo decoded: slower)."""
-    check_compatible(ds, ckpt)
+    ds = for_model(ds, ckpt)
     t = dict(timings or {})
     chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
     ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t)
@@ -181,6 +182,8 @@ def audit(ds: DemoSet, ckpt: Checkpoint, top: int = 20, device: Any = "cpu", act
     shown = [n for n in registry.SCORERS if n in ev.scores]
     summary = {
         "dataset": str(ds.root), "format": ds.format, "camera": ds.camera, "dataset_fingerprint": fingerprint,
+        "frames": {"camera": list(ds.native_shape), "model": list(ds.image_shape),
+                   "resized": ds.image_size is not None},
         "model": str(ckpt.path), "model_trained_on_this_dataset": fingerprint is not None and fingerprint == trained_on,
         "demos": len(table), "tasks": int(table["task"].nunique()), "flagged": int(table["is_anomaly"].sum()),
         "suspects_txt": int(table["is_anomaly"].sum()), "top": top,
@@ -197,7 +200,27 @@ def audit(ds: DemoSet, ckpt: Checkpoint, top: int = 20, device: Any = "cpu", act
     }
     if "label" in table:
         summary["labels"] = table["label"].value_counts().to_dict()
+    summary["warnings"] = warnings(table, ckpt)
     return table, summary
+
+
+def warnings(table: pd.DataFrame, ckpt: Checkpoint) -> list[str]:
+    """What makes this audit's scores less trustworthy, in a sentence each: tasks the model never learnt, and
+    images unlike any it was trained on."""
+    out = []
+    trained = (ckpt.meta.get("data", {}).get("tasks") or {}).get("trained")
+    if trained is not None:
+        new = sorted(set(table["task"]) - set(trained))
+        if new:
+            n = int(table["task"].isin(new).sum())
+            out.append(f"{len(new)} of {table['task'].nunique()} tasks ({n} demos) are not among the "
+                       f"{len(trained)} the model was trained on (e.g. {new[0]!r}): their demos are read by an "
+                       "encoder that never learnt them; compare their scores with care")
+    if "novelty" in table and len(table) and float(np.median(table["novelty"])) > 1:
+        out.append(f"most demos' images are unfamiliar to the model (median novelty "
+                   f"{float(np.median(table['novelty'])):.3g}; 1 = the 90th percentile of its own held-out cues): "
+                   "another camera or scene than it was trained on; train a model on this data")
+    return out
 
 
 def suspects(table: pd.DataFrame) -> list[int]:

@@ -67,6 +67,8 @@ def print_audit(summary: dict, out: Path) -> None:
         cells = ["n/a" if r[c] is None else short(r[c]) for c in cols]
         table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"], *cells, "[red]yes[/]" if r["is_anomaly"] else "")
     console.print(table)
+    for w in summary.get("warnings", []):
+        console.print(f"[yellow]warning:[/] {w}", highlight=False)
     top = summary["top_suspects"][0] if summary["top_suspects"] else None
     if top and top.get("reason"):
         console.print(f"rank 1 (episode {top['episode_index']}): {top['reason']}", highlight=False)

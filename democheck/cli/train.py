@@ -23,6 +23,7 @@ def train(
     recipe: Annotated[str, typer.Option(help=RECIPE_HELP)] = "paper",
     set_: Annotated[Optional[list[str]], typer.Option("--set", help=SET_HELP)] = None,
     steps: Annotated[Optional[int], typer.Option(help="Optimiser steps (default: the recipe's).")] = None,
+    image_size: Annotated[Optional[int], typer.Option(help="Train at this square image size: every frame resized (OpenCV area interpolation), and the audit resizes the same way (default: the recipe's; the paper recipe keeps the camera's size).")] = None,
     seed: Annotated[Optional[int], typer.Option(help="Seed for initialisation, sampling and noise (default: the recipe's, 0).")] = None,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last saved state.")] = False,
@@ -46,6 +47,7 @@ def train(
                 bar.update(step, total, "train", f"loss {report.get('train_loss', float('nan')):.4f}{val['text']}")
 
             result = train_from_recipe(dataset, out, recipe, set_, steps=steps, seed=seed, device=device,
+                                       image_size=image_size,
                                        resume=resume, force=force, camera=camera, cache_dir=cache_dir,
                                        on_decode=bar.callback("decode frames"), on_step=on_step)
     table = Table(title=f"{result.config.model_type} -> {out}", show_header=False)

@@ -11,13 +11,13 @@ __all__ = ["Demo", "DemoSet", "open_dataset"]
 
 
 def open_dataset(path: str | Path, camera: str | None = None, state_key: str | None = None,
-                 action_key: str | None = None, task: str | None = None) -> DemoSet:
+                 action_key: str | None = None, task: str | None = None, image_size: int | None = None) -> DemoSet:
     """Open a dataset, sniffing its format: a LeRobot v3.0/v2.1 folder or a robomimic HDF5 file.
 
     ``camera`` picks the image feature when there are several (full key or the
     part after ``observation.images.``); ``state_key``/``action_key`` override
     the features found in the metadata; ``task`` names the task of a robomimic
-    file that does not name it.
+    file that does not name it; ``image_size`` resizes every frame to that square size (``DemoSet``).
     """
     root = Path(path)
     if not root.exists():
@@ -25,12 +25,13 @@ def open_dataset(path: str | Path, camera: str | None = None, state_key: str | N
     if root.is_file() and root.suffix.lower() in (".hdf5", ".h5"):
         from democheck.data.robomimic import Robomimic
 
-        return DemoSet(Robomimic(root, camera=camera, state_key=state_key, action_key=action_key, task=task))
+        return DemoSet(Robomimic(root, camera=camera, state_key=state_key, action_key=action_key, task=task),
+                       image_size)
     if root.is_dir() and (root / "meta").is_dir() and not (root / "meta" / "info.json").exists():
         raise DatasetError(f"{root / 'meta' / 'info.json'}: missing; a LeRobot dataset describes itself there")
     if root.is_dir() and (root / "meta" / "info.json").exists():
         from democheck.data.lerobot import open_lerobot
 
-        return DemoSet(open_lerobot(root, camera=camera, state_key=state_key, action_key=action_key))
+        return DemoSet(open_lerobot(root, camera=camera, state_key=state_key, action_key=action_key), image_size)
     raise DatasetError(f"{root}: not a dataset democheck knows (a LeRobot folder with meta/info.json, "
                        "or a robomimic .hdf5 file)")

@@ -68,7 +68,7 @@ def build_cache(ds: DemoSet, cache_dir: Path | None = None,
                 on_progress: Callable[[int, int], None] | None = None) -> EpisodeArrays:
     """Decode ``ds`` into the cache (or reuse a complete one) and map it."""
     fp = dataset_fingerprint(ds)
-    folder = (cache_dir or DEFAULT_CACHE) / f"frames-{fp}"
+    folder = (cache_dir or DEFAULT_CACHE) / (f"frames-{fp}" + (f"-{ds.image_size}px" if ds.image_size else ""))
     eps = ds.episodes.reset_index()
     keep = [c for c in ("episode_index", "task", "length", "split", "label") if c in eps]
     eps = eps[keep].sort_values("episode_index").reset_index(drop=True)

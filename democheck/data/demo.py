@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Protocol
 
+import cv2
 import numpy as np
 import pandas as pd
 
@@ -79,11 +80,39 @@ class DemoSource(Protocol):
     def cue_frames(self, episode_index: int) -> np.ndarray: ...
 
 
-class DemoSet:
-    """A lazily loaded collection of Demos, indexed by episode."""
+def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
+    """uint8 frames [..., H, W, 3] as size x size images: OpenCV's area interpolation when shrinking (each output
+    pixel the mean of the pixels it covers), bilinear when enlarging.  A non-square camera is squeezed square."""
+    h, w = frames.shape[-3:-1]
+    if (h, w) == (size, size):
+        return frames
+    flat = frames.reshape(-1, h, w, frames.shape[-1])
+    how = cv2.INTER_AREA if size < max(h, w) else cv2.INTER_LINEAR
+    out = np.stack([cv2.resize(f, (size, size), interpolation=how) for f in flat]) if len(flat) else \
+        np.zeros((0, size, size, frames.shape[-1]), np.uint8)
+    return out.reshape(*frames.shape[:-3], size, size, frames.shape[-1])
 
-    def __init__(self, source: DemoSource):
+
+class DemoSet:
+    """A lazily loaded collection of Demos, indexed by episode.
+
+    ``image_size``: every frame it hands out (demos and cues) is resized to that square size
+    (``resize_frames``), the way a model trained at that size reads them; None keeps the camera's size.
+    """
+
+    def __init__(self, source: DemoSource, image_size: int | None = None):
         self._src = source
+        native = source.image_shape
+        self.image_size = None if image_size is None or native[:2] == (image_size, image_size) else int(image_size)
+
+    def resized(self, image_size: int | None) -> "DemoSet":
+        """The same demos, frames at ``image_size`` (None: the camera's own)."""
+        return DemoSet(self._src, image_size)
+
+    @property
+    def native_shape(self) -> tuple[int, int, int]:
+        """The camera's own frame shape, before any resizing."""
+        return self._src.image_shape
 
     # metadata
     @property
@@ -104,7 +133,10 @@ class DemoSet:
 
     @property
     def image_shape(self) -> tuple[int, int, int]:
-        return self._src.image_shape
+        """The shape of the frames this set hands out."""
+        if self.image_size is None:
+            return self._src.image_shape
+        return self.image_size, self.image_size, self._src.image_shape[2]
 
     @property
     def state_dim(self) -> int:
@@ -133,25 +165,34 @@ class DemoSet:
     def __contains__(self, episode_index: int) -> bool:
         return episode_index in self._src.episodes.index
 
+    def _load(self, episode_index: int) -> Demo:
+        demo = self._src.load(episode_index)
+        if self.image_size is not None:
+            demo.frames = resize_frames(demo.frames, self.image_size)
+        return demo
+
+    def _sized(self, frames: np.ndarray) -> np.ndarray:
+        return frames if self.image_size is None else resize_frames(frames, self.image_size)
+
     def __getitem__(self, episode_index: int) -> Demo:
         if episode_index not in self._src.episodes.index:
             raise KeyError(f"no episode {episode_index} in {self.root}")
-        return self._src.load(int(episode_index))
+        return self._load(int(episode_index))
 
     def __iter__(self) -> Iterator[Demo]:
         for e in self.episode_indices:
-            yield self._src.load(e)
+            yield self._load(e)
 
     def cue_frames(self, episode_index: int) -> np.ndarray:
         """First and last frame of one episode, uint8 [2, H, W, 3], without decoding the rest."""
-        return self._src.cue_frames(int(episode_index))
+        return self._sized(self._src.cue_frames(int(episode_index)))
 
     def cue_frames_many(self, episode_indices: list[int]) -> np.ndarray:
         """Cues of several episodes, uint8 [N, 2, H, W, 3]; opens each video file once where the format allows."""
         many = getattr(self._src, "cues", None)
         if many is not None:
-            return many([int(e) for e in episode_indices])
-        return np.stack([self._src.cue_frames(int(e)) for e in episode_indices])
+            return self._sized(many([int(e) for e in episode_indices]))
+        return self._sized(np.stack([self._src.cue_frames(int(e)) for e in episode_indices]))
 
     def by_task(self) -> dict[str, list[int]]:
         """Episode indices grouped by task string (demos with the same string are the same task)."""
@@ -167,4 +208,4 @@ class DemoSet:
     def __repr__(self) -> str:
         h, w, _ = self.image_shape
         return (f"DemoSet({self.root}, format={self.format}, episodes={len(self)}, tasks={len(self.tasks)}, "
-                f"camera={self.camera}, image={h}x{w})")
+                f"camera={self.camera}, image={h}x{w}" + (" resized" if self.image_size else "") + ")")

@@ -87,6 +87,8 @@ def read_frames(path: str | Path, indices: list[int] | np.ndarray, fps: float) -
     out: dict[int, np.ndarray] = {}
     try:
         with av.open(str(path)) as container:
+            if not container.streams.video:
+                raise DatasetError(f"{path}: unreadable video (no video stream in it)")
             stream = container.streams.video[0]
             # Frame threading restarts its threads at every seek: 8x slower for sparse reads of small frames.
             stream.thread_type = "NONE"

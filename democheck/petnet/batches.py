@@ -15,19 +15,36 @@ from democheck.data.cache import EpisodeArrays
 from democheck.petnet.checkpoint import Normalisation
 
 
-def task_rows(arrays: EpisodeArrays, split: str, seed: int) -> dict[str, np.ndarray]:
-    """Rows of each task with at least two demos, in the given split.
+VAL_SHARE = 0.1  # of each task's demos, held out for validation when the data names no split
+VAL_MIN_TASK = 6  # demos a task needs to give some: at least 2 held out, at least 4 left to train on
 
-    Datasets without splits use every task for training and hold out 10% of
-    tasks (at least one, when there are ten or more) for validation.
+
+def held_out_demos(episodes, seed: int) -> np.ndarray:
+    """Which rows of ``episodes`` (episode_index, task) validation holds out when the data names no split: a tenth
+    of each task's demos, at least 2 (a held-out cue needs a held-out trajectory), from every task with at least
+    ``VAL_MIN_TASK`` demos.  Every task keeps most of its demos for training: no task is left out."""
+    held = np.zeros(len(episodes), bool)
+    rng = np.random.default_rng([seed, 7])
+    for _, pos in sorted(episodes.groupby("task").indices.items()):
+        if len(pos) >= VAL_MIN_TASK:
+            k = max(2, int(round(VAL_SHARE * len(pos))))
+            held[rng.choice(np.sort(pos), size=k, replace=False)] = True
+    return held
+
+
+def task_rows(arrays: EpisodeArrays, split: str, seed: int) -> dict[str, np.ndarray]:
+    """Rows of each task with at least two demos, in the given split (``train`` or ``val``).
+
+    A dataset that names its splits (a democheck suite's sidecar) is split as it says: a task of its val or
+    test split is left out of training because the data says so.  A dataset that names none holds out demos
+    within every task (``held_out_demos``), so every task is trained on.
     """
     eps = arrays.episodes
     if "split" in eps and eps["split"].notna().any():
         sel = eps[eps["split"] == split]
     else:
-        tasks = np.array(sorted(eps["task"].unique()))
-        held = set(np.random.default_rng([seed, 7]).permutation(tasks)[: len(tasks) // 10]) if len(tasks) >= 10 else set()
-        sel = eps[eps["task"].isin(held)] if split == "val" else eps[~eps["task"].isin(held)] if split == "train" else eps[:0]
+        held = held_out_demos(eps, seed)
+        sel = eps[held] if split == "val" else eps[~held] if split == "train" else eps[:0]
     groups = {t: np.asarray(idx) for t, idx in sel.groupby("task").indices.items()} if len(sel) else {}
     # groupby().indices are positions within ``sel``; map them back to rows of ``arrays``.
     return {t: sel.index.to_numpy()[pos] for t, pos in groups.items() if len(pos) >= 2}

@@ -29,7 +29,7 @@ KEYS: dict[str, dict[str, str]] = {
     "": {"model_type": "model_type", "seed": "seed"},
     "optim": {"steps": "steps", "batch_tasks": "batch_tasks", "timesteps": "timesteps", "lr": "lr"},
     "batches": {"hard_negatives": "hard_negatives", "shift": "shift"},
-    "model": {"keypoints": "keypoints", "novelty": "novelty", "init": "init"},
+    "model": {"keypoints": "keypoints", "novelty": "novelty", "init": "init", "image_size": "image_size"},
     "tecnet": {"margin": "tecnet_margin", "weight": "tecnet_weight"},
     "schedule": {"val_every": "val_every", "ckpt_every": "ckpt_every"},
 }
@@ -120,6 +120,8 @@ def load_recipe(name_or_path: str | Path = DEFAULT_RECIPE, sets: list[str] | Non
     values.update({k: v for k, v in everyday.items() if v is not None})
     if values.get("init") == "":
         values["init"] = None
+    if values.get("image_size") == 0:  # 0 in a recipe: the camera's own size
+        values["image_size"] = None
     known = {f.name for f in fields(TrainConfig)}
     bad = sorted(set(values) - known)
     if bad:
@@ -141,7 +143,7 @@ def _check_types(tc: TrainConfig, path: Path) -> None:
     for f in fields(TrainConfig):
         v = getattr(tc, f.name)
         default = getattr(TrainConfig(), f.name)
-        if f.name in ("init", "regularisers") or v is None:
+        if f.name in ("init", "regularisers", "image_size") or v is None:
             continue
         ok = isinstance(v, type(default)) or (isinstance(default, float) and isinstance(v, int))
         if not ok or (isinstance(default, int) and isinstance(v, bool) and not isinstance(default, bool)):

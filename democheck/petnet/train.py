@@ -56,6 +56,9 @@ class TrainConfig:
     # Random-shift augmentation of training images (``batches.random_shift``): up to this many pixels each way.
     shift: int = 0
     keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
+    # The model's input size: every frame resized to image_size x image_size (``data.resize_frames``) for training
+    # and, by the audit, for scoring; None: the camera's own size.
+    image_size: int | None = None
     # PETNet: after training, fit the novelty density that adds the epistemic part of the task variance
     # (``democheck.petnet.novelty``); off leaves the paper's variance head alone.
     novelty: bool = True
@@ -81,6 +84,8 @@ class TrainConfig:
             raise DemocheckError(f"model_type must be petnet or tecnet, not {self.model_type!r}")
         if min(self.steps, self.batch_tasks, self.timesteps, self.val_every, self.ckpt_every) < 1:
             raise DemocheckError("steps, batch_tasks, timesteps, val_every and ckpt_every must be positive")
+        if self.image_size is not None and not 8 <= self.image_size <= 512:
+            raise DemocheckError(f"image_size must be between 8 and 512 pixels, not {self.image_size}")
         if self.shift < 0:
             raise DemocheckError(f"shift must be 0 or more pixels, not {self.shift}")
         if not self.lr >= 0:
@@ -175,6 +180,7 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
         raise DemocheckError("training needs at least one task with two or more demos (a cue and a trajectory); "
                              "this dataset has none")
     all_train = np.concatenate(list(train_rows.values()))
+    left_out = sorted(set(arrays.episodes["task"]) - set(train_rows))
     h = arrays.frames.shape[1]
     cfg = ModelConfig(model_type=tc.model_type, image_size=h, state_dim=arrays.state.shape[1],
                       action_dim=arrays.actions.shape[1], keypoints=tc.keypoints)
@@ -241,7 +247,10 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
         extra = finish_petnet(model, arrays, all_train, held, tc.seed, device, tc.novelty, reference)
         metrics["task_sigma"] = extra.pop("task_sigma")
         meta.update(extra)
-    meta = {**meta, "data": {**meta.get("data", {}), "fingerprint": arrays.fingerprint},
+    # Which tasks the model learnt: the audit warns about the others, the card names them.
+    tasks = {"trained": sorted(train_rows), "left_out": left_out, "validation": "the data's val split" if "split" in
+             arrays.episodes and arrays.episodes["split"].notna().any() else "held-out demos of every task"}
+    meta = {**meta, "data": {**meta.get("data", {}), "fingerprint": arrays.fingerprint, "tasks": tasks},
             "training": asdict(tc), "metrics": metrics, "history": history}
     with atomic_output_dir(out, force=True) as tmp:
         save_checkpoint(tmp, model, cfg, norm, meta, card(meta) if card else None)
