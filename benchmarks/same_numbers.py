@@ -59,7 +59,7 @@ def _table(a: pd.DataFrame, b: pd.DataFrame, where: str) -> list[str]:
     if len(a) != len(b):
         return [f"{where}: {len(a)} rows, now {len(b)}"]
     out = []
-    # Old benches held "sigma" (the scalar) beside "sigma_vec"; now "sigma" is the vector everywhere.
+    # Old benches and evals held "sigma" (the scalar) beside "sigma_vec"; now "sigma" is the vector everywhere.
     moved = "sigma_vec" in a and "sigma_vec" not in b
     for col in (c for c in a.columns if c not in SELF):
         new = RENAMED.get(col, col) if col not in b or (moved and col == "sigma") else col

@@ -1,6 +1,6 @@
 """Does a model's task uncertainty grow when a cue shows less of its task?
 
-    python benchmarks/sigma_by_cut.py data/push-v1 models/petnet-push-v1 [more models]
+    python benchmarks/sigma_by_cut.py data/push-v1 petnet-push-v1 [more model folders]
 
 For the val demos of the dataset, the cue's last frame is taken at step t instead of the end
 (``EpisodeArrays.cue(rows, end=t)``); prints the mean task standard deviation for each t.  A model

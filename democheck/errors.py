@@ -15,4 +15,4 @@ class DatasetError(DemocheckError):
 
 
 class RecipeError(DemocheckError):
-    """A suite recipe that does not exist or does not parse."""
+    """A suite or training recipe that does not exist, does not parse, or names an unknown key."""

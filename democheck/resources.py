@@ -32,13 +32,18 @@ def shipped_models() -> list[str]:
     return sorted(p.name for p in root.iterdir() if (p / "config.json").is_file()) if root.is_dir() else []
 
 
-def recipe_file(kind: str, name: str) -> Path:
-    """``recipes/<kind>/<name>.toml`` (it may not exist)."""
+def recipe_dir(kind: str) -> Path:
+    """``recipes/<kind>/``: ``synth`` or ``train``."""
     if kind not in RECIPE_KINDS:
         raise ValueError(f"recipe kind {kind!r}; kinds: {', '.join(RECIPE_KINDS)}")
-    return _folder("recipes", kind, f"{name}.toml")
+    return _folder("recipes", kind)
+
+
+def recipe_file(kind: str, name: str) -> Path:
+    """``recipes/<kind>/<name>.toml`` (it may not exist)."""
+    return recipe_dir(kind) / f"{name}.toml"
 
 
 def recipe_names(kind: str) -> list[str]:
-    root = recipe_file(kind, "x").parent
+    root = recipe_dir(kind)
     return sorted(p.stem for p in root.glob("*.toml")) if root.is_dir() else []

@@ -1,9 +1,12 @@
-"""The library functions behind the CLI commands: each joins the parts one command needs and writes its folder.
+"""The library functions behind the CLI commands that join several parts: open the data, load the model, call the
+parts, write the command's output folder.
 
-The parts compute (``audit`` scores, ``evaluate`` rolls out, ``petnet``
-trains); only here are results written into a command's output folder,
-atomically, with the Rerun recording ``viz`` makes.  The CLI parses, calls
-one of these, and prints.
+``audit``, ``bench`` and ``eval`` compute and return their results; their
+folders (tables, JSON, the Rerun recording ``viz`` makes) are written here,
+atomically.  Commands that belong to one part -- ``synth`` and ``probe``
+(sim), ``train``'s loop (petnet), ``dagger`` (evaluate) -- write their own
+folder through ``fsutil.atomic_output_dir``.  The CLI parses, calls one
+function, and prints.
 """
 
 from __future__ import annotations
@@ -158,21 +161,42 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
     return summary
 
 
+def read_labels(path: str | Path, ds) -> dict[int, str]:
+    """``episode_index,label`` rows of a CSV file (unlisted episodes are clean), checked against ``ds``."""
+    path = Path(path)
+    try:
+        table = pd.read_csv(path, dtype={"label": str})
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: not a readable CSV file ({str(exc).splitlines()[0]})") from None
+    if not {"episode_index", "label"} <= set(table.columns):
+        raise DatasetError(f"{path}: needs the columns episode_index,label (has {', '.join(map(str, table.columns))})")
+    index = pd.to_numeric(table["episode_index"], errors="coerce")
+    if index.isna().any() or (index % 1 != 0).any():
+        raise DatasetError(f"{path}: episode_index must be whole numbers (row {int(np.argmax(index.isna() | (index % 1 != 0))) + 2})")
+    unknown = sorted(set(index.astype(int)) - set(ds.episode_indices))
+    if unknown:
+        raise DatasetError(f"{path}: episode {unknown[0]} is not in {ds.root}" + (f" (and {len(unknown) - 1} more)"
+                                                                              if len(unknown) > 1 else ""))
+    return dict(zip(index.astype(int), table["label"].fillna("clean").astype(str)))
+
+
 def bench_datasets(datasets: list[str | Path], out: str | Path, model: str | Path | None = None,
                    tecnet: str | Path | None = None, device: str = "auto", seed: int = 0, force: bool = False,
-                   camera: str | None = None,
+                   camera: str | None = None, labels: list[str | Path] | None = None,
                    on_progress: Callable[[str, int, int], None] | None = None) -> dict[str, Any]:
     """Open the labelled ``datasets`` and the models, run ``audit.bench.bench`` and write bench.json, bench.md,
-    bench.rrd and scores.parquet into ``out`` (atomically); returns the summary."""
+    bench.rrd and scores.parquet into ``out`` (atomically); returns the summary.  ``labels``: one CSV file
+    (episode_index,label) per dataset, for data without democheck's labels."""
     out = Path(out)
     refuse_existing(out, force)
-    if not datasets:
-        raise DemocheckError("bench needs at least one labelled dataset")
     dev = resolve_device(device)
     ckpt = load_checkpoint(model, device=dev)
     tec = load_checkpoint(tecnet, device=dev) if tecnet is not None else None
     sets = [open_dataset(p, camera=camera) for p in datasets]
-    table, summary = bench(sets, ckpt, tecnet=tec, device=dev, seed=seed, on_progress=on_progress)
+    if labels and len(labels) != len(sets):
+        raise DemocheckError(f"{len(labels)} --labels files for {len(sets)} datasets; give one per dataset, in order")
+    read = [read_labels(p, ds) for p, ds in zip(labels, sets)] if labels else None
+    table, summary = bench(sets, ckpt, tecnet=tec, device=dev, seed=seed, on_progress=on_progress, labels=read)
     with atomic_output_dir(out, force=force) as tmp:
         table.to_parquet(tmp / "scores.parquet", index=False)
         write_json(tmp / "bench.json", summary)

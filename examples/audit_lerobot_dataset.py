@@ -18,7 +18,7 @@ from democheck.workflows import audit_dataset
 
 ap = argparse.ArgumentParser()
 ap.add_argument("dataset", type=Path)
-ap.add_argument("--model", type=Path, default=None, help="default: the shipped models/petnet-push-v1")
+ap.add_argument("--model", type=Path, default=None, help="default: the shipped petnet-push-v1")
 ap.add_argument("--out", type=Path, default=Path("report"))
 ap.add_argument("--camera", default=None)
 args = ap.parse_args()

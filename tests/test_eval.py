@@ -79,7 +79,7 @@ def test_eval_cli_end_to_end_on_a_tiny_suite(tiny_dataset, tiny_model, tmp_path)
         assert key in doc
     assert doc["flagged"]["n"] + doc["unflagged"]["n"] == doc["n_trials"]
     trials = pd.read_parquet(out / "trials.parquet")
-    assert len(trials) == doc["n_trials"] and trials["sigma"].gt(0).all()
+    assert len(trials) == doc["n_trials"] and trials["task_uncertainty"].gt(0).all()
     assert doc["success_rate"] == pytest.approx(trials["success"].mean())
     assert "democheck eval" in (out / "eval.md").read_text()
     from tests.test_audit import _read_rrd

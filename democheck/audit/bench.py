@@ -115,21 +115,31 @@ def markdown(summary: dict[str, Any]) -> str:
 
 
 def bench(sets: list[DemoSet], ckpt: Checkpoint, tecnet: Checkpoint | None = None, device: Any = "cpu",
-          seed: int = 0, on_progress: Callable[[str, int, int], None] | None = None
-          ) -> tuple[pd.DataFrame, dict[str, Any]]:
+          seed: int = 0, on_progress: Callable[[str, int, int], None] | None = None,
+          labels: list[dict[int, str]] | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Score every demo of the pooled labelled datasets ``sets`` with every registered scorer the evidence can
-    feed; returns the scores table (one row per demo, ranked) and the summary (bench.json)."""
+    feed; returns the scores table (one row per demo, ranked) and the summary (bench.json).
+
+    ``labels``: per dataset, episode index -> label (unlisted: clean), for data without democheck's sidecar
+    labels; None: the sidecar's."""
     if not sets:
         raise DemocheckError("bench needs at least one labelled dataset")
     if tecnet is not None and tecnet.config.model_type != "tecnet":
         raise DemocheckError(f"{tecnet.path}: --tecnet needs a TecNets model (democheck train --recipe tecnet)")
     sets = [for_model(ds, ckpt) for ds in sets]
-    for ds in sets:
-        if "label" not in ds.episodes:
+    if labels is not None and len(labels) != len(sets):
+        raise DemocheckError(f"{len(labels)} label files for {len(sets)} datasets; give one --labels per dataset")
+    parts = []
+    for i, ds in enumerate(sets):
+        part = ds.episodes.reset_index().assign(dataset=str(ds.root))
+        if labels is not None:
+            part["label"] = part["episode_index"].map(labels[i]).fillna("clean")
+        elif "label" not in part:
             raise DemocheckError(f"{ds.root}: no labels; bench needs labelled demos (democheck synth --defect-rate, "
-                                 "democheck probe)")
+                                 "democheck probe, or --labels FILE.csv with episode_index,label)")
+        parts.append(part)
     t0 = time.perf_counter()
-    episodes = pd.concat([ds.episodes.reset_index().assign(dataset=str(ds.root)) for ds in sets], ignore_index=True)
+    episodes = pd.concat(parts, ignore_index=True)
     episodes["label"] = episodes["label"].fillna("clean").astype(str)
     episodes = episodes.rename(columns={"episode_index": "source_index"})
     episodes.insert(0, "episode_index", np.arange(len(episodes)))  # pooled id: unique across datasets

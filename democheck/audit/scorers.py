@@ -55,6 +55,13 @@ class Evidence:
     scores: dict[str, np.ndarray] = field(default_factory=dict)  # computed so far, by scorer name
     reasons: dict[str, list[str]] = field(default_factory=dict)
     seed: int = 0
+    _z: np.ndarray | None = field(default=None, repr=False)
+
+    def task_variables(self) -> np.ndarray:
+        """``controller_z`` of every demo (what its actions are judged under), computed once."""
+        if self._z is None:
+            self._z = controller_z(self.posterior, self.tasks)
+        return self._z
 
     @property
     def tasks(self) -> np.ndarray:
@@ -199,7 +206,7 @@ def _action_error(ev: Evidence) -> Scores:
 
 def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors:
     # Each demo is judged under its task across all the evidence (a bench pools datasets).
-    return ActionErrors(ev.model, controller_z(ev.posterior, ev.tasks)[rows], device)
+    return ActionErrors(ev.model, ev.task_variables()[rows], device)
 
 
 def _suspicion(ev: Evidence) -> Scores:
@@ -287,7 +294,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
 )}
 
 # Column names before the registry, readable for one release: the audit also writes ``score``.
-RENAMED = {"score": "task_uncertainty", "sigma_head": "task_uncertainty_head"}
+RENAMED = {"score": "task_uncertainty"}
 
 
 def select(names: list[str] | None = None, audit: bool = True) -> list[Scorer]:

@@ -21,8 +21,9 @@ Every score is one number per demo, higher = more suspect:
   own controller, told the task by the other demos of the same task (their
   product-of-Gaussians mean; the demo's own mu for a task's only demo),
   explains what the demo did: the mean squared error, in normalised action
-  units, between the demo's actions and the controller's at ``ACTION_STEPS``
-  evenly spaced timesteps.  The cue sees two frames; this sees the
+  units, between the demo's actions and the controller's at
+  ``scorers.ACTION_STEPS`` evenly spaced timesteps (computed by
+  ``scorers.ActionErrors`` in the audit's decoding pass).  The cue sees two frames; this sees the
   behaviour, so it catches an arm that never moved or flailed, or stopped
   half-way, whatever its first and last frames look like.
 - ``suspicion``: the largest of those scores after robust standardisation
@@ -90,10 +91,6 @@ def standardised(scores: dict[str, np.ndarray]) -> np.ndarray:
     z = np.column_stack([standardise(x, robust_stats(x)) for x in scores.values()])
     return np.where(np.isfinite(z), z, -np.inf)
 
-
-def suspicion(scores: dict[str, np.ndarray]) -> np.ndarray:
-    """The largest robust z-score of each demo over the scores it has (NaN ones, e.g. a lone demo's, skipped)."""
-    return np.nanmax(standardised(scores), axis=1)
 
 
 # ---------------------------------------------------------------------------

@@ -24,6 +24,7 @@ def bench(
     seed: Annotated[int, typer.Option(help="Seed of the random scorer and of Figure 5B's cue draws.")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     camera: Annotated[Optional[str], typer.Option(help="Image feature to use when there are several.")] = None,
+    labels: Annotated[Optional[list[Path]], typer.Option("--labels", help="Your own labels: a CSV file of episode_index,label (episodes it does not list are clean), one per dataset in the order given; without it, the labels democheck's synth and probe write.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:
     """Measure every registered scorer (PETNet's and the baselines') on labelled bad demos: AUROC, AUPRC, precision at k."""
@@ -33,7 +34,7 @@ def bench(
 
         with Bar("bench", "demos") as bar:
             summary = bench_datasets(datasets, out, model=model, tecnet=tecnet, device=device, seed=seed, force=force,
-                                     camera=camera, on_progress=lambda stage, d, n: bar.update(d, n, stage))
+                                     camera=camera, labels=labels, on_progress=lambda stage, d, n: bar.update(d, n, stage))
     table = Table(title="AUROC, each kind versus clean (bench.md: AUPRC, precision at k, scorers explained)")
     table.add_column("kind", no_wrap=True)
     for name in summary["scorers"]:

@@ -47,8 +47,8 @@ class Trial:
     seed: int
     cues: list[int]
     z: list[float] = field(default_factory=list)
-    sigma: float = float("nan")
-    sigma_vec: list[float] = field(default_factory=list)
+    task_uncertainty: float = float("nan")  # of the cue(s): the mean of ``sigma``
+    sigma: list[float] = field(default_factory=list)  # the task standard deviation per dimension
     ocsvm_margin: float = float("nan")
     flagged: bool = False
     keep_frames: bool = False
@@ -114,7 +114,7 @@ def infer_tasks(ds: DemoSet, ckpt: Checkpoint, trials: list[Trial], device) -> N
         z, v = cues.combined()
         t.z = z.tolist()
         sig = np.sqrt(v)
-        t.sigma, t.sigma_vec = float(sig.mean()), sig.tolist()
+        t.task_uncertainty, t.sigma = float(sig.mean()), sig.tolist()
         if ref:
             t.ocsvm_margin = float(ocsvm_margin(ref, sig[None])[0])
             t.flagged = t.ocsvm_margin < 0
@@ -214,7 +214,7 @@ def meta_test(ckpt: Checkpoint, ds: DemoSet, split: str = "test", trials: int = 
         "shots": shots, "trials": trials, "seed": seed, "tasks": len(by_task), "n_trials": len(plan),
         "model_success": rate(success), "expert": rate(table["expert_success"].to_numpy(bool)),
         "per_task": {task: {"success": int(g["success"].sum()), "expert": int(g["expert_success"].sum()),
-                            "trials": int(len(g)), "cue_sigma": float(g["sigma"].mean())}
+                            "trials": int(len(g)), "cue_sigma": float(g["task_uncertainty"].mean())}
                      for task, g in table.groupby("task")},
         "wall_s": round(wall, 2), "rollouts_per_s": round(len(plan) / wall, 2),
     }
@@ -222,6 +222,6 @@ def meta_test(ckpt: Checkpoint, ds: DemoSet, split: str = "test", trials: int = 
     if ckpt.config.model_type == "petnet":
         flagged = table["flagged"].to_numpy(bool)
         summary["flagged"], summary["unflagged"] = rate(success[flagged]), rate(success[~flagged])
-        summary["sigma_quartiles"] = sigma_quartiles(table["sigma"].to_numpy(float), success)
+        summary["sigma_quartiles"] = sigma_quartiles(table["task_uncertainty"].to_numpy(float), success)
     kept = [(t, res[(t.task, t.trial)]) for t in plan if "frames" in res[(t.task, t.trial)]]
     return MetaTest(to_json(summary), table, kept)

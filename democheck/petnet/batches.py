@@ -9,6 +9,7 @@ frame cache).  ``augment`` shifts training images at random.
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import torch
 
 from democheck.data.cache import EpisodeArrays
@@ -75,6 +76,10 @@ class Batches:
             if groups and t in groups:
                 members.setdefault(groups[t], []).append(i)
         self.groups = [m for _, m in sorted(members.items()) if len(m) > 1]
+        # Each row's task as a number: a batch says which of its items share a task (there may be fewer tasks
+        # than items), so that the task-matching loss does not call a demo of the same task a wrong match.
+        self.task_ids = pd.factorize(arrays.episodes["task"])[0].astype(np.int64) if len(arrays.episodes) else \
+            np.zeros(0, np.int64)
 
     def _pick_tasks(self, rng: np.random.Generator, n_tasks: int) -> np.ndarray:
         if not self.groups:
@@ -114,6 +119,7 @@ class Batches:
         flat = idx.reshape(-1)
         extra = {} if cue_ends is None else {"partial_cue": a.cue(cue_rows, end=cue_ends)}
         return {**extra,
+            "task": self.task_ids[cue_rows],
             "cue": a.cue(cue_rows),
             "traj_cue": a.cue(traj_rows),
             "frames": a.frames[flat].reshape(*idx.shape, *a.frames.shape[1:]),

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from democheck import resources
-from democheck.errors import DemocheckError
+from democheck.errors import RecipeError
 from democheck.petnet.regularisers import REGULARISERS
 from democheck.petnet.train import TrainConfig
 
@@ -33,10 +33,6 @@ KEYS: dict[str, dict[str, str]] = {
     "tecnet": {"margin": "tecnet_margin", "weight": "tecnet_weight"},
     "schedule": {"val_every": "val_every", "ckpt_every": "ckpt_every"},
 }
-
-
-class RecipeError(DemocheckError):
-    """A training recipe that does not exist, does not parse, or names an unknown key."""
 
 
 def recipe_path(name_or_path: str | Path) -> Path:
@@ -105,9 +101,12 @@ def load_recipe(name_or_path: str | Path = DEFAULT_RECIPE, sets: list[str] | Non
             for name, v in value.items():
                 _field_of(f"{key}.{name}", str(path))
                 values[KEYS[key][name]] = v
-        else:
-            _field_of(key, str(path))
-            values[KEYS[""][key]] = value
+        else:  # a key at the top: its own, or a section's written without the section
+            section, name = _field_of(key, str(path))
+            if section == "regularisers":
+                regs[name] = value
+            else:
+                values[KEYS[section][name]] = value
     for item in sets or []:
         key, eq, text = item.partition("=")
         if not eq or not key.strip():
@@ -126,19 +125,20 @@ def load_recipe(name_or_path: str | Path = DEFAULT_RECIPE, sets: list[str] | Non
     bad = sorted(set(values) - known)
     if bad:
         raise RecipeError(f"not training options: {', '.join(bad)}")
+    where = f"{path}" + (" with --set " + " ".join(sets) if sets else "")
     try:
         tc = TrainConfig(**values, regularisers={k: float(v) for k, v in regs.items() if v})
     except (TypeError, ValueError) as exc:
-        raise RecipeError(f"{path}: {exc}") from None
-    _check_types(tc, path)
+        raise RecipeError(f"{where}: {exc}") from None
+    _check_types(tc, where)
     tc.check()
     resolved = {"name": doc.get("name", path.stem), "description": doc.get("description", ""),
-                "source": str(path) if path.parent != resources.recipe_file("train", "x").parent else path.stem,
+                "source": str(path) if path.parent != resources.recipe_dir("train") else path.stem,
                 "set": list(sets or []), "config": asdict(tc)}
     return tc, resolved
 
 
-def _check_types(tc: TrainConfig, path: Path) -> None:
+def _check_types(tc: TrainConfig, where: str) -> None:
     """A recipe value of the wrong type is one clear line, not a failure deep in the loop."""
     for f in fields(TrainConfig):
         v = getattr(tc, f.name)
@@ -147,7 +147,7 @@ def _check_types(tc: TrainConfig, path: Path) -> None:
             continue
         ok = isinstance(v, type(default)) or (isinstance(default, float) and isinstance(v, int))
         if not ok or (isinstance(default, int) and isinstance(v, bool) and not isinstance(default, bool)):
-            raise RecipeError(f"{path}: {f.name} must be {type(default).__name__}, not {v!r}")
+            raise RecipeError(f"{where}: {f.name} must be {type(default).__name__}, not {v!r}")
     if isinstance(tc.lr, int):
         tc.lr = float(tc.lr)
 

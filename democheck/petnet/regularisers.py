@@ -24,16 +24,22 @@ from democheck.petnet.model import cue_input, hinge_embedding_loss, kl_diag
 from democheck.petnet.posterior import product_of_gaussians
 
 
-def task_matching_loss(mu_c: torch.Tensor, var_c: torch.Tensor, mu_t: torch.Tensor, var_t: torch.Tensor
-                       ) -> torch.Tensor:
+def task_matching_loss(mu_c: torch.Tensor, var_c: torch.Tensor, mu_t: torch.Tensor, var_t: torch.Tensor,
+                       task: torch.Tensor | None = None) -> torch.Tensor:
     """Cross-entropy of finding each cue's own task among the batch's tasks by Gaussian likelihood.
 
     Candidate j's task mean is scored under cue i's posterior widened by j's own variance,
     log N(mu_t_j; mu_c_i, var_c_i + var_t_j).  The variance gets a direct gradient: a cue whose mean lands
-    among the wrong tasks lowers its loss by widening, a cue that pins its task down by narrowing.
+    among the wrong tasks lowers its loss by widening, a cue that pins its task down by narrowing.  ``task``
+    ([B] task ids) leaves out the candidates of the cue's own task other than its match: a batch of fewer
+    tasks than items (a dataset of few tasks) holds no wrong match among them, and one task holds none at all.
     """
     v = var_c[:, None] + var_t[None]  # [B, B, z]
     logp = -0.5 * (((mu_c[:, None] - mu_t[None]) ** 2) / v + torch.log(v)).sum(-1)
+    if task is not None:
+        same = (task[:, None] == task[None]) & ~torch.eye(len(task), dtype=torch.bool, device=task.device)
+        if same.any():
+            logp = logp.masked_fill(same, float("-inf"))
     return F.cross_entropy(logp, torch.arange(len(mu_c), device=mu_c.device))
 
 
@@ -93,12 +99,12 @@ def _kl_np(s: Step) -> dict[str, torch.Tensor]:
 
 
 def _task_matching(s: Step) -> dict[str, torch.Tensor]:
-    return {"task_matching": task_matching_loss(s.mu, s.var, *s.posterior("traj_cue"))}
+    return {"task_matching": task_matching_loss(s.mu, s.var, *s.posterior("traj_cue"), s.batch.get("task"))}
 
 
 def _partial_cue(s: Step) -> dict[str, torch.Tensor]:
     mu_p, var_p = s.posterior("partial_cue")
-    return {"partial_cue": task_matching_loss(mu_p, var_p, *s.posterior("traj_cue")),
+    return {"partial_cue": task_matching_loss(mu_p, var_p, *s.posterior("traj_cue"), s.batch.get("task")),
             "partial_sigma": var_p.sqrt().mean()}
 
 

@@ -1,4 +1,4 @@
-"""Suite recipes (``synth/*.toml``) and generation of a suite as a LeRobot v3 dataset.
+"""Suite recipes (``democheck/recipes/synth/*.toml``) and generation of a suite as a LeRobot v3 dataset.
 
 Generation runs in ``spawn`` worker processes (each holds its own GL
 context); each worker writes whole data/video files for a contiguous range of

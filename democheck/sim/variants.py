@@ -81,7 +81,6 @@ class GaveUpPolicy:
     """The expert, until the target has covered half its way to the goal; then hands off the controls."""
 
     def __init__(self, env, seed: int = 0):
-
         self.env, self.expert = env, ScriptedExpert(env)
         self.start: float | None = None
         self.stopped = False
@@ -98,7 +97,6 @@ class BothObjectsPolicy:
     """Pushes the distractor towards the goal first, then the target (both objects end up moved)."""
 
     def __init__(self, env, seed: int = 0, switch_step: int = 50):
-
         self.env, self.switch_step = env, switch_step
         self.first, self.second = ScriptedExpert(env, role="distractor"), ScriptedExpert(env, role="target")
         self.t, self.switched = 0, False
@@ -118,7 +116,6 @@ def scene_options(kind: str) -> dict[str, bool]:
 
 def make_policy(kind: str, env, seed: int, actions: np.ndarray | None = None) -> Any:
     """The policy that records ``kind`` in ``env`` (freshly reset); ``actions`` are replayed by ``no-objects``."""
-
     if kind in ("expert", "occluded"):
         return ScriptedExpert(env)
     if kind == "wrong-object":
@@ -146,7 +143,6 @@ class EnvCache:
         self.env = None
 
     def get(self, target, distractor, kind: str = "expert"):
-
         opts = scene_options(kind)
         env = self.env
         if env is None:
@@ -159,7 +155,6 @@ class EnvCache:
 
     def for_record(self, sim: dict[str, Any], kind: str | None = None):
         """The env an episode's sim record was recorded in (or ``kind``'s scene for it), checking versions."""
-
         if sim.get("scene_version") != scene.SCENE_VERSION or sim.get("catalog_version") != CATALOG_VERSION:
             raise DatasetError(f"sim record from scene v{sim.get('scene_version')}/catalog v{sim.get('catalog_version')};"
                                f" this democheck simulates scene v{scene.SCENE_VERSION}/catalog v{CATALOG_VERSION}")

@@ -213,9 +213,9 @@ def write_eval_rrd(path: Path, summary: dict, rollouts: list, fps: float, per_ou
             continue
         shown[outcome] += 1
         base = f"rollouts/{outcome}/{shown[outcome]}"
-        lines.append(f"- `{base}`: {trial.task}, trial {trial.trial}, cue sigma {trial.sigma:.4f}")
+        lines.append(f"- `{base}`: {trial.task}, trial {trial.trial}, cue task uncertainty {trial.task_uncertainty:.4f}")
         demo = Demo(episode_index=-1, task=trial.task, frames=row["frames"], state=row["state"], actions=row["actions"])
-        sigma = np.asarray(trial.sigma_vec if trial.sigma_vec else [np.nan], np.float32)
+        sigma = np.asarray(trial.sigma if trial.sigma else [np.nan], np.float32)
         _log_demo(rec, base, demo, sigma, fps)
         tabs.append(rrb.Vertical(rrb.Spatial2DView(origin=f"{base}/video", name="video"),
                                  rrb.Horizontal(rrb.BarChartView(origin=f"{base}/sigma", name="cue sigma"),

@@ -1,0 +1,201 @@
+"""A dataset democheck did not make: Meta-World tasks done by Meta-World's own scripted policies, written by
+LeRobot's own writer, with planted bad demos.  Runs in LeRobot's virtual environment (LeRobot pins an older
+torch), never in democheck's:
+
+    PEERS_WITH_FFMPEG=0 ../shared/peers/setup_peers.sh /tmp/peers     # LeRobot 0.4.4 in /tmp/peers/venv-lerobot
+    /tmp/peers/venv-lerobot/bin/pip install metaworld==3.1.1
+    MUJOCO_GL=egl /tmp/peers/venv-lerobot/bin/python benchmarks/foreign/metaworld_lerobot.py OUT \
+        --tasks mt10 --demos 20 --plant 7 --seed 0
+
+OUT is a LeRobot v3.0 dataset (camera ``observation.images.corner``, AV1 video as LeRobot writes it by
+default, 39-d state, 4-d actions, 80 fps); ``OUT.labels.csv`` beside it (episode_index,label) holds the ground
+truth and is not part of the dataset.  Every planted kind replaces a demo of a task it is labelled with:
+
+- ``idle``: the arm never moves (zero actions);
+- ``random``: uniformly random actions;
+- ``wrong-task``: a clean demo of another task, in that task's scene, labelled with this one;
+- ``gave-up``: the task's policy for the first 30-50% of the steps, then the arm stops;
+- ``occluded``: a clean demo whose camera is covered by a grey card over 40-60% of the view, all episode.
+
+Clean demos are the scripted policy on a random variation of the task (Meta-World's goal and object
+positions), kept only when the policy succeeds.  Episodes run in spawned worker processes (each with its own
+GL context); the same seed gives the same episodes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import multiprocessing as mp
+import os
+import shutil
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+TASKS = {  # Meta-World env -> (the task as a LeRobot dataset names it, the scripted policy's class)
+    "reach-v3": ("reach the red goal with the gripper", "SawyerReachV3Policy"),
+    "push-v3": ("push the puck to the goal", "SawyerPushV3Policy"),
+    "pick-place-v3": ("pick up the puck and place it at the goal", "SawyerPickPlaceV3Policy"),
+    "door-open-v3": ("open the door", "SawyerDoorOpenV3Policy"),
+    "drawer-open-v3": ("open the drawer", "SawyerDrawerOpenV3Policy"),
+    "drawer-close-v3": ("close the drawer", "SawyerDrawerCloseV3Policy"),
+    "button-press-topdown-v3": ("press the button from the top", "SawyerButtonPressTopdownV3Policy"),
+    "window-open-v3": ("open the window", "SawyerWindowOpenV3Policy"),
+    "window-close-v3": ("close the window", "SawyerWindowCloseV3Policy"),
+    "coffee-button-v3": ("press the coffee machine's button", "SawyerCoffeeButtonV3Policy"),
+}
+KINDS = ("idle", "random", "wrong-task", "gave-up", "occluded")
+CAMERA = "corner"
+FPS = 80
+
+_W: dict = {}
+
+
+def _init(size: int) -> None:
+    import metaworld
+
+    warnings.filterwarnings("ignore")
+    _W["mt"] = metaworld.MT50(seed=0)
+    _W["envs"] = {}
+    _W["size"] = size
+
+
+def _env(name: str):
+    if name not in _W["envs"]:
+        env = _W["mt"].train_classes[name](render_mode="rgb_array", camera_name=CAMERA, width=_W["size"],
+                                           height=_W["size"])
+        # Shadows, multisampling and reflections off: ~7x faster on a software renderer, the scene the same.
+        env.model.vis.quality.shadowsize = 0
+        env.model.vis.quality.offsamples = 0
+        env.model.mat_reflectance[:] = 0
+        _W["envs"][name] = (env, [t for t in _W["mt"].train_tasks if t.env_name == name])
+    return _W["envs"][name]
+
+
+def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator) -> dict | None:
+    import metaworld.policies as P
+
+    env, variations = _env(name)
+    env.set_task(variations[int(rng.integers(len(variations)))])
+    obs, _ = env.reset(seed=int(rng.integers(1 << 31)))
+    policy = getattr(P, TASKS[name][1])()
+    stop = int(steps * rng.uniform(0.3, 0.5)) if kind == "gave-up" else steps
+    frames, state, actions, success = [], [], [], False
+    for t in range(steps):
+        frames.append(env.render()[::-1].copy())  # MuJoCo renders bottom-up
+        state.append(obs.astype(np.float32))
+        if kind == "idle" or t >= stop:
+            a = np.zeros(4, np.float32)
+        elif kind == "random":
+            a = rng.uniform(-1, 1, 4).astype(np.float32)
+        else:
+            a = np.clip(policy.get_action(obs), -1, 1).astype(np.float32)
+        actions.append(a)
+        obs, _, _, _, info = env.step(a)
+        success = success or bool(info["success"])
+    if kind in ("clean", "wrong-task", "occluded") and not success:
+        return None  # a failed expert demo is not a clean one: draw again
+    return {"frames": np.stack(frames), "state": np.stack(state), "actions": np.stack(actions)}
+
+
+def _cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    h, w = frames.shape[1:3]
+    share = rng.uniform(0.4, 0.6)
+    ch, cw = int(h * np.sqrt(share)), int(w * np.sqrt(share))
+    r, c = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+    out = frames.copy()
+    out[:, r:r + ch, c:c + cw] = np.uint8(rng.integers(90, 160))
+    return out
+
+
+def _episode(job: tuple) -> dict:
+    index, name, kind, other, steps, seed = job
+    rng = np.random.default_rng([seed, index])
+    for _ in range(20):
+        rec = _rollout(other if kind == "wrong-task" else name, kind, steps, rng)
+        if rec is not None:
+            break
+    else:
+        raise RuntimeError(f"episode {index}: the {name} policy failed 20 times")
+    if kind == "occluded":
+        rec["frames"] = _cover(rec["frames"], rng)
+    return {"index": index, "task": TASKS[name][0], "label": kind, **rec}
+
+
+def plan(names: list[str], demos: int, plant: int, steps: int, seed: int) -> list[tuple]:
+    """(episode index, env, kind, other env, steps, seed) of every episode: ``demos`` per task, ``plant`` of
+    each kind in all, on tasks drawn by the seed."""
+    rng = np.random.default_rng([seed, 1])
+    kinds = ["clean"] * (demos * len(names)) + [k for k in KINDS for _ in range(plant)]
+    tasks = [n for n in names for _ in range(demos)] + list(rng.choice(names, size=plant * len(KINDS)))
+    order = rng.permutation(len(kinds))
+    jobs = []
+    for i, j in enumerate(order):
+        name, kind = tasks[j], kinds[j]
+        other = str(rng.choice([n for n in names if n != name] or list(TASKS)))
+        jobs.append((i, str(name), kind, other, steps, seed))
+    return jobs
+
+
+def write(out: Path, episodes: list[dict], size: int) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {
+        f"observation.images.{CAMERA}": {"dtype": "video", "shape": (size, size, 3),
+                                         "names": ["height", "width", "channels"]},
+        "observation.state": {"dtype": "float32", "shape": (39,), "names": None},
+        "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "gripper"]},
+    }
+    ds = LeRobotDataset.create(repo_id=f"local/{out.name}", fps=FPS, features=features, root=out,
+                               robot_type="sawyer", use_videos=True)
+    for ep in episodes:
+        for t in range(len(ep["actions"])):
+            ds.add_frame({f"observation.images.{CAMERA}": ep["frames"][t], "observation.state": ep["state"][t],
+                          "action": ep["actions"][t], "task": ep["task"]})
+        ds.save_episode()
+    ds.finalize()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--tasks", default="mt10", help="mt10 (the ten tasks of TASKS), or comma-separated env names")
+    ap.add_argument("--demos", type=int, default=20, help="clean demos per task")
+    ap.add_argument("--plant", type=int, default=7, help="bad demos of each kind, in all")
+    ap.add_argument("--steps", type=int, default=120)
+    ap.add_argument("--size", type=int, default=128, help="camera image size in pixels")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--force", action="store_true")
+    args = ap.parse_args()
+    names = list(TASKS) if args.tasks == "mt10" else [n.strip() for n in args.tasks.split(",")]
+    if args.out.exists():
+        if not args.force:
+            raise SystemExit(f"{args.out}: exists (--force replaces it)")
+        shutil.rmtree(args.out)
+    jobs = plan(names, args.demos, args.plant, args.steps, args.seed)
+    t0 = time.perf_counter()
+    with mp.get_context("spawn").Pool(args.workers, initializer=_init, initargs=(args.size,)) as pool:
+        episodes = []
+        for ep in pool.imap(_episode, jobs, chunksize=4):
+            episodes.append(ep)
+            if len(episodes) % 25 == 0 or len(episodes) == len(jobs):
+                print(f"simulated {len(episodes)}/{len(jobs)} episodes ({time.perf_counter() - t0:.0f} s)", flush=True)
+    write(args.out, episodes, args.size)
+    labels = args.out.with_name(args.out.name + ".labels.csv")
+    with labels.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["episode_index", "label"])
+        for i, ep in enumerate(episodes):
+            w.writerow([i, ep["label"]])
+    counts = {k: sum(e["label"] == k for e in episodes) for k in ("clean", *KINDS)}
+    print(f"{args.out}: {len(episodes)} episodes of {len(names)} tasks {counts} in {time.perf_counter() - t0:.0f} s; "
+          f"labels: {labels}")
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    main()
