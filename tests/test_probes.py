@@ -113,13 +113,21 @@ def test_image_level_probes_for_a_dataset_without_sim_records(tiny_dataset, tmp_
     with pytest.raises(DatasetError, match="no sim records"):
         make_probes(plain, tmp_path / "p1", ["no-objects"], per_kind=1, workers=1)
     assert not (tmp_path / "p1").exists()
-    make_probes(plain, tmp_path / "p2", ["no-action", "hidden"], per_kind=2, workers=1)
-    ds = open_dataset(tmp_path / "p2")
-    held = [ds[e] for e in ds.episode_indices if ds[e].label == "no-action"]
-    for d in held:
-        err = np.abs(d.frames.astype(int) - d.frames[:1].astype(int))
-        assert err.mean() < 2 and err.max() <= 32  # the first frame held, up to video compression
-        assert (d.state == d.state[0]).all() and (d.actions == 0).all()
+    summary = make_probes(plain, tmp_path / "p2", per_kind=2, workers=1)  # default: the kinds this data allows
+    assert summary["kinds"] == {"no-action": 2, "hidden": 2}
+    ds, source = open_dataset(tmp_path / "p2"), open_dataset(plain)
+    assert ds.camera == source.camera  # the camera keeps its name
+    for e in ds.episode_indices:
+        d = ds[e]
+        src = source[int(d.sim["probe"]["source_episode"])].frames
+        if d.label == "no-action":  # the first frame held, bit for bit (the probe's video is lossless)
+            assert (d.frames == src[:1]).all()
+            assert (d.state == d.state[0]).all() and (d.actions == 0).all()
+        else:  # hidden: the source's frames exactly, but under the squares
+            covered = np.zeros(src.shape[1:3], bool)
+            for r, c, side, *_ in d.sim["probe"]["squares"]:
+                covered[r:r + side, c:c + side] = True
+            assert (d.frames[:, ~covered] == src[:, ~covered]).all() and covered.mean() >= 0.5
 
 
 def test_defects_behave_as_labelled():
@@ -228,7 +236,8 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     kinds = {"idle", "random", "wrong-object", "no-action", "no-objects", "hidden"}
     assert kinds <= set(doc["kinds"])
     assert list(doc["scorers"]) == ["task_uncertainty", "task_uncertainty_head", "novelty", "consistency",
-                                    "action_error", "suspicion", "ocsvm_flag", "tecnet_knn", "heuristic", "random"]
+                                    "action_error", "motion", "suspicion", "ocsvm_flag", "tecnet_knn", "heuristic",
+                                    "random"]
     for name, per in doc["scorers"].items():
         for kind in kinds:
             assert set(per[kind]) == {"auroc", "auprc", "p_at_k", "n"}

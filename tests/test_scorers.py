@@ -22,6 +22,7 @@ MEANT_FOR = {
     "novelty": "occluded",  # images unlike the training cues
     "consistency": "wrong-object",  # a cue that clearly shows another task
     "action_error": "random",  # behaviour the controller cannot explain
+    "motion": "idle",  # model-free: an arm that never moves
     "suspicion": "random",
     "ocsvm_flag": "occluded",
     "tecnet_knn": "occluded",  # a cue far from its task's others in the embedding
@@ -84,7 +85,8 @@ def test_the_random_scorer_is_a_uniform_draw_that_ignores_the_data(evidence):
 def test_suspicion_reason_names_the_score_that_ranks_each_demo(evidence):
     labels = evidence.episodes["label"].to_numpy()
     reasons = np.asarray(evidence.reasons["suspicion"], dtype=object)
-    assert reasons[labels == "random"][0].startswith("action_error")
-    assert "worst at timestep" in reasons[labels == "random"][0]
+    flailing = reasons[labels == "random"][0]
+    assert flailing.split()[0] in ("action_error", "motion") and "robust SD (" in flailing  # the driver and where
+    assert "hardly moves" in reasons[labels == "idle"][0]  # the model-free check sees the still arm
     drivers = {r.split()[0] for r in reasons if r}
     assert drivers <= {n for n, s in SCORERS.items() if s.in_suspicion}

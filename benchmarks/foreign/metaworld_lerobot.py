@@ -14,7 +14,8 @@ truth and is not part of the dataset.  Every planted kind replaces a demo of a t
 - ``idle``: the arm never moves (zero actions);
 - ``random``: uniformly random actions;
 - ``wrong-task``: a clean demo of another task, in that task's scene, labelled with this one;
-- ``gave-up``: the task's policy for the first 30-50% of the steps, then the arm stops;
+- ``gave-up``: the task's policy until 30-60% of the time it takes to succeed on that layout, then the arm
+  stops (so the task is never done; a clean demo may rest after succeeding);
 - ``occluded``: a clean demo whose camera is covered by a grey card over 40-60% of the view, all episode.
 
 Clean demos are the scripted policy on a random variation of the task (Meta-World's goal and object
@@ -75,15 +76,19 @@ def _env(name: str):
     return _W["envs"][name]
 
 
-def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator) -> dict | None:
+def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout: tuple[int, int] | None = None,
+             stop: int | None = None) -> dict | None:
+    """One episode of ``kind`` on a layout (task variation, reset seed) drawn from ``rng`` or given; the policy
+    acts until ``stop``, the arm is still after it."""
     import metaworld.policies as P
 
     env, variations = _env(name)
-    env.set_task(variations[int(rng.integers(len(variations)))])
-    obs, _ = env.reset(seed=int(rng.integers(1 << 31)))
+    layout = layout or (int(rng.integers(len(variations))), int(rng.integers(1 << 31)))
+    env.set_task(variations[layout[0]])
+    obs, _ = env.reset(seed=layout[1])
     policy = getattr(P, TASKS[name][1])()
-    stop = int(steps * rng.uniform(0.3, 0.5)) if kind == "gave-up" else steps
-    frames, state, actions, success = [], [], [], False
+    stop = steps if stop is None else stop
+    frames, state, actions, success, first = [], [], [], False, None
     for t in range(steps):
         frames.append(env.render()[::-1].copy())  # MuJoCo renders bottom-up
         state.append(obs.astype(np.float32))
@@ -95,10 +100,13 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator) -> dict
             a = np.clip(policy.get_action(obs), -1, 1).astype(np.float32)
         actions.append(a)
         obs, _, _, _, info = env.step(a)
+        if info["success"] and first is None:
+            first = t + 1
         success = success or bool(info["success"])
     if kind in ("clean", "wrong-task", "occluded") and not success:
         return None  # a failed expert demo is not a clean one: draw again
-    return {"frames": np.stack(frames), "state": np.stack(state), "actions": np.stack(actions)}
+    return {"frames": np.stack(frames), "state": np.stack(state), "actions": np.stack(actions), "layout": layout,
+            "first_success": first, "success": success}
 
 
 def _cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -115,14 +123,21 @@ def _episode(job: tuple) -> dict:
     index, name, kind, other, steps, seed = job
     rng = np.random.default_rng([seed, index])
     for _ in range(20):
-        rec = _rollout(other if kind == "wrong-task" else name, kind, steps, rng)
+        if kind == "gave-up":  # where the expert succeeds on this layout, then the same layout stopped short of it
+            full = _rollout(name, "clean", steps, rng)
+            rec = None if full is None else _rollout(name, kind, steps, rng, full["layout"],
+                                                     stop=int(full["first_success"] * rng.uniform(0.3, 0.6)))
+            rec = None if rec is None or rec["success"] else rec
+        else:
+            rec = _rollout(other if kind == "wrong-task" else name, kind, steps, rng)
         if rec is not None:
             break
     else:
         raise RuntimeError(f"episode {index}: the {name} policy failed 20 times")
     if kind == "occluded":
         rec["frames"] = _cover(rec["frames"], rng)
-    return {"index": index, "task": TASKS[name][0], "label": kind, **rec}
+    return {"index": index, "task": TASKS[name][0], "label": kind,
+            **{k: rec[k] for k in ("frames", "state", "actions")}}
 
 
 def plan(names: list[str], demos: int, plant: int, steps: int, seed: int) -> list[tuple]:
@@ -135,7 +150,8 @@ def plan(names: list[str], demos: int, plant: int, steps: int, seed: int) -> lis
     jobs = []
     for i, j in enumerate(order):
         name, kind = tasks[j], kinds[j]
-        other = str(rng.choice([n for n in names if n != name] or list(TASKS)))
+        # Another task of the dataset; a dataset of one task borrows another Meta-World task's recording.
+        other = str(rng.choice([n for n in names if n != name] or [n for n in TASKS if n != name]))
         jobs.append((i, str(name), kind, other, steps, seed))
     return jobs
 

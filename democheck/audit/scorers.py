@@ -26,7 +26,8 @@ import torch
 
 from democheck.audit.baselines import (HEURISTIC_FEATURES, heuristic_z, knn_same_task, motion_features, random_score,
                                        summarise_motion)
-from democheck.audit.scores import CONSISTENCY_K, consistency_terms, ocsvm_margin, rank_order, standardised
+from democheck.audit.scores import (CONSISTENCY_K, calibrated, consistency_terms, ocsvm_margin, rank_order,
+                                    standardised)
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -93,6 +94,9 @@ class Scorer:
     family: str = "democheck"  # "democheck" or "baseline" (what users would pick instead)
     in_audit: bool = True  # computed by ``democheck audit`` (False: ``bench`` only)
     in_suspicion: bool = False  # one of the scores the ranking takes the largest of
+    # In the ranking on a log scale: a score whose clean demos' right tail is long (a squared error) would
+    # otherwise put clean demos many robust standard deviations up.
+    log_in_ranking: bool = False
     # For "demos": (evidence, its rows of one dataset, device) -> a consumer of that dataset's decoded demos.
     decode: Callable[[Evidence, slice, Any], DemoConsumer] | None = None
     short: str = ""  # header in narrow terminal tables
@@ -209,9 +213,49 @@ def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors
     return ActionErrors(ev.model, ev.task_variables()[rows], device)
 
 
+class MotionStats:
+    """Consumer of decoded demos: how much each demo's actions move, model-free -- per action dimension the mean
+    |action| and the mean |change of action| between steps."""
+
+    def __init__(self) -> None:
+        self.level: list[np.ndarray] = []
+        self.change: list[np.ndarray] = []
+
+    def add(self, demo: Demo) -> None:
+        a = np.asarray(demo.actions, np.float64)
+        self.level.append(np.abs(a).mean(0))
+        self.change.append(np.abs(np.diff(a, axis=0)).mean(0) if len(a) > 1 else np.zeros(a.shape[1]))
+
+    def finish(self) -> np.ndarray:
+        """[N, 2]: mean |action| and mean |change|, each dimension in units of its median over these demos."""
+        out = []
+        for rows in (np.stack(self.level), np.stack(self.change)):
+            out.append((rows / np.maximum(np.median(rows, axis=0), 1e-9)).mean(1))
+        return np.column_stack(out)
+
+
+# On a log scale: an arm that never moves is as many times too still as a flailing one is too busy, and a
+# long, busy expert demo is not mistaken for either (at 0.001 of the median, "still" stops counting).
+MOTION_FLOOR = 1e-3
+
+
+MOTION_FEATURES = ("mean |action|", "mean |change of action|")
+
+
+def _motion(ev: Evidence) -> Scores:
+    features = ev.behaviour["motion"]
+    logs = np.log(np.maximum(features, MOTION_FLOOR))
+    z = np.column_stack([np.abs(calibrated(logs[:, i], ev.tasks)) for i in range(logs.shape[1])])
+    pick = np.argmax(z, axis=1)
+    reasons = [f"{MOTION_FEATURES[j]} {features[i, j]:.2g} x its median"
+               + (" (the arm hardly moves)" if features[i, j] < 1 else "") for i, j in enumerate(pick)]
+    return z.max(axis=1), reasons
+
+
 def _suspicion(ev: Evidence) -> Scores:
-    parts = {n: ev.scores[n] for n, s in SCORERS.items() if s.in_suspicion and n in ev.scores}
-    z = standardised(parts)
+    parts = {n: np.log(np.maximum(ev.scores[n], 1e-12)) if s.log_in_ranking else ev.scores[n]
+             for n, s in SCORERS.items() if s.in_suspicion and n in ev.scores}
+    z = standardised(parts, ev.tasks)
     value = np.nanmax(z, axis=1)
     names = list(parts)
     reasons = []
@@ -278,9 +322,12 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            in_suspicion=True, short="cons."),
     Scorer("action_error", f"how badly PETNet's controller, told the task by the other demos of the task, explains "
            f"the demo's normalised actions (MSE at {ACTION_STEPS} evenly spaced timesteps)", ("demos", "model"),
-           _action_error, in_suspicion=True, decode=_decode_action_error, short="act."),
-    Scorer("suspicion", "democheck's ranking: the largest of task uncertainty, consistency and action error, each "
-           "standardised by the median and 1.4826 x MAD of the demos scored", ("scores",), _suspicion,
+           _action_error, in_suspicion=True, log_in_ranking=True, decode=_decode_action_error, short="act."),
+    Scorer("motion", "model-free: how unusually much or little the demo's actions move (mean |action| and mean "
+           "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True,
+           decode=lambda ev, rows, device: MotionStats(), short="motion"),
+    Scorer("suspicion", "democheck's ranking: the largest of task uncertainty, consistency, action error (log) and "
+           "motion, each in robust standard deviations within its task", ("scores",), _suspicion,
            short="susp."),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),

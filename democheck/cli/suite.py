@@ -53,7 +53,7 @@ def synth(
 def probe(
     dataset: Annotated[Path, typer.Argument(help="Source dataset; probes re-simulate its demos from their sim records.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder for the probe dataset (LeRobot v3, label = kind).")],
-    kinds: Annotated[str, typer.Option(help="Comma-separated: no-action (arm still), random (random torques), no-objects (objects removed, actions replayed), hidden (squares cover the view). Without sim records only no-action and hidden.")] = "no-action,random,no-objects,hidden",
+    kinds: Annotated[Optional[str], typer.Option(help="Comma-separated: no-action (arm still), random (random torques), no-objects (objects removed, actions replayed), hidden (squares cover the view). Default: every kind the data allows (without democheck's sim records: no-action and hidden).")] = None,
     per_kind: Annotated[int, typer.Option(help="Probes per kind, each from a different clean source demo.")] = 50,
     seed: Annotated[int, typer.Option(help="Seed for the choice of sources, random torques and squares.")] = 0,
     workers: Annotated[int, typer.Option(help="Parallel worker processes.")] = 2,
@@ -64,7 +64,7 @@ def probe(
     with user_errors():
         from democheck.sim.probes import make_probes
 
-        kind_list = [k.strip() for k in kinds.split(",") if k.strip()]
+        kind_list = [k.strip() for k in kinds.split(",") if k.strip()] if kinds else None
         if workers < 1:
             raise DemocheckError("--workers must be at least 1")
         with Bar("probe", "episodes") as bar:

@@ -23,6 +23,10 @@ from democheck.data.lerobot import (ACTION_KEY, CHUNKS_SIZE, CODEBASE_VERSION, D
 class VideoOptions:
     pix_fmt: str = video.DEFAULT_PIX_FMT
     crf: int = video.DEFAULT_CRF
+    camera: str = IMAGE_KEY  # the image feature's name
+    # Lossless RGB (H.264 in RGB at quantiser 0, ``video.LOSSLESS_CODEC``): frames decode bit-exactly as written.
+    # Probes use it, so a probe differs from its source only where the probe changes it.
+    lossless: bool = False
 
 
 def _fixed_list(arr: np.ndarray) -> pa.FixedSizeListArray:
@@ -45,13 +49,13 @@ def write_shard(root: Path, file_index: int, demos: list[Demo], task_index: dict
     """
     chunk = file_index // CHUNKS_SIZE
     data_path = root / DATA_PATH.format(chunk_index=chunk, file_index=file_index)
-    video_path = root / VIDEO_PATH.format(video_key=IMAGE_KEY, chunk_index=chunk, file_index=file_index)
+    video_path = root / VIDEO_PATH.format(video_key=video_opts.camera, chunk_index=chunk, file_index=file_index)
     data_path.parent.mkdir(parents=True, exist_ok=True)
     video_path.parent.mkdir(parents=True, exist_ok=True)
     rows, tables = [], []
     size = demos[0].frames.shape[1]
     index = first_index
-    with video.VideoWriter(video_path, fps, size, video_opts.pix_fmt, video_opts.crf) as vw:
+    with video.VideoWriter(video_path, fps, size, video_opts.pix_fmt, video_opts.crf, video_opts.lossless) as vw:
         for demo in demos:
             T = len(demo)
             start, end = vw.write(demo.frames)
@@ -72,13 +76,13 @@ def write_shard(root: Path, file_index: int, demos: list[Demo], task_index: dict
                 "episode_index": demo.episode_index, "task": demo.task, "length": T,
                 "data/chunk_index": chunk, "data/file_index": file_index,
                 "dataset_from_index": index, "dataset_to_index": index + T,
-                f"videos/{IMAGE_KEY}/chunk_index": chunk, f"videos/{IMAGE_KEY}/file_index": file_index,
-                f"videos/{IMAGE_KEY}/from_timestamp": start / fps, f"videos/{IMAGE_KEY}/to_timestamp": end / fps,
+                f"videos/{video_opts.camera}/chunk_index": chunk, f"videos/{video_opts.camera}/file_index": file_index,
+                f"videos/{video_opts.camera}/from_timestamp": start / fps, f"videos/{video_opts.camera}/to_timestamp": end / fps,
                 "split": demo.split, "success": demo.success, "label": demo.label or "clean",
                 "source_episode": -1 if demo.source_episode is None else int(demo.source_episode),
                 "sim": json.dumps(demo.sim, sort_keys=True) if demo.sim is not None else "",
                 "_moments": {STATE_KEY: _moments(demo.state), ACTION_KEY: _moments(demo.actions),
-                             ENV_STATE_KEY: _moments(demo.env_state), IMAGE_KEY: _moments(img)},
+                             ENV_STATE_KEY: _moments(demo.env_state), video_opts.camera: _moments(img)},
             })
             index += T
     pq.write_table(pa.concat_tables(tables), data_path, compression="zstd")
@@ -113,8 +117,8 @@ def write_meta(root: Path, rows: list[dict[str, Any]], tasks: list[str], fps: in
                  index=pd.Index(tasks, name="task")).to_parquet(meta / "tasks.parquet")
 
     ep_cols = ["episode_index", "length", "data/chunk_index", "data/file_index", "dataset_from_index",
-               "dataset_to_index", f"videos/{IMAGE_KEY}/chunk_index", f"videos/{IMAGE_KEY}/file_index",
-               f"videos/{IMAGE_KEY}/from_timestamp", f"videos/{IMAGE_KEY}/to_timestamp"]
+               "dataset_to_index", f"videos/{video_opts.camera}/chunk_index", f"videos/{video_opts.camera}/file_index",
+               f"videos/{video_opts.camera}/from_timestamp", f"videos/{video_opts.camera}/to_timestamp"]
     episodes = pd.DataFrame([{c: r[c] for c in ep_cols} for r in rows])
     episodes.insert(1, "tasks", [[r["task"]] for r in rows])
     episodes["meta/episodes/chunk_index"] = 0
@@ -129,8 +133,8 @@ def write_meta(root: Path, rows: list[dict[str, Any]], tasks: list[str], fps: in
                             for r in rows])
     sidecar.to_parquet(root / SIDECAR_PATH, index=False)
 
-    stats = {key: _stats_entry([r["_moments"][key] for r in rows], image=(key == IMAGE_KEY))
-             for key in (STATE_KEY, ACTION_KEY, ENV_STATE_KEY, IMAGE_KEY)}
+    stats = {key: _stats_entry([r["_moments"][key] for r in rows], image=(key == video_opts.camera))
+             for key in (STATE_KEY, ACTION_KEY, ENV_STATE_KEY, video_opts.camera)}
     (meta / "stats.json").write_text(json.dumps(stats, indent=2))
 
     n_frames = int(sum(r["length"] for r in rows))
@@ -157,10 +161,10 @@ def write_meta(root: Path, rows: list[dict[str, Any]], tasks: list[str], fps: in
         "data_path": DATA_PATH,
         "video_path": VIDEO_PATH,
         "features": {
-            IMAGE_KEY: {
+            video_opts.camera: {
                 "dtype": "video", "shape": [image_size, image_size, 3], "names": ["height", "width", "channels"],
                 "info": {"video.height": image_size, "video.width": image_size, "video.codec": "h264",
-                         "video.pix_fmt": video_opts.pix_fmt, "video.is_depth_map": False, "video.fps": fps,
+                         "video.pix_fmt": "gbrp" if video_opts.lossless else video_opts.pix_fmt, "video.is_depth_map": False, "video.fps": fps,
                          "video.channels": 3, "has_audio": False},
             },
             STATE_KEY: {"dtype": "float32", "shape": [len(state_names)], "names": state_names},

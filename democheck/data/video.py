@@ -32,20 +32,27 @@ DEFAULT_CRF = 20
 PRESET = "ultrafast"
 
 
-class VideoWriter:
-    """Append frames to an MP4; frame ``k`` of the file has timestamp ``k / fps``."""
+# Lossless: H.264 coding the RGB planes themselves at quantiser 0, so decoding gives back the very bytes written
+# (YUV, even 4:4:4, rounds in the colour conversion).  democheck's reader (PyAV) plays it; not every player does.
+LOSSLESS_CODEC = "libx264rgb"
 
-    def __init__(self, path: str | Path, fps: int, size: int, pix_fmt: str = DEFAULT_PIX_FMT, crf: int = DEFAULT_CRF):
-        if pix_fmt == "yuv420p" and size % 2:
+
+class VideoWriter:
+    """Append frames to an MP4; frame ``k`` of the file has timestamp ``k / fps``; ``lossless``: bit-exact."""
+
+    def __init__(self, path: str | Path, fps: int, size: int, pix_fmt: str = DEFAULT_PIX_FMT, crf: int = DEFAULT_CRF,
+                 lossless: bool = False):
+        if pix_fmt == "yuv420p" and size % 2 and not lossless:
             raise ValueError(f"yuv420p needs an even frame size, got {size}; use yuv444p")
         self.path = Path(path)
         self._container = av.open(str(self.path), "w", format="mp4")
-        self._stream = self._container.add_stream(DEFAULT_CODEC, rate=fps)
+        self._stream = self._container.add_stream(LOSSLESS_CODEC if lossless else DEFAULT_CODEC, rate=fps)
         self._stream.width = self._stream.height = size
-        self._stream.pix_fmt = pix_fmt
+        self._stream.pix_fmt = "rgb24" if lossless else pix_fmt
         self._stream.time_base = Fraction(1, fps)
         # One thread: x264's output then depends only on its input (determinism).
-        self._stream.options = {"crf": str(crf), "g": str(GOP), "preset": PRESET, "threads": "1"}
+        quality = {"qp": "0"} if lossless else {"crf": str(crf)}
+        self._stream.options = {**quality, "g": str(GOP), "preset": PRESET, "threads": "1"}
         self.frames = 0
 
     def write(self, frames: np.ndarray, new_episode: bool = True) -> tuple[int, int]:

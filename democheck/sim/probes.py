@@ -106,26 +106,29 @@ def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[
                           success=None, label=kind, split=source.split, sim=sim, env_state=env_state,
                           source_episode=src))
         pool.tick()
-    return write_shard(w["root"], file_index, demos, w["task_index"], first_index, w["fps"],
-                       VideoOptions(w["pix_fmt"], w["crf"]))
+    return write_shard(w["root"], file_index, demos, w["task_index"], first_index, w["fps"], w["video"])
 
 
 def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = None, per_kind: int = 50,
                 seed: int = 0, workers: int = 2, camera: str | None = None, force: bool = False,
                 on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
-    """Write a probe dataset made from ``source`` under ``out`` (atomically); returns its summary."""
-    kinds = list(kinds or PROBES)
+    """Write a probe dataset made from ``source`` under ``out`` (atomically); returns its summary.
+
+    ``kinds``: default, every kind the data allows (all four with sim records, ``IMAGE_PROBES`` without).
+    The probes keep the source's camera name, and their video is lossless, so a probe's frames equal its
+    source's bit for bit wherever the probe does not change them."""
+    ds = open_dataset(source, camera=camera)
+    has_sim = "sim" in ds.episodes and bool(ds.episodes["sim"].fillna("").astype(str).str.len().gt(0).all())
+    kinds = list(kinds or (PROBES if has_sim else IMAGE_PROBES))
     unknown = [k for k in kinds if k not in PROBES]
     if unknown:
         raise DemocheckError(f"unknown probe kind {', '.join(unknown)}; kinds: {', '.join(PROBES)}")
     if per_kind < 1:
         raise DemocheckError("--per-kind must be at least 1")
-    ds = open_dataset(source, camera=camera)
     h, w, _ = ds.image_shape
     if h != w:
         raise DatasetError(f"{ds.root}: probes are written as square videos; this camera is {h}x{w}")
     picks = pick_sources(ds.episodes, kinds, per_kind, seed)
-    has_sim = "sim" in ds.episodes and bool(ds.episodes["sim"].fillna("").astype(str).str.len().gt(0).all())
     need_sim = sorted({k for k, _ in picks if k not in IMAGE_PROBES})
     if need_sim and not has_sim:
         raise DatasetError(f"{ds.root}: {', '.join(need_sim)} probes re-simulate each demo and this dataset has no "
@@ -140,7 +143,7 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
         frame += int(sum(lengths[src] for _, _, src, _ in chunk))
     tasks = sorted({str(ds.episodes.loc[src, "task"]) for _, src in picks})
     context = {"task_index": {t: i for i, t in enumerate(tasks)}, "fps": int(round(ds.fps)),
-               "pix_fmt": DEFAULT_PIX_FMT, "crf": DEFAULT_CRF}
+               "video": VideoOptions(DEFAULT_PIX_FMT, DEFAULT_CRF, camera=ds.camera, lossless=True)}
     t0 = time.perf_counter()
     with atomic_output_dir(out, force=force) as tmp:
         rows = pool.run_shards(jobs, _probe_shard, _probe_init, (str(ds.root), camera, str(tmp), context), workers,
@@ -152,5 +155,5 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
                    "per_kind": per_kind, "seed": seed, "episodes": len(episodes),
                    "wall_s": round(time.perf_counter() - t0, 3)}
         write_meta(tmp, rows, tasks, context["fps"], h, state_names, action_names, ENV_STATE_NAMES,
-                   VideoOptions(DEFAULT_PIX_FMT, DEFAULT_CRF), suite={"probes": summary})
+                   context["video"], suite={"probes": summary})
     return summary
