@@ -324,7 +324,7 @@ def test_no_task_is_left_out_of_training_unless_the_data_names_a_split():
 
 def test_the_model_records_the_tasks_it_learnt(arrays, tmp_path):
     train(arrays, tmp_path / "m", TrainConfig(steps=2, seed=0, **FAST))
-    tasks = load_checkpoint(tmp_path / "m").meta["data"]["tasks"]
+    tasks = load_checkpoint(tmp_path / "m").meta["data"]["task_split"]
     assert tasks["trained"] == sorted(task_rows(arrays, "train", 0))
     assert set(tasks["left_out"]) == set(arrays.episodes["task"]) - set(tasks["trained"])  # the suite's val/test
     assert tasks["validation"] == "the data's val split"

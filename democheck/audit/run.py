@@ -208,7 +208,7 @@ def warnings(table: pd.DataFrame, ckpt: Checkpoint) -> list[str]:
     """What makes this audit's scores less trustworthy, in a sentence each: tasks the model never learnt, and
     images unlike any it was trained on."""
     out = []
-    trained = (ckpt.meta.get("data", {}).get("tasks") or {}).get("trained")
+    trained = (ckpt.meta.get("data", {}).get("task_split") or {}).get("trained")
     if trained is not None:
         new = sorted(set(table["task"]) - set(trained))
         if new:

@@ -55,8 +55,8 @@ def model_card(name: str, meta: dict[str, Any]) -> str:
         f"- dataset: `{data.get('path', '?')}` (fingerprint `{data.get('fingerprint', '?')}`), "
         f"{data.get('episodes', '?')} episodes, camera `{data.get('camera', '?')}`",
     ]
-    if data.get("tasks"):
-        t = data["tasks"]
+    if data.get("task_split"):
+        t = data["task_split"]
         lines.append(f"- trained on {len(t['trained'])} tasks, validated on {t['validation']}"
                      + (f"; left out of training: {len(t['left_out'])} ({', '.join(t['left_out'][:5])}"
                         f"{', ...' if len(t['left_out']) > 5 else ''}: the data's split, or a single demo)"

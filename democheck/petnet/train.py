@@ -250,7 +250,7 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     # Which tasks the model learnt: the audit warns about the others, the card names them.
     tasks = {"trained": sorted(train_rows), "left_out": left_out, "validation": "the data's val split" if "split" in
              arrays.episodes and arrays.episodes["split"].notna().any() else "held-out demos of every task"}
-    meta = {**meta, "data": {**meta.get("data", {}), "fingerprint": arrays.fingerprint, "tasks": tasks},
+    meta = {**meta, "data": {**meta.get("data", {}), "fingerprint": arrays.fingerprint, "task_split": tasks},
             "training": asdict(tc), "metrics": metrics, "history": history}
     with atomic_output_dir(out, force=True) as tmp:
         save_checkpoint(tmp, model, cfg, norm, meta, card(meta) if card else None)
