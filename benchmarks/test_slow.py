@@ -72,3 +72,40 @@ def test_the_wheel_installs_whole_and_runs_the_demo_outside_the_checkout(tmp_pat
     res = subprocess.run([str(venv / "bin" / "democheck"), "train", "--help"], cwd=work, env=env, capture_output=True,
                          text=True)
     assert res.returncode == 0 and "--recipe" in res.stdout
+
+
+@pytest.mark.slow
+def test_the_readme_walkthrough_runs_as_written_on_a_foreign_dataset(tmp_path):
+    """README's "Audit your own LeRobot dataset" lines on a small Meta-World dataset LeRobot's own writer made
+    (benchmarks/foreign/data/mw-tiny): the dataset path is the only change, and training is cut to 300 steps."""
+    import os
+    import re
+    import shlex
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    block = re.search(r"<!-- walkthrough.*?```\n(.*?)```", (root / "README.md").read_text(), re.S).group(1)
+    data = tmp_path / "mine"
+    shutil.copytree(root / "benchmarks/foreign/data/mw-tiny", data)
+    exe = Path(sys.executable).with_name("democheck")
+    env = {**os.environ, "MUJOCO_GL": "egl", "DISPLAY": ""}
+    ran = []
+    for line in block.splitlines():
+        argv = shlex.split(line.split("#")[0])
+        if not argv:
+            continue
+        assert argv[0] == "democheck"
+        argv = [str(data) if a == "path/to/dataset" else a for a in argv[1:]]
+        if argv[0] == "train":
+            argv += ["--steps", "300"]
+        res = subprocess.run([str(exe), *argv], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
+        assert res.returncode == 0, (argv, res.stdout[-2000:], res.stderr[-2000:])
+        ran.append(argv[0])
+    assert ran == ["info", "train", "audit", "view"]
+    summary = json.loads((tmp_path / "report" / "summary.json").read_text())
+    assert summary["demos"] == len(open(root / "benchmarks/foreign/data/mw-tiny.labels.csv").readlines()) - 1
+    assert summary["frames"]["resized"] and (tmp_path / "report" / "suspects.txt").exists()
+    assert not summary["warnings"]  # the model learnt every task of the data it audits

@@ -58,6 +58,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from democheck.petnet.posterior import TaskPosterior
 
@@ -108,12 +109,8 @@ def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, how: str = CALIBR
         return standardise(x, robust_stats(x))
     if how not in CALIBRATIONS:
         raise ValueError(f"calibration {how!r}; one of {', '.join(CALIBRATIONS)}")
-    resid = np.full(len(x), np.nan)
-    for task in np.unique(tasks):
-        rows = tasks == task
-        ok = rows & np.isfinite(x)
-        if ok.any():
-            resid[rows] = x[rows] - np.median(x[ok])
+    finite = np.where(np.isfinite(x), x, np.nan)
+    resid = finite - pd.Series(finite).groupby(np.asarray(tasks)).transform("median").to_numpy()
     return standardise(resid, {"median": 0.0, "scale": robust_stats(resid)["scale"]})
 
 
