@@ -36,7 +36,7 @@ from democheck.petnet.batches import task_rows
 from democheck.petnet.card import git_commit, model_card
 from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
 from democheck.petnet.finish import finish_petnet
-from democheck.petnet.recipe import DEFAULT_RECIPE, load_recipe
+from democheck.petnet.recipe import DEFAULT_RECIPE, load_recipe, training_config
 from democheck.petnet.train import TrainConfig, TrainResult, resolve_device, train
 from democheck.sim.suite import generate, load_recipe as load_suite
 from democheck.viz.report import embed_2d, write_bench_rrd, write_eval_rrd, write_report_rrd
@@ -82,9 +82,10 @@ def train_from_recipe(dataset: str | Path, out: str | Path, recipe: str | Path =
 
 def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camera: str | None = None,
                   cache_dir: Path | None = None, device: str = "auto", force: bool = False,
-                  on_decode: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                  trim: float | None = None, on_decode: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Fit (or refit) a trained PETNet model's novelty density on ``dataset`` -- its training data -- and write
-    the model, weights unchanged, to ``out`` with the card's numbers and the audit's reference redone."""
+    the model, weights unchanged, to ``out`` with the card's numbers and the audit's reference redone.
+    ``trim``: the share of training cues the density leaves out as outliers (default: the model's recipe's)."""
     out = Path(out)
     refuse_existing(out, force)  # before the decoding, not only when writing
     dev = resolve_device(device)
@@ -100,8 +101,11 @@ def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camer
     if not train_rows:
         raise DemocheckError(f"{ds.root}: no training tasks with two or more demos")
     held = np.concatenate(list(val_rows.values())) if val_rows else None
+    trim = training_config(ckpt.meta.get("training", {})).novelty_trim if trim is None else trim
+    if not 0.0 <= trim < 0.5:
+        raise DemocheckError(f"--trim is a share of the training cues below 0.5, not {trim}")
     extra = finish_petnet(ckpt.model, arrays, np.concatenate(list(train_rows.values())), held, seed, dev,
-                          novelty=True, reference=reference)
+                          novelty=True, novelty_trim=trim, reference=reference)
     meta = dict(ckpt.meta)
     meta["metrics"] = {**meta.get("metrics", {}), "task_sigma": extra.pop("task_sigma")}
     meta.update(extra)

@@ -1,8 +1,8 @@
 """Every registered scorer keeps the contract and ranks a planted bad demo of the kind it is meant for first.
 
 The dataset is a slice of the pushing suite (8 tasks x 6 demos, the shipped models' camera and episode length)
-with one idle, one random, one occluded and one wrong-object demo planted; each scorer is judged, as bench
-judges it, on the clean demos plus its kind.
+with one idle, one random, one occluded and one wrong-object demo planted, and one hidden probe (squares over
+most of the view) beside it; each scorer is judged, as bench judges it, on the clean demos plus its kind.
 """
 
 import numpy as np
@@ -23,6 +23,7 @@ MEANT_FOR = {
     "consistency": "wrong-object",  # a cue that clearly shows another task
     "action_error": "random",  # behaviour the controller cannot explain
     "motion": "idle",  # model-free: an arm that never moves
+    "view": "hidden",  # model-free: squares over most of the camera's view
     "suspicion": "random",
     "ocsvm_flag": "occluded",
     "tecnet_knn": "occluded",  # a cue far from its task's others in the embedding
@@ -33,12 +34,19 @@ CONTROLS = {"random"}
 
 @pytest.fixture(scope="module")
 def evidence(tmp_path_factory) -> Evidence:
+    import pandas as pd
+
+    from democheck.sim.probes import make_probes
+
     root = tmp_path_factory.mktemp("planted") / "push"
     generate(load_recipe("push-mini").with_overrides(tasks=8, demos=6, defects=PLANTS, seed=4), root, workers=1)
-    ds = open_dataset(root)
-    ev = gather_evidence([ds], load_checkpoint(), select(audit=False), "cpu", tecnet=load_checkpoint("tecnet-push-v1"))
-    ev.episodes["label"] = ds.episodes["label"].fillna("clean").to_numpy()
-    return ev
+    make_probes(root, root.with_name("hidden"), ["hidden"], per_kind=1, seed=4, workers=1)  # a covered camera
+    sets = [open_dataset(root), open_dataset(root.with_name("hidden"))]
+    episodes = pd.concat([d.episodes.reset_index() for d in sets], ignore_index=True)
+    episodes["label"] = episodes["label"].fillna("clean")
+    episodes["episode_index"] = np.arange(len(episodes))  # pooled, as bench pools
+    return gather_evidence(sets, load_checkpoint(), select(audit=False), "cpu",
+                           tecnet=load_checkpoint("tecnet-push-v1"), episodes=episodes)
 
 
 def test_every_scorer_has_a_planted_kind_or_is_a_control():

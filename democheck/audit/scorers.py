@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
+import cv2
 import numpy as np
 import pandas as pd
 import torch
@@ -227,10 +228,14 @@ class MotionStats:
         self.change.append(np.abs(np.diff(a, axis=0)).mean(0) if len(a) > 1 else np.zeros(a.shape[1]))
 
     def finish(self) -> np.ndarray:
-        """[N, 2]: mean |action| and mean |change|, each dimension in units of its median over these demos."""
+        """[N, 2]: mean |action| and mean |change|, each dimension in units of its median over these demos --
+        or of 1% of the busiest dimension's, for a dimension that hardly moves in a typical demo (a gripper
+        held shut), so that it cannot make a small motion look a million times too large."""
         out = []
         for rows in (np.stack(self.level), np.stack(self.change)):
-            out.append((rows / np.maximum(np.median(rows, axis=0), 1e-9)).mean(1))
+            median = np.median(rows, axis=0)
+            scale = np.maximum(median, max(0.01 * float(median.max()), 1e-9))
+            out.append((rows / scale).mean(1))
         return np.column_stack(out)
 
 
@@ -250,6 +255,36 @@ def _motion(ev: Evidence) -> Scores:
     reasons = [f"{MOTION_FEATURES[j]} {features[i, j]:.2g} x its median"
                + (" (the arm hardly moves)" if features[i, j] < 1 else "") for i, j in enumerate(pick)]
     return z.max(axis=1), reasons
+
+
+class ViewStats:
+    """Consumer of decoded demos: the share of the camera's view that is featureless -- pixels whose 3x3
+    neighbourhood spans fewer than ``FLAT_LEVELS`` grey levels -- over every ``VIEW_EVERY``-th frame."""
+
+    def __init__(self) -> None:
+        self.flat: list[float] = []
+
+    def add(self, demo: Demo) -> None:
+        kernel = np.ones((3, 3), np.uint8)
+        shares = []
+        for frame in demo.frames[::VIEW_EVERY]:
+            grey = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
+            spread = cv2.dilate(grey, kernel).astype(np.int16) - cv2.erode(grey, kernel)
+            shares.append(float((spread < FLAT_LEVELS).mean()))
+        self.flat.append(float(np.mean(shares)) if shares else 0.0)
+
+    def finish(self) -> np.ndarray:
+        return np.asarray(self.flat)
+
+
+FLAT_LEVELS = 3
+VIEW_EVERY = 10
+
+
+def _view(ev: Evidence) -> Scores:
+    flat = np.clip(ev.behaviour["view"], 1e-3, 1 - 1e-3)
+    z = calibrated(np.log(flat / (1 - flat)), ev.tasks)  # on the logit scale; one-sided: more featureless
+    return z, [f"{100 * f:.0f}% of the view featureless" for f in flat]
 
 
 def _suspicion(ev: Evidence) -> Scores:
@@ -326,8 +361,11 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("motion", "model-free: how unusually much or little the demo's actions move (mean |action| and mean "
            "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True,
            decode=lambda ev, rows, device: MotionStats(), short="motion"),
-    Scorer("suspicion", "democheck's ranking: the largest of task uncertainty, consistency, action error (log) and "
-           "motion, each in robust standard deviations within its task", ("scores",), _suspicion,
+    Scorer("view", "model-free: how much more of the camera's view is featureless than is usual for the task (a "
+           "covered or blocked camera), robust z within its task", ("demos",), _view, in_suspicion=True,
+           decode=lambda ev, rows, device: ViewStats(), short="view"),
+    Scorer("suspicion", "democheck's ranking: the largest of task uncertainty, consistency, action error (log), "
+           "motion and view, each in robust standard deviations within its task", ("scores",), _suspicion,
            short="susp."),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),

@@ -69,6 +69,7 @@ def fit_novelty(
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     camera: Annotated[Optional[str], typer.Option(help="Image feature the model was trained on when there are several.")] = None,
     cache_dir: Annotated[Optional[Path], typer.Option(help="Where decoded frames are cached (default ~/.cache/democheck).")] = None,
+    trim: Annotated[Optional[float], typer.Option(help="Leave out this share of the training cues farthest from a first fit, and fit again (for data that may hold bad demos; default: the model's recipe's novelty_trim).")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out.")] = False,
 ) -> None:
     """Give a trained PETNet model the epistemic part of its task variance, without retraining.
@@ -80,7 +81,7 @@ def fit_novelty(
 
         with Bar("decode frames", "episodes") as bar:
             meta = refit_novelty(model, data, out, camera=camera, cache_dir=cache_dir, device=device, force=force,
-                                 on_decode=bar.callback())
+                                 trim=trim, on_decode=bar.callback())
     table = Table(title=f"{model} + novelty -> {out}", show_header=False)
     nov = meta["novelty"]
     table.add_row("reference d2", f"{nov['d2_ref']:.1f} ({nov['quantile']:.0%} of {nov['held_out_cues']} held-out cues)")

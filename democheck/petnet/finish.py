@@ -26,7 +26,7 @@ def mean_sigma(model: torch.nn.Module, cues: np.ndarray, device: torch.device) -
 
 
 def finish_petnet(model, arrays: EpisodeArrays, train_rows: np.ndarray, held_rows: np.ndarray | None, seed: int,
-                  device: torch.device, novelty: bool = True,
+                  device: torch.device, novelty: bool = True, novelty_trim: float = 0.0,
                   reference: Callable[[TaskPosterior, np.ndarray], dict[str, Any]] | None = None
                   ) -> dict[str, Any]:
     """What a trained PETNet model carries beside its weights, from its training cues (``train_rows``) and
@@ -37,7 +37,8 @@ def finish_petnet(model, arrays: EpisodeArrays, train_rows: np.ndarray, held_row
     if novelty:
         # Without held-out tasks the reference distance comes from the training cues themselves (a little low).
         out["novelty"] = fit_novelty(model, arrays.cue(train_rows),
-                                     arrays.cue(held_rows if held_rows is not None else train_rows), device)
+                                     arrays.cue(held_rows if held_rows is not None else train_rows), device,
+                                     trim=novelty_trim)
     real = arrays.cue(held_rows if held_rows is not None else train_rows[:500])
     sig = {"val demos" if held_rows is not None else "train demos": mean_sigma(model, real, device)}
     for name, cues in nonsense_cues(real[:200], np.random.default_rng(seed)).items():

@@ -52,9 +52,13 @@ def conv_features(encoder: torch.nn.Module, cues: np.ndarray, device: torch.devi
 
 
 def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: np.ndarray, device: torch.device,
-                quantile: float = QUANTILE) -> dict[str, Any]:
+                quantile: float = QUANTILE, trim: float = 0.0) -> dict[str, Any]:
     """Fit the feature density of a PETNet model's encoder on ``train_cues`` and its reference distance on
     ``held_out_cues`` (real cues of tasks it was not fitted on), in place; sets ``model.cfg.novelty``.
+
+    ``trim``: fit, leave out that share of the training cues farthest from the fit, and fit again -- for
+    training data that may hold the very demos an audit is to find (a user's own dataset): a covered camera
+    seen in 3% of the training cues would otherwise be familiar.
 
     Returns what the model card reports: the counts, the reference distance and held-out d2 quantiles.
     """
@@ -69,6 +73,10 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     encoder = model.encoder
     feats, mus, var_task = conv_features(encoder, train_cues, device)
     density = LedoitWolf().fit(feats.astype(np.float64))
+    if trim > 0:
+        d2 = density.mahalanobis(feats.astype(np.float64))
+        keep = d2 <= np.quantile(d2, 1.0 - trim)
+        density = LedoitWolf().fit(feats[keep].astype(np.float64))
     held = conv_features(encoder, held_out_cues, device)[0]
     d2_held = density.mahalanobis(held.astype(np.float64))
     ref = float(np.quantile(d2_held, quantile))
@@ -82,7 +90,7 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     encoder.novelty_ref.copy_(as_t(ref))
     prior_var = mus.var(0) + var_task.mean(0)  # the spread of z over the training cues (law of total variance)
     encoder.prior_var.copy_(as_t(prior_var))
-    return {"train_cues": len(train_cues), "held_out_cues": len(held_out_cues), "feature_dim": dim,
+    return {"train_cues": len(train_cues), "held_out_cues": len(held_out_cues), "feature_dim": dim, "trim": trim,
             "quantile": quantile, "d2_ref": ref, "shrinkage": float(density.shrinkage_),
             "held_out_d2": {f"q{int(q * 100)}": float(np.quantile(d2_held, q)) for q in (0.05, 0.5, 0.95, 0.99)},
             "prior_sd": np.sqrt(prior_var).round(4).tolist()}

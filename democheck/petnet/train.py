@@ -62,6 +62,9 @@ class TrainConfig:
     # PETNet: after training, fit the novelty density that adds the epistemic part of the task variance
     # (``democheck.petnet.novelty``); off leaves the paper's variance head alone.
     novelty: bool = True
+    # Of the training cues, the share the novelty density leaves out as outliers (``novelty.fit_novelty``): for
+    # a user's own data, which may hold the bad demos the audit is to find.
+    novelty_trim: float = 0.0
     # Start from this model folder's weights and normalisation instead of a fresh network (same architecture).
     init: str | None = None
     # TecNets' own objective: hinge margin, and the hinge's weight.  At 1 the unit-norm embedding collapses at
@@ -86,6 +89,8 @@ class TrainConfig:
             raise DemocheckError("steps, batch_tasks, timesteps, val_every and ckpt_every must be positive")
         if self.image_size is not None and not 8 <= self.image_size <= 512:
             raise DemocheckError(f"image_size must be between 8 and 512 pixels, not {self.image_size}")
+        if not 0.0 <= self.novelty_trim < 0.5:
+            raise DemocheckError(f"novelty_trim is a share of the training cues below 0.5, not {self.novelty_trim}")
         if self.shift < 0:
             raise DemocheckError(f"shift must be 0 or more pixels, not {self.shift}")
         if not self.lr >= 0:
@@ -244,7 +249,7 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     meta = dict(meta or {})
     if cfg.model_type == "petnet":
         held = np.concatenate(list(val_rows.values())) if val_rows else None
-        extra = finish_petnet(model, arrays, all_train, held, tc.seed, device, tc.novelty, reference)
+        extra = finish_petnet(model, arrays, all_train, held, tc.seed, device, tc.novelty, tc.novelty_trim, reference)
         metrics["task_sigma"] = extra.pop("task_sigma")
         meta.update(extra)
     # Which tasks the model learnt: the audit warns about the others, the card names them.
