@@ -240,8 +240,11 @@ class MotionStats:
 
 
 # On a log scale: an arm that never moves is as many times too still as a flailing one is too busy, and a
-# long, busy expert demo is not mistaken for either (at 0.001 of the median, "still" stops counting).
+# long, busy expert demo is not mistaken for either (at 0.001 of the median, "still" stops counting).  A robust
+# standard deviation stands for at least 10% more or less motion: scripted demos repeat their motion almost
+# exactly, and their MAD alone would make 7% less motion a flag.
 MOTION_FLOOR = 1e-3
+MOTION_MIN_SCALE = 0.1  # in log units
 
 
 MOTION_FEATURES = ("mean |action|", "mean |change of action|")
@@ -250,7 +253,8 @@ MOTION_FEATURES = ("mean |action|", "mean |change of action|")
 def _motion(ev: Evidence) -> Scores:
     features = ev.behaviour["motion"]
     logs = np.log(np.maximum(features, MOTION_FLOOR))
-    z = np.column_stack([np.abs(calibrated(logs[:, i], ev.tasks)) for i in range(logs.shape[1])])
+    z = np.column_stack([np.abs(calibrated(logs[:, i], ev.tasks, min_scale=MOTION_MIN_SCALE))
+                         for i in range(logs.shape[1])])
     pick = np.argmax(z, axis=1)
     reasons = [f"{MOTION_FEATURES[j]} {features[i, j]:.2g} x its median"
                + (" (the arm hardly moves)" if features[i, j] < 1 else "") for i, j in enumerate(pick)]
@@ -279,11 +283,14 @@ class ViewStats:
 
 FLAT_LEVELS = 3
 VIEW_EVERY = 10
+# A robust standard deviation stands for at least 0.25 on the logit scale (40% -> 46% featureless): a fixed
+# camera on a static scene sees the same share in every demo, and its MAD alone would flag a shadow.
+VIEW_MIN_SCALE = 0.25
 
 
 def _view(ev: Evidence) -> Scores:
     flat = np.clip(ev.behaviour["view"], 1e-3, 1 - 1e-3)
-    z = calibrated(np.log(flat / (1 - flat)), ev.tasks)  # on the logit scale; one-sided: more featureless
+    z = calibrated(np.log(flat / (1 - flat)), ev.tasks, min_scale=VIEW_MIN_SCALE)  # logit scale; one-sided
     return z, [f"{100 * f:.0f}% of the view featureless" for f in flat]
 
 

@@ -103,15 +103,21 @@ CALIBRATION = "task"
 CALIBRATIONS = ("all", "task")
 
 
-def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, how: str = CALIBRATION) -> np.ndarray:
-    """``x`` in robust standard deviations (median, 1.4826 x MAD): of all demos, or within each demo's task."""
+def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, how: str = CALIBRATION, min_scale: float = 0.0
+               ) -> np.ndarray:
+    """``x`` in robust standard deviations (median, 1.4826 x MAD): of all demos, or within each demo's task.
+
+    ``min_scale``: the least spread a standard deviation stands for, in ``x``'s units -- for a measurement that
+    scripted or very regular demos repeat almost exactly, where a MAD near zero would call any small difference
+    many standard deviations."""
     if how == "all" or tasks is None or len(np.unique(tasks)) < 2:
-        return standardise(x, robust_stats(x))
+        stats = robust_stats(x)
+        return standardise(x, {**stats, "scale": max(stats["scale"], min_scale)})
     if how not in CALIBRATIONS:
         raise ValueError(f"calibration {how!r}; one of {', '.join(CALIBRATIONS)}")
     finite = np.where(np.isfinite(x), x, np.nan)
     resid = finite - pd.Series(finite).groupby(np.asarray(tasks)).transform("median").to_numpy()
-    return standardise(resid, {"median": 0.0, "scale": robust_stats(resid)["scale"]})
+    return standardise(resid, {"median": 0.0, "scale": max(robust_stats(resid)["scale"], min_scale)})
 
 
 def standardised(scores: dict[str, np.ndarray], tasks: np.ndarray | None = None, how: str = CALIBRATION
