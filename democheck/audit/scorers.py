@@ -98,6 +98,7 @@ class Scorer:
     # In the ranking on a log scale: a score whose clean demos' right tail is long (a squared error) would
     # otherwise put clean demos many robust standard deviations up.
     log_in_ranking: bool = False
+    in_robust_sd: bool = False  # its score is already a robust z within the task: the ranking takes it as it is
     # For "demos": (evidence, its rows of one dataset, device) -> a consumer of that dataset's decoded demos.
     decode: Callable[[Evidence, slice, Any], DemoConsumer] | None = None
     short: str = ""  # header in narrow terminal tables
@@ -297,7 +298,10 @@ def _view(ev: Evidence) -> Scores:
 def _suspicion(ev: Evidence) -> Scores:
     parts = {n: np.log(np.maximum(ev.scores[n], 1e-12)) if s.log_in_ranking else ev.scores[n]
              for n, s in SCORERS.items() if s.in_suspicion and n in ev.scores}
-    z = standardised(parts, ev.tasks)
+    # A score that is a robust z already (its own scale floor included) goes in as it is; the others are
+    # calibrated within their task here.
+    z = np.column_stack([np.where(np.isfinite(x), x, -np.inf) if SCORERS[n].in_robust_sd
+                         else standardised({n: x}, ev.tasks)[:, 0] for n, x in parts.items()])
     value = np.nanmax(z, axis=1)
     names = list(parts)
     reasons = []
@@ -366,10 +370,10 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            f"the demo's normalised actions (MSE at {ACTION_STEPS} evenly spaced timesteps)", ("demos", "model"),
            _action_error, in_suspicion=True, log_in_ranking=True, decode=_decode_action_error, short="act."),
     Scorer("motion", "model-free: how unusually much or little the demo's actions move (mean |action| and mean "
-           "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True,
+           "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True, in_robust_sd=True,
            decode=lambda ev, rows, device: MotionStats(), short="motion"),
     Scorer("view", "model-free: how much more of the camera's view is featureless than is usual for the task (a "
-           "covered or blocked camera), robust z within its task", ("demos",), _view, in_suspicion=True,
+           "covered or blocked camera), robust z within its task", ("demos",), _view, in_suspicion=True, in_robust_sd=True,
            decode=lambda ev, rows, device: ViewStats(), short="view"),
     Scorer("suspicion", "democheck's ranking: the largest of task uncertainty, consistency, action error (log), "
            "motion and view, each in robust standard deviations within its task", ("scores",), _suspicion,
