@@ -373,7 +373,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True, in_robust_sd=True,
            decode=lambda ev, rows, device: MotionStats(), short="motion"),
     Scorer("view", "model-free: how much more of the camera's view is featureless than is usual for the task (a "
-           "covered or blocked camera), robust z within its task", ("demos",), _view, in_suspicion=True, in_robust_sd=True,
+           "covered or blocked camera), robust z within its task", ("demos",), _view, in_robust_sd=True,
            decode=lambda ev, rows, device: ViewStats(), short="view"),
     Scorer("suspicion", "democheck's ranking: the largest of task uncertainty, consistency, action error (log), "
            "motion and view, each in robust standard deviations within its task", ("scores",), _suspicion,
