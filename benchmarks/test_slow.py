@@ -107,5 +107,5 @@ def test_the_readme_walkthrough_runs_as_written_on_a_foreign_dataset(tmp_path):
     assert ran == ["info", "train", "audit", "view"]
     summary = json.loads((tmp_path / "report" / "summary.json").read_text())
     assert summary["demos"] == len(open(root / "benchmarks/foreign/data/mw-tiny.labels.csv").readlines()) - 1
-    assert summary["frames"]["resized"] and (tmp_path / "report" / "suspects.txt").exists()
+    assert summary["frames"]["model"] == [64, 64, 3] and (tmp_path / "report" / "suspects.txt").exists()
     assert not summary["warnings"]  # the model learnt every task of the data it audits
