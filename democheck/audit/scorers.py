@@ -371,7 +371,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            _action_error, in_suspicion=True, log_in_ranking=True, decode=_decode_action_error, short="act."),
     Scorer("motion", "model-free: how unusually much or little the demo's actions move (mean |action| and mean "
            "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True, in_robust_sd=True,
-           decode=lambda ev, rows, device: MotionStats(), short="motion"),
+           decode=lambda ev, rows, device: MotionStats(), short="mot."),
     Scorer("view", "model-free: how much more of the camera's view is featureless than is usual for the task (a "
            "covered or blocked camera), robust z within its task", ("demos",), _view, in_robust_sd=True,
            decode=lambda ev, rows, device: ViewStats(), short="view"),

@@ -54,15 +54,18 @@ def audit(
 
 
 def print_audit(summary: dict, out: Path) -> None:
-    """The top suspects as a table that fits 80 columns: every registered score the audit computed."""
+    """The top suspects as a table that fits 80 columns: the scores the ranking takes, and the ranking (the
+    others are in scores.csv and the report)."""
     from democheck.audit.scorers import SCORERS
 
     table = Table(title=f"top suspects of {summary['demos']} demos ({summary['flagged']} flagged)")
-    cols = [n for n in SCORERS if n in summary["top_suspects"][0]] if summary["top_suspects"] else []
+    cols = [n for n, s in SCORERS.items() if (s.in_suspicion or n == "suspicion") and summary["top_suspects"]
+            and n in summary["top_suspects"][0]]
     # Short headers and a clipped task column keep the table readable in an 80-column terminal.
     for col in ("rank", "ep", "task", *(SCORERS[c].short for c in cols), "flag"):
         table.add_column(col, justify="left" if col == "task" else "right", no_wrap=True, overflow="ellipsis",
-                         max_width=24 if col == "task" else None, min_width=None if col == "task" else 4)
+                         max_width=max(12, 36 - 4 * len(cols)) if col == "task" else None,
+                         min_width=None if col == "task" else 4 if col in ("rank", "ep", "flag") else 5)
     for r in summary["top_suspects"]:
         cells = ["n/a" if r[c] is None else short(r[c]) for c in cols]
         table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"], *cells, "[red]yes[/]" if r["is_anomaly"] else "")

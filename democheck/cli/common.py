@@ -82,7 +82,9 @@ class Bar:
 
     def say(self, text: str) -> None:
         """A line above the bar (a new stage of a long command)."""
-        self.update(0, None, stage=text)
+        self.stage, self.last = text, (time.monotonic(), 0)
+        if self.progress is not None:
+            self.progress.update(self.job, completed=0, total=None, description=text)
         err_console.print(text, highlight=False)
 
 
