@@ -362,3 +362,21 @@ def test_resize_frames_averages_areas():
     assert out.shape == (2, 2, 2, 3) and out[0, 0, 0, 0] == 200 and out[0, 1, 1, 0] == 0
     assert resize_frames(img, 4) is img
     assert resize_frames(np.zeros((3, 6, 8, 3), np.uint8), 4).shape == (3, 4, 4, 3)  # a wide camera, squeezed
+
+
+def test_the_final_phase_learns_the_validation_demos_too(tmp_path):
+    from dataclasses import replace
+
+    from democheck.sim.suite import generate
+    from tests.conftest import TINY
+
+    root = tmp_path / "plain"
+    generate(replace(TINY, demos_per_task=6), root, workers=1)
+    (root / "meta/democheck/episodes.parquet").unlink()  # a user's dataset: no named split
+    arrays = build_cache(open_dataset(root), tmp_path / "cache")
+    assert task_rows(arrays, "val", 0)  # two held-out demos of every task
+    result = train(arrays, tmp_path / "m", TrainConfig(steps=6, seed=0, final_all_steps=2, **FAST))
+    meta = load_checkpoint(tmp_path / "m").meta
+    assert meta["data"]["task_split"]["validation"].endswith("learnt too in the last 2 steps")
+    assert result.history[-1]["step"] == 4  # validation stops where every demo is trained on
+    assert meta["novelty"]["train_cues"] == len(arrays.episodes)  # the density (and the OCSVM) see every demo
