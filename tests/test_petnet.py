@@ -375,7 +375,7 @@ def test_the_final_phase_learns_the_validation_demos_too(tmp_path):
     (root / "meta/democheck/episodes.parquet").unlink()  # a user's dataset: no named split
     arrays = build_cache(open_dataset(root), tmp_path / "cache")
     assert task_rows(arrays, "val", 0)  # two held-out demos of every task
-    result = train(arrays, tmp_path / "m", TrainConfig(steps=6, seed=0, final_all_steps=2, **FAST))
+    result = train(arrays, tmp_path / "m", TrainConfig(steps=6, seed=0, final_all_share=1 / 3, **FAST))
     meta = load_checkpoint(tmp_path / "m").meta
     assert meta["data"]["task_split"]["validation"].endswith("learnt too in the last 2 steps")
     assert result.history[-1]["step"] == 4  # validation stops where every demo is trained on

@@ -32,7 +32,7 @@ KEYS: dict[str, dict[str, str]] = {
     "model": {"keypoints": "keypoints", "novelty": "novelty", "novelty_trim": "novelty_trim", "init": "init",
               "image_size": "image_size"},
     "tecnet": {"margin": "tecnet_margin", "weight": "tecnet_weight"},
-    "schedule": {"val_every": "val_every", "ckpt_every": "ckpt_every", "final_all_steps": "final_all_steps"},
+    "schedule": {"val_every": "val_every", "ckpt_every": "ckpt_every", "final_all_share": "final_all_share"},
 }
 
 

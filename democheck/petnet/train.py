@@ -75,11 +75,11 @@ class TrainConfig:
     seed: int = 0
     val_every: int = 500
     ckpt_every: int = 1000
-    # The last this many of ``steps`` draw from every demo, the validation demos too, so that an audit of the
+    # The last this share of ``steps`` draws from every demo, the validation demos too, so that an audit of the
     # training data compares demos the model has all learnt (held-out ones otherwise look unfamiliar: on a
     # Meta-World set the OCSVM flagged 7 of 19 held-out clean demos and 2 of 181 trained ones).  Validation
     # stops where this phase starts; the novelty density and the OCSVM are then fitted on every demo.
-    final_all_steps: int = 0
+    final_all_share: float = 0.0
     device: str = "auto"
 
     def partial_cues(self) -> bool:
@@ -98,9 +98,8 @@ class TrainConfig:
             raise DemocheckError(f"novelty_trim is a share of the training cues below 0.5, not {self.novelty_trim}")
         if self.shift < 0:
             raise DemocheckError(f"shift must be 0 or more pixels, not {self.shift}")
-        if not 0 <= self.final_all_steps <= self.steps:
-            raise DemocheckError(f"final_all_steps must be between 0 and steps ({self.steps}), not "
-                                 f"{self.final_all_steps}")
+        if not 0.0 <= self.final_all_share < 1.0:
+            raise DemocheckError(f"final_all_share is a share of the steps below 1, not {self.final_all_share}")
         if not self.lr >= 0:
             raise DemocheckError(f"lr must be 0 or more, not {self.lr}")
         regularisers.check_weights(self.regularisers)
@@ -211,12 +210,13 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     groups = task_groups if tc.hard_negatives else None
     batches, val = Batches(arrays, train_rows, norm, groups), Batches(arrays, val_rows, norm)
     pairs = val_pairs(val, tc.seed) if val_rows else None
-    # The final phase (``final_all_steps``): every demo of every task, validation demos included.
+    # The final phase (``final_all_share``): every demo of every task, validation demos included.
     every = {t: np.sort(np.concatenate([train_rows.get(t, np.zeros(0, np.int64)), val_rows.get(t, np.zeros(0, np.int64))]))
              for t in set(train_rows) | set(val_rows)}
     # Only where validation holds out demos of tasks that are trained on: a split the data names stays as it is.
     named_split = "split" in arrays.episodes and arrays.episodes["split"].notna().any()
-    final_from = tc.steps - tc.final_all_steps if val_rows and tc.final_all_steps and not named_split else tc.steps
+    final_steps = int(round(tc.final_all_share * tc.steps)) if val_rows and not named_split else 0
+    final_from = tc.steps - final_steps
     batches_all = Batches(arrays, every, norm, groups) if final_from < tc.steps else batches
 
     step, history, wall_before = 0, [], 0.0
