@@ -27,8 +27,7 @@ import torch
 
 from democheck.audit.baselines import (HEURISTIC_FEATURES, heuristic_z, knn_same_task, motion_features, random_score,
                                        summarise_motion)
-from democheck.audit.scores import (CONSISTENCY_K, calibrated, consistency_terms, ocsvm_margin, rank_order,
-                                    standardised)
+from democheck.audit.scores import CONSISTENCY_K, calibrated, consistency_terms, ocsvm_margin, rank_order
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -300,8 +299,8 @@ def _suspicion(ev: Evidence) -> Scores:
              for n, s in SCORERS.items() if s.in_suspicion and n in ev.scores}
     # A score that is a robust z already (its own scale floor included) goes in as it is; the others are
     # calibrated within their task here.
-    z = np.column_stack([np.where(np.isfinite(x), x, -np.inf) if SCORERS[n].in_robust_sd
-                         else standardised({n: x}, ev.tasks)[:, 0] for n, x in parts.items()])
+    z = np.column_stack([x if SCORERS[n].in_robust_sd else calibrated(x, ev.tasks) for n, x in parts.items()])
+    z = np.where(np.isfinite(z), z, -np.inf)
     value = np.nanmax(z, axis=1)
     names = list(parts)
     reasons = []

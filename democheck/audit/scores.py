@@ -120,12 +120,6 @@ def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, how: str = CALIBR
     return standardise(resid, {"median": 0.0, "scale": max(robust_stats(resid)["scale"], min_scale)})
 
 
-def standardised(scores: dict[str, np.ndarray], tasks: np.ndarray | None = None, how: str = CALIBRATION
-                 ) -> np.ndarray:
-    """Each score ``calibrated``: [N, len(scores)], -inf where a score is NaN."""
-    z = np.column_stack([calibrated(x, tasks, how) for x in scores.values()])
-    return np.where(np.isfinite(z), z, -np.inf)
-
 
 
 # ---------------------------------------------------------------------------
