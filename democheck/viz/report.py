@@ -75,15 +75,18 @@ def suspect_path(rank: int, episode_index: int) -> str:
 
 
 def suspects_markdown(table: pd.DataFrame, top: int, title: str) -> str:
-    """The ranked list: every registered score the table has, the reason, the flag, and what each column means."""
-    cols = [n for n, s in SCORERS.items() if s.in_audit and n in table]
-    lines = [f"# {title}", "", "| rank | episode | task | " + " | ".join(c.replace("_", " ") for c in cols)
-             + " | flagged | reason |", "|---:|---:|---|" + "---:|" * len(cols) + ":---:|---|"]
+    """The ranked list: what a reviewer decides by first (the ranking, the flag, the reason), then the task and
+    every other registered score the table has, and what each column means."""
+    cols = [n for n, s in SCORERS.items() if s.in_audit and n in table and n != "suspicion"]
+    lines = [f"# {title}", "", "| rank | episode | suspicion | flagged | reason | task | "
+             + " | ".join(c.replace("_", " ") for c in cols) + " |",
+             "|---:|---:|---:|:---:|---|---|" + "---:|" * len(cols)]
     for r in table.head(top).to_dict(orient="records"):
-        cells = ["n/a" if not np.isfinite(r[c]) else f"{r[c]:.4g}" for c in cols]
-        lines.append(f"| {r['rank']} | {r['episode_index']} | {r['task']} | " + " | ".join(cells)
-                     + f" | {'yes' if r['is_anomaly'] else ''} | {r.get('reason', '')} |")
-    lines += ["", *[f"- {c.replace('_', ' ')}: {SCORERS[c].description}" for c in cols],
+        cells = ["n/a" if not np.isfinite(r[c]) else f"{r[c]:.4g}" for c in ["suspicion", *cols]]
+        reason, task = (str(x).replace("|", "\\|") for x in (r.get("reason", ""), r["task"]))  # "mean |action|"
+        lines.append(f"| {r['rank']} | {r['episode_index']} | {cells[0]} | {'yes' if r['is_anomaly'] else ''} | "
+                     f"{reason} | {task} | " + " | ".join(cells[1:]) + " |")
+    lines += ["", *[f"- {c.replace('_', ' ')}: {SCORERS[c].description}" for c in ["suspicion", *cols]],
               "- flagged: the one-class SVM, or a suspicion above the flag threshold (see summary.json)"]
     return "\n".join(lines)
 
