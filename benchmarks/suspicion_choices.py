@@ -1,14 +1,21 @@
-"""The development-set sweep behind the ranking's design: how to calibrate scores, and which go into it.
+"""The development-set sweep behind the ranking's design: which scores go in, and how they are combined.
 
-    python benchmarks/suspicion_choices.py BENCH_DIR [BENCH_DIR ...]
+    python benchmarks/suspicion_choices.py BENCH_DIR [BENCH_DIR ...] [--only DATASET]
 
 BENCH_DIR is a ``democheck bench`` output (its scores.parquet: each demo's task, label and every scorer's
-score).  For every variant it prints the AUROC of each labelled kind against the clean demos, the mean over
-kinds, and the share of clean and of bad demos above a range of flag thresholds.
+score).  Every score of the ranking is first put in robust standard deviations within its task, exactly as
+``democheck audit`` does (``scorers.ranking_z``); the variants then differ in how those are combined:
 
-Variants: how each score is standardised before the ranking takes the largest -- against all demos
-(``all``), within its task by the task's median and MAD (``task``), or the task's median and the pooled MAD
-of every demo's distance from its task's median (``task-median``) -- and which scores go in.
+- ``max z``: the largest robust z (democheck's ranking before the tail probabilities);
+- ``tail LO-HI``: each column's exponential tail through its LO and HI percentiles, the smallest tail
+  probability Sidak-corrected (``scores.tail_probabilities`` with other ``TAIL_QUANTILES``);
+- ``rank min-p``, ``rank Fisher``: empirical p-values (each demo's rank among the audited demos), their
+  minimum or Fisher's sum of -log p.
+
+For each it prints the AUROC of every labelled kind against the clean demos and their mean; for the tail
+probabilities also the share of clean demos flagged and the recall of the bad ones at several
+false-positive rates (``audit --fpr``), next to the rate asked for.  ``--only`` keeps the rows of one of the
+bench's datasets (the demos an audit of that dataset alone would see).
 """
 
 from __future__ import annotations
@@ -19,84 +26,84 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-SCALE = 1.4826
+from democheck.audit import scores
+from democheck.audit.scorers import SCORERS, Evidence, ranking_z
+
+FPRS = (0.001, 0.005, 0.01, 0.02, 0.05)
 
 
-def _mad(x: np.ndarray) -> float:
-    x = x[np.isfinite(x)]
-    return max(SCALE * float(np.median(np.abs(x - np.median(x)))), 1e-9) if len(x) else 1.0
-
-
-def standardise(x: np.ndarray, tasks: np.ndarray, how: str, two_sided: bool = False) -> np.ndarray:
-    z = np.full(len(x), np.nan)
-    if how == "all":
-        ok = np.isfinite(x)
-        z = (x - np.median(x[ok])) / _mad(x)
-    else:
-        resid = np.full(len(x), np.nan)
-        for t in np.unique(tasks):
-            i = tasks == t
-            resid[i] = x[i] - np.nanmedian(x[i])
-        if how == "task-median":
-            z = resid / _mad(resid)
-        else:
-            for t in np.unique(tasks):
-                i = tasks == t
-                z[i] = resid[i] / _mad(x[i])
-    return np.abs(z) if two_sided else z
-
-
-LOGGED = {False: (), True: ("task_uncertainty", "consistency", "action_error", "novelty"), "act": ("action_error",),
-          "act+unc": ("action_error", "task_uncertainty")}
-
-
-def ranking(table: pd.DataFrame, cols: list[str], how: str, log=False) -> np.ndarray:
-    tasks = table["task"].to_numpy()
-    # ``log``: positive scores on a log scale first, where their clean demos' right tails are nearer Gaussian.
-    vals = {c: np.log(np.maximum(table[c].to_numpy(float), 1e-6)) if c in LOGGED[log]
-            else table[c].to_numpy(float) for c in cols}
-    z = np.column_stack([standardise(vals[c], tasks, how, two_sided=c.startswith("motion")) for c in cols])
-    return np.nanmax(np.where(np.isfinite(z), z, -np.inf), axis=1)
-
-
-def report(table: pd.DataFrame, name: str, cols: list[str], how: str, log=False) -> None:
-    s = table[cols[0]].to_numpy(float) if how == "as is" else ranking(table, cols, how, log)
-    labels = table["label"].to_numpy()
-    kinds = sorted(set(labels) - {"clean"})
-    au = []
-    for k in kinds:
+def aurocs(s: np.ndarray, labels: np.ndarray) -> dict[str, float]:
+    out = {}
+    for k in sorted(set(labels) - {"clean"}):
         sel = (labels == k) | (labels == "clean")
-        au.append(roc_auc_score(labels[sel] == k, np.nan_to_num(s[sel], nan=-1e9)))
-    clean, bad = s[labels == "clean"], s[labels != "clean"]
-    flags = " ".join(f"{th}:{np.mean(clean > th):.3f}/{np.mean(bad > th):.2f}" for th in (4, 6, 8, 10, 12))
-    print(f"  {name:<34} {how + (f' log {log}' if log else ''):<22} " + " ".join(f"{a:.2f}" for a in au) + f" | {np.mean(au):.3f} | {flags}")
+        out[k] = roc_auc_score(labels[sel] == k, np.nan_to_num(s[sel], nan=-1e9, posinf=1e9))
+    return out
+
+
+def tail_p(z: np.ndarray, quantiles: tuple[float, float]) -> np.ndarray:
+    """-log10 of the combined tail probability with ``quantiles`` in place of ``scores.TAIL_QUANTILES``."""
+    saved = scores.TAIL_QUANTILES
+    scores.TAIL_QUANTILES = quantiles
+    try:
+        return -scores.combined_log10(scores.tail_probabilities(z))
+    finally:
+        scores.TAIL_QUANTILES = saved
+
+
+def rank_p(z: np.ndarray) -> np.ndarray:
+    """Each entry's empirical p-value among its column: the share of demos at least as high."""
+    z = np.where(np.isnan(z), -np.inf, z)
+    out = np.empty(z.shape)
+    for k in range(z.shape[1]):
+        order = np.sort(z[:, k])
+        out[:, k] = (len(z) - np.searchsorted(order, z[:, k], side="left")) / (len(z) + 1)
+    return out
+
+
+def variants(z: np.ndarray) -> dict[str, np.ndarray]:
+    finite = np.where(np.isnan(z), -np.inf, z)
+    p = rank_p(z)
+    return {"max z": finite.max(axis=1),
+            **{f"tail {lo:g}-{hi:g}": tail_p(z, (lo, hi)) for lo, hi in ((0.25, 0.75), (0.25, 0.5), (0.5, 0.75), (0.5, 0.9))},
+            "rank min-p": -np.log(p.min(axis=1)), "rank Fisher": -np.log(p).sum(axis=1)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("benches", nargs="+")
+    ap.add_argument("--only", help="keep the rows of this dataset of the bench (its path as the bench names it)")
     args = ap.parse_args()
     for path in args.benches:
         table = pd.read_parquet(f"{path}/scores.parquet")
-        kinds = sorted(set(table["label"]) - {"clean"})
-        have = set(table.columns)
-        print(f"{path}: {len(table)} demos, {table['task'].nunique()} tasks; AUROC " + " ".join(kinds)
-              + " | mean | flag threshold: clean/bad share above")
-        base = ["task_uncertainty", "consistency", "action_error"]
-        sets = {"ranking (unc., cons., act.)": base}
-        if "motion" in have:
-            sets["+ motion"] = base + ["motion"]
-            sets["cons. + act. + motion"] = ["consistency", "action_error", "motion"]
-        if "novelty" in have:
-            sets["+ novelty"] = base + ["novelty"]
-            if "motion" in have:
-                sets["+ motion + novelty"] = base + ["motion", "novelty"]
-        table["as computed"] = table["suspicion"]
-        report(table, "democheck's suspicion, as computed", ["as computed"], "as is")
+        if args.only:
+            table = table[table["dataset"] == args.only].reset_index(drop=True)
+        labels = table["label"].fillna("clean").to_numpy()
+        ev = Evidence(episodes=table[["episode_index", "task"]], scores={c: table[c].to_numpy() for c in table
+                                                                         if c in SCORERS})
+        ranked = [n for n, s in SCORERS.items() if s.in_suspicion and n in table]
+        kinds = sorted(set(labels) - {"clean"})
+        print(f"\n{path}{' (' + args.only + ')' if args.only else ''}: {len(table)} demos, "
+              f"{table['task'].nunique()} tasks, {np.mean(labels != 'clean'):.0%} bad")
+        print(f"  {'scores':<46} {'combination':<16} " + " ".join(f"{k[:8]:>8}" for k in kinds) + "     mean")
+        sets = {"+".join(ranked): ranked}
+        for drop in ranked:
+            sets[f"without {drop}"] = [n for n in ranked if n != drop]
+        extra = [n for n in ("jerk", "novelty", "frozen_video", "saturation", "view") if n in table]
+        for name in extra:
+            sets[f"with {name}"] = ranked + [name]
         for name, cols in sets.items():
-            for how in ("all", "task", "task-median"):
-                for log in LOGGED:
-                    report(table, name, cols, how, log)
+            z = ranking_z(ev, cols)
+            for how, s in variants(z).items():
+                au = aurocs(s, labels)
+                print(f"  {name[:46]:<46} {how:<16} " + " ".join(f"{au[k]:8.3f}" for k in kinds)
+                      + f" {np.mean(list(au.values())):8.3f}")
+        s = tail_p(ranking_z(ev, ranked), scores.TAIL_QUANTILES)
+        clean = labels == "clean"
+        print("  flags with the shipped combination: fpr asked -> clean share flagged (x asked), recall per kind")
+        for fpr in FPRS:
+            flagged = 10.0 ** -s <= fpr
+            recall = " ".join(f"{k[:8]} {flagged[labels == k].mean():.2f}" for k in kinds)
+            print(f"    {fpr:<6g} -> {flagged[clean].mean():.4f} (x{flagged[clean].mean() / fpr:.2f})  {recall}")
 
 
 if __name__ == "__main__":

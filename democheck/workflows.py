@@ -26,7 +26,7 @@ from democheck import __version__
 from democheck.audit.bench import bench, markdown as bench_markdown
 from democheck.audit.metrics import by_label
 from democheck.audit.run import audit, finish_summary, for_model, suspects, write_tables
-from democheck.audit.scores import reference
+from democheck.audit.scores import DEFAULT_FPR, reference
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache
 from democheck.errors import DatasetError, DemocheckError
@@ -137,19 +137,41 @@ def object_pair_groups(ds) -> dict[str, str]:
 
 def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None = None, top: int = 20,
                   camera: str | None = None, task: str | None = None, device: str = "auto", force: bool = False,
-                  on_progress: Callable[[str, int, int], None] | None = None, actions: bool = True) -> dict[str, Any]:
+                  on_progress: Callable[[str, int, int], None] | None = None, actions: bool = True,
+                  fpr: float = DEFAULT_FPR, no_model: bool = False, keep_list: str | Path | None = None,
+                  drop_list: str | Path | None = None) -> dict[str, Any]:
     """Open ``dataset``, load the model (default: the shipped one), audit, and write the report folder ``out``
     atomically (scores.parquet/.csv, summary.json, suspects.txt, report.rrd); returns the summary.
 
+    ``no_model``: the model-free checks alone.  Without ``model``, a dataset the shipped model cannot read
+    (other state or action dimensions) is audited model-free too, and the summary says why.
+    ``keep_list``/``drop_list``: files listing the unflagged/flagged episode indices as ``[0, 2, 5]``, the form
+    a dataset-editing tool takes (e.g. ``lerobot-edit-dataset --operation.episode_indices``).
     ``on_progress(stage, done, total)``: the cue pass, then the decoding pass."""
     out = Path(out)
     refuse_existing(out, force)
     ds = open_dataset(dataset, camera=camera, task=task)
     dev = resolve_device(device)
     t0 = time.perf_counter()
-    ckpt = load_checkpoint(model, device=dev)
+    ckpt, why = None, None
+    if no_model:
+        why = "audited with the model-free checks alone (--no-model)"
+    else:
+        ckpt = load_checkpoint(model, device=dev)
+        if model is None:
+            try:
+                for_model(ds, ckpt)
+            except DemocheckError as exc:
+                problem = str(exc).split("; train a model")[0].split(": ", 1)[-1]
+                why = (f"the shipped model cannot read this data ({problem}): audited with the model-free checks "
+                       f"alone; for the model's scores too, democheck train {ds.root} --out models/<name> "
+                       "--recipe your-data")
+                ckpt = None
     t = {"model_load_s": time.perf_counter() - t0}
-    table, summary = audit(ds, ckpt, top=top, device=dev, actions=actions, timings=t, on_progress=on_progress)
+    table, summary = audit(ds, ckpt, top=top, device=dev, actions=actions, fpr=fpr, timings=t,
+                           on_progress=on_progress, why_no_model=why)
+    if why and not no_model:
+        summary["warnings"].insert(0, why)
     t.update(summary.pop("timing"))
     with atomic_output_dir(out, force=force) as tmp:
         write_tables(tmp, table, suspects(table))
@@ -162,7 +184,18 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
         t["rrd_s"] = time.perf_counter() - t2
         summary = finish_summary(summary, t)
         write_json(tmp / "summary.json", summary)
+    for path, flagged in ((keep_list, False), (drop_list, True)):
+        if path is not None:
+            write_episode_list(path, table, flagged)
     return summary
+
+
+def write_episode_list(path: str | Path, table: pd.DataFrame, flagged: bool) -> None:
+    """The flagged (or unflagged) episode indices, ascending, as ``[0, 2, 5]``."""
+    rows = table.loc[table["is_anomaly"].to_numpy(bool) == flagged, "episode_index"]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(sorted(int(e) for e in rows)) + "\n")
 
 
 def read_labels(path: str | Path, ds) -> dict[int, str]:

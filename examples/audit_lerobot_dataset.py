@@ -4,7 +4,8 @@
 
 A model reads one camera at one image size: train one on your data first
 (`democheck train path/to/dataset --out models/my-petnet`), or use the shipped
-model on data that looks like the pushing suite. The report folder holds
+model on data that looks like the pushing suite (on other data, without a model, the audit runs its
+model-free checks alone and says so). The report folder holds
 scores.parquet (one row per demo), suspects.txt (flagged episode indices),
 summary.json and report.rrd (open it with `democheck view report/`).
 """
@@ -23,12 +24,18 @@ ap.add_argument("--out", type=Path, default=Path("report"))
 ap.add_argument("--camera", default=None)
 args = ap.parse_args()
 
-summary = audit_dataset(args.dataset, args.out, model=args.model, camera=args.camera, force=True)
+drop = args.out.with_name(args.out.name + ".drop.json")
+summary = audit_dataset(args.dataset, args.out, model=args.model, camera=args.camera, force=True, drop_list=drop)
 scores = pd.read_parquet(args.out / "scores.parquet")
-print(f"{summary['demos']} demos, {summary['flagged']} flagged")
-print(scores.head(10)[["rank", "episode_index", "task", "task_uncertainty", "consistency", "action_error", "suspicion",
-                        "is_anomaly", "reason"]])
+flag = summary["flag"]
+print(f"{summary['demos']} demos, {summary['flagged']} flagged at fpr {flag['fpr']:g} "
+      f"(about {flag['expected_false_flags']:.1f} of them expected clean)")
+for w in summary["warnings"]:
+    print("warning:", w)
+shown = [c for c in ("rank", "episode_index", "task", "task_uncertainty", "consistency", "action_error", "motion",
+                     "idle", "suspicion", "is_anomaly", "reason") if c in scores]
+print(scores.head(10)[shown])
 
-# The episodes to keep: everything not flagged. Feed this list to your dataset-editing tool.
-keep = sorted(scores.loc[~scores["is_anomaly"], "episode_index"])
-print(f"keep {len(keep)} of {len(scores)} episodes; dropped: {(args.out / 'suspects.txt').read_text().split()}")
+# The episodes to drop, as a dataset-editing tool takes them, e.g.
+#   lerobot-edit-dataset --operation.type delete_episodes --operation.episode_indices "$(cat report.drop.json)"
+print(f"drop {drop.read_text().strip()} ({summary['flagged']} of {len(scores)} episodes)")

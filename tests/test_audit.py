@@ -238,24 +238,33 @@ def test_audit_mismatch_and_fail_on(tiny_dataset, tiny_model, tmp_path):
     flagged = json.loads((tmp_path / "a" / "summary.json").read_text())["flagged"]
     if flagged:
         res = runner.invoke(app, ["audit", str(root), "--out", str(tmp_path / "b"), "--model", str(tiny_model),
-                                  "--fail-on", str(flagged - 1), "--device", "cpu"])
+                                  "--fail-on", str(flagged - 1), "--device", "cpu", "--no-actions"])
         assert res.exit_code == 3
 
 
-def test_fail_on_exit_code_with_a_strict_svm(tiny_dataset, tiny_model, tmp_path):
-    """Make the stored OCSVM flag everything, and check the CI gate trips."""
-    import shutil
-
-    strict = tmp_path / "strict"
-    shutil.copytree(tiny_model, strict)
-    cfg = json.loads((strict / "config.json").read_text())
-    cfg["reference"]["ocsvm"]["offset"] = 1e12
-    (strict / "config.json").write_text(json.dumps(cfg))
+def test_fail_on_trips_and_fpr_sets_the_flags(tiny_dataset, tiny_model, tmp_path):
+    """A looser --fpr flags more demos; the CI gate trips on them; the lists hold the flagged and the rest."""
     root, _ = tiny_dataset
-    res = runner.invoke(app, ["audit", str(root), "--out", str(tmp_path / "r"), "--model", str(strict),
-                              "--fail-on", "3", "--device", "cpu"])
-    assert res.exit_code == 3 and "12 demos flagged" in res.output
-    assert len((tmp_path / "r" / "suspects.txt").read_text().split()) == 12
+    counts = {}
+    for fpr in ("0.01", "0.9"):
+        out = tmp_path / fpr
+        res = runner.invoke(app, ["audit", str(root), "--out", str(out), "--model", str(tiny_model), "--fpr", fpr,
+                                  "--device", "cpu", "--drop-list", str(out.with_suffix(".drop")),
+                                  "--keep-list", str(out.with_suffix(".keep"))])
+        assert res.exit_code == 0, res.output
+        summary = json.loads((out / "summary.json").read_text())
+        counts[fpr] = summary["flagged"]
+        assert summary["flag"]["fpr"] == float(fpr) and summary["flag"]["expected_false_flags"] >= 0
+        drop = json.loads(out.with_suffix(".drop").read_text())
+        keep = json.loads(out.with_suffix(".keep").read_text())
+        assert len(drop) == summary["flagged"] and sorted(drop + keep) == list(range(12)) and drop == sorted(drop)
+        assert sorted(int(e) for e in (out / "suspects.txt").read_text().split()) == drop
+    assert counts["0.9"] > counts["0.01"]
+    res = runner.invoke(app, ["audit", str(root), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
+                              "--fpr", "0.9", "--fail-on", str(counts["0.9"] - 1), "--device", "cpu"])
+    assert res.exit_code == 3 and f"{counts['0.9']} demos flagged" in res.output
+    res = runner.invoke(app, ["audit", str(root), "--out", str(tmp_path / "x"), "--fpr", "1.5"])
+    assert res.exit_code == 2 and "between 0 and 1" in res.output
 
 
 class _ZeroController:

@@ -236,7 +236,8 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     kinds = {"idle", "random", "wrong-object", "no-action", "no-objects", "hidden"}
     assert kinds <= set(doc["kinds"])
     assert list(doc["scorers"]) == ["task_uncertainty", "task_uncertainty_head", "novelty", "consistency",
-                                    "action_error", "motion", "view", "suspicion", "ocsvm_flag", "tecnet_knn",
+                                    "action_error", "motion", "idle", "jerk", "saturation", "duplicate",
+                                    "frozen_video", "view", "suspicion", "model_free", "ocsvm_flag", "tecnet_knn",
                                     "heuristic", "random"]
     for name, per in doc["scorers"].items():
         for kind in kinds:

@@ -18,8 +18,10 @@ truth and is not part of the dataset.  Every planted kind replaces a demo of a t
   stops (so the task is never done; a clean demo may rest after succeeding);
 - ``occluded``: a clean demo whose camera is covered by a grey card over 40-60% of the view, all episode.
 
-Clean demos are the scripted policy on a random variation of the task (Meta-World's goal and object
-positions), kept only when the policy succeeds.  Episodes run in spawned worker processes (each with its own
+Clean demos are the scripted policy on a variation of the task (Meta-World's goal and object positions) that
+no other episode of the task's scene uses while the 50 last, kept only when the policy succeeds.  (Before,
+variations were drawn with replacement: a reset of the same variation replays the same episode, so the datasets
+made then hold exact copies -- ``democheck audit`` names them.)  Episodes run in spawned worker processes (each with its own
 GL context); the same seed gives the same episodes.
 """
 
@@ -84,7 +86,7 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout:
 
     env, variations = _env(name)
     layout = layout or (int(rng.integers(len(variations))), int(rng.integers(1 << 31)))
-    env.set_task(variations[layout[0]])
+    env.set_task(variations[layout[0] % len(variations)])
     obs, _ = env.reset(seed=layout[1])
     policy = getattr(P, TASKS[name][1])()
     stop = steps if stop is None else stop
@@ -120,16 +122,18 @@ def _cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def _episode(job: tuple) -> dict:
-    index, name, kind, other, steps, seed = job
+    index, name, kind, other, steps, seed, variation = job
     rng = np.random.default_rng([seed, index])
-    for _ in range(20):
+    for attempt in range(20):
+        # The episode's own variation first; should the expert fail on it, random ones.
+        layout = (variation, int(rng.integers(1 << 31))) if attempt == 0 else None
         if kind == "gave-up":  # where the expert succeeds on this layout, then the same layout stopped short of it
-            full = _rollout(name, "clean", steps, rng)
+            full = _rollout(name, "clean", steps, rng, layout)
             rec = None if full is None else _rollout(name, kind, steps, rng, full["layout"],
                                                      stop=int(full["first_success"] * rng.uniform(0.3, 0.6)))
             rec = None if rec is None or rec["success"] else rec
         else:
-            rec = _rollout(other if kind == "wrong-task" else name, kind, steps, rng)
+            rec = _rollout(other if kind == "wrong-task" else name, kind, steps, rng, layout)
         if rec is not None:
             break
     else:
@@ -140,19 +144,28 @@ def _episode(job: tuple) -> dict:
             **{k: rec[k] for k in ("frames", "state", "actions")}}
 
 
+VARIATIONS = 50  # Meta-World's training variations (goal and object positions) of each task
+
+
 def plan(names: list[str], demos: int, plant: int, steps: int, seed: int) -> list[tuple]:
-    """(episode index, env, kind, other env, steps, seed) of every episode: ``demos`` per task, ``plant`` of
-    each kind in all, on tasks drawn by the seed."""
+    """(episode index, env, kind, other env, steps, seed, variation) of every episode: ``demos`` per task,
+    ``plant`` of each kind in all, on tasks drawn by the seed.  Every episode of an env gets a variation of its
+    own (a reset of the same variation replays the same episode, bit for bit), until the env's
+    ``VARIATIONS`` are used up."""
     rng = np.random.default_rng([seed, 1])
     kinds = ["clean"] * (demos * len(names)) + [k for k in KINDS for _ in range(plant)]
     tasks = [n for n in names for _ in range(demos)] + list(rng.choice(names, size=plant * len(KINDS)))
     order = rng.permutation(len(kinds))
+    shuffled: dict[str, list[int]] = {}
     jobs = []
     for i, j in enumerate(order):
         name, kind = tasks[j], kinds[j]
         # Another task of the dataset; a dataset of one task borrows another Meta-World task's recording.
         other = str(rng.choice([n for n in names if n != name] or [n for n in TASKS if n != name]))
-        jobs.append((i, str(name), kind, other, steps, seed))
+        env = other if kind == "wrong-task" else str(name)
+        if not shuffled.get(env):
+            shuffled[env] = list(rng.permutation(VARIATIONS))
+        jobs.append((i, str(name), kind, other, steps, seed, int(shuffled[env].pop())))
     return jobs
 
 

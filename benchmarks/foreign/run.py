@@ -8,11 +8,13 @@ The dataset is any LeRobot folder with a labels CSV beside it (``DATASET.labels.
 
     democheck train DATASET --out OUT/model --recipe your-data        (skipped with --model)
     democheck audit DATASET --out OUT/audit --model OUT/model
+    democheck audit DATASET --out OUT/audit-no-model --no-model
     democheck bench DATASET --labels LABELS --model OUT/model --out OUT/bench
 
 and prints, per planted kind against the clean demos, the AUROC of democheck's ranking and of each of its
 scores, of a two-line linter (mean |action| and mean |change of action|, the larger robust |z| over the
-demos), and the audit's flags: the share of each kind flagged and of the clean demos.  ``OUT/results.json``
+demos), of the audit without a model (its ranking: ``no-model``), and the audit's flags: the share of each kind
+flagged and of the clean demos, against the false flags the audit expected.  ``OUT/results.json``
 keeps the numbers.
 """
 
@@ -30,7 +32,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-SCORES = ("suspicion", "task_uncertainty", "consistency", "action_error", "novelty", "motion")
+SCORES = ("suspicion", "task_uncertainty", "consistency", "action_error", "novelty", "motion", "idle")
 
 
 def democheck(*args: str) -> float:
@@ -80,15 +82,19 @@ def main() -> None:
         times["train_s"] = democheck("train", str(args.dataset), "--out", str(model), "--recipe", args.recipe, "--force")
     times["audit_s"] = democheck("audit", str(args.dataset), "--out", str(out / "audit"), "--model", str(model),
                                  "--force")
+    times["audit_no_model_s"] = democheck("audit", str(args.dataset), "--out", str(out / "audit-no-model"),
+                                          "--no-model", "--force")
     times["bench_s"] = democheck("bench", str(args.dataset), "--labels", str(labels_csv), "--model", str(model),
                                  "--out", str(out / "bench"), "--force")
     audit = pd.read_parquet(out / "audit" / "scores.parquet").set_index("episode_index")
     truth = pd.read_csv(labels_csv).set_index("episode_index")["label"].reindex(audit.index).fillna("clean")
     audit["label"] = truth
     audit["linter"] = linter(args.dataset).reindex(audit.index)
+    audit["no-model"] = pd.read_parquet(out / "audit-no-model" / "scores.parquet").set_index("episode_index")[
+        "suspicion"].reindex(audit.index)
     labels = audit["label"].to_numpy()
     kinds = sorted(set(labels) - {"clean"})
-    cols = [c for c in (*SCORES, "linter") if c in audit]
+    cols = [c for c in (*SCORES, "no-model", "linter") if c in audit]
     table = {c: {k: auroc(labels, audit[c].to_numpy(float), k) for k in kinds} for c in cols}
     for c in cols:
         table[c]["any"] = float(roc_auc_score(labels != "clean", np.nan_to_num(audit[c].to_numpy(float), nan=-1e9)))
@@ -98,6 +104,7 @@ def main() -> None:
     results = {"dataset": str(args.dataset), "demos": len(audit), "tasks": int(audit["task"].nunique()),
                "labels": {k: int((labels == k).sum()) for k in ["clean", *kinds]}, "auroc": table,
                "flagged_share": flags, "flag_recall": float(flagged[labels != "clean"].mean()),
+               "flag": summary["flag"],
                "warnings": summary.get("warnings", []), "times_s": {k: round(v, 1) for k, v in times.items()},
                "model": str(model)}
     (out / "results.json").write_text(json.dumps(results, indent=2))
@@ -108,6 +115,9 @@ def main() -> None:
         print(f"| {c} | " + " | ".join(f"{table[c][k]:.2f}" for k in [*kinds, "any"]) + " |")
     print("| flagged (share) | " + " | ".join(f"{flags[k]:.2f}" for k in kinds)
           + f" | clean {flags['clean']:.3f}, recall {results['flag_recall']:.2f} |")
+    flag = summary["flag"]
+    print(f"flags at fpr {flag['fpr']:g}: {int(flagged.sum())} flagged, {int(flagged[labels == 'clean'].sum())} of them "
+          f"clean; the audit expected about {flag['expected_false_flags']:.1f} false flags")
     for w in results["warnings"]:
         print(f"warning: {w}")
     print("times: " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items()))

@@ -18,7 +18,7 @@ import pandas as pd
 
 from democheck.audit import scorers as registry
 from democheck.audit.scorers import Evidence, Scorer
-from democheck.audit.scores import SUSPICION_FLAG, flags, ocsvm_margin, rank_order
+from democheck.audit.scores import DEFAULT_FPR, flags, ocsvm_margin, rank_order
 from democheck.data.cache import dataset_fingerprint
 from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
@@ -69,11 +69,12 @@ def decoding_pass(ds: DemoSet, consumers: list, on_progress: Callable[[int, int]
             on_progress(i + 1, n)
 
 
-def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint, scorers: list[Scorer], device: Any,
+def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[Scorer], device: Any,
                     tecnet: Checkpoint | None = None, episodes: pd.DataFrame | None = None, seed: int = 0,
                     on_progress: Progress | None = None, timings: dict[str, float] | None = None) -> Evidence:
-    """Score the demos of ``sets``, pooled in order, with ``scorers``: the cue pass (PETNet, and TecNets when
-    given), one decoding pass per dataset for the scorers that need every frame, then each scorer.
+    """Score the demos of ``sets``, pooled in order, with ``scorers``: the cue pass (PETNet, when ``ckpt`` is
+    given, and TecNets when given), one decoding pass per dataset for the scorers that need every frame, then
+    each scorer.
 
     ``episodes``: the pooled demos' table (default: the datasets' episode tables one after the other).
     ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).
@@ -84,8 +85,10 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint, scorers: list[Scorer]
         return (lambda d, n: on_progress(f"{name} {ds.root.name}", d, n)) if on_progress else None
 
     t0 = time.perf_counter()
-    post = TaskPosterior.concat([cue_posteriors(ds, ckpt.model, device, on_progress=stage("PETNet", ds))
-                                 for ds in sets])
+    post = None
+    if ckpt is not None:
+        post = TaskPosterior.concat([cue_posteriors(ds, ckpt.model, device, on_progress=stage("PETNet", ds))
+                                     for ds in sets])
     embedding = None
     if tecnet is not None:
         embedding = np.concatenate([cue_posteriors(ds, tecnet.model, device, on_progress=stage("TecNets", ds)).mu
@@ -94,26 +97,31 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint, scorers: list[Scorer]
     if episodes is None:
         episodes = pd.concat([ds.episodes.reset_index() for ds in sets], ignore_index=True)
     ev = Evidence(episodes=episodes, posterior=post, model=ckpt, embedding=embedding, seed=seed)
-    decoding = [s for s in scorers if s.can_decode(ev)]
+    decoding = {}
+    for s in scorers:  # scorers that share a behaviour key share its consumer
+        if s.can_decode(ev):
+            decoding.setdefault(s.source, s)
     if decoding:
         t1 = time.perf_counter()
-        parts: dict[str, list] = {s.name: [] for s in decoding}
+        parts: dict[str, list] = {key: [] for key in decoding}
         start = 0
         for ds in sets:
             rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
-            consumers = {s.name: s.decode(ev, rows, device) for s in decoding}
-            decoding_pass(ds, list(consumers.values()), stage("actions", ds))
-            for name, consumer in consumers.items():
-                parts[name].append(consumer.finish())
+            consumers = {key: s.decode(ev, rows, device) for key, s in decoding.items()}
+            decoding_pass(ds, list(consumers.values()), stage("decoding" if ckpt is None else "actions", ds))
+            for key, consumer in consumers.items():
+                parts[key].append(consumer.finish())
             start += len(ds)
-        for name, got in parts.items():
-            ev.behaviour[name] = _concat(got)
+        for key, got in parts.items():
+            ev.behaviour[key] = _concat(got)
         t["actions_s"] = time.perf_counter() - t1
     return registry.compute(ev, scorers)
 
 
 def _concat(parts: list) -> Any:
-    """Per-dataset results of one consumer, pooled: arrays, or (values, reasons) pairs."""
+    """Per-dataset results of one consumer, pooled: arrays, (values, reasons) pairs, or consumers that merge."""
+    if hasattr(parts[0], "merged"):
+        return type(parts[0]).merged(parts)
     if isinstance(parts[0], tuple):
         return np.concatenate([p[0] for p in parts]), [r for p in parts for r in p[1]]
     return np.concatenate(parts)
@@ -129,21 +137,30 @@ def score_posteriors(episodes: pd.DataFrame, post: TaskPosterior, model: Checkpo
     return score_table(registry.compute(ev, scorers or registry.select()))
 
 
-def score_table(ev: Evidence) -> pd.DataFrame:
-    """The ScoreTable: one row per demo, every computed score, ranked by suspicion (rank 1 = most suspect)."""
+def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
+    """The ScoreTable: one row per demo, every computed score, ranked by suspicion (rank 1 = most suspect);
+    ``p_value`` is the combined tail probability the suspicion is -log10 of, ``is_anomaly`` a p_value at most
+    ``fpr`` (or an exact copy of another demo)."""
     eps = ev.episodes
     table = pd.DataFrame({"episode_index": eps["episode_index"].to_numpy(np.int64), "task": ev.tasks})
     for name in registry.SCORERS:
         if name in ev.scores:
             table[name] = ev.scores[name]
+    if "suspicion" not in table:
+        table["suspicion"] = np.nan
+    table["p_value"] = 10.0 ** -table["suspicion"].to_numpy(np.float64)
     table["reason"] = ev.reasons.get("suspicion", [""] * len(table))
-    ref = (ev.model.meta.get("reference") or {}).get("ocsvm") if ev.model is not None else None
-    sigma = ev.posterior.sigma
-    margin = ocsvm_margin(ref, sigma) if ref else np.full(len(table), np.nan)
-    table["ocsvm_margin"] = margin
-    table["is_anomaly"] = flags(margin, table["suspicion"].to_numpy())
-    table["sigma"] = list(sigma.astype(np.float32))
-    table["mu"] = list(ev.posterior.mu.astype(np.float32))
+    copies = np.isinf(table["duplicate"].to_numpy(np.float64)) if "duplicate" in table else None
+    table["is_anomaly"] = flags(table["p_value"].to_numpy(), fpr, copies)
+    if copies is not None and copies.any():
+        dup = ev.reasons["duplicate"]
+        table["reason"] = [dup[i] if copies[i] else r for i, r in enumerate(table["reason"])]
+    if ev.posterior is not None:
+        ref = (ev.model.meta.get("reference") or {}).get("ocsvm") if ev.model is not None else None
+        sigma = ev.posterior.sigma
+        table["ocsvm_margin"] = ocsvm_margin(ref, sigma) if ref else np.full(len(table), np.nan)
+        table["sigma"] = list(sigma.astype(np.float32))
+        table["mu"] = list(ev.posterior.mu.astype(np.float32))
     for col in ("label", "split", "dataset", "source_index"):
         if col in eps:
             table[col] = eps[col].to_numpy()
@@ -157,57 +174,106 @@ def write_tables(folder: Path, table: pd.DataFrame, suspects: list[int]) -> None
     """scores.parquet, scores.csv (vectors as space-separated numbers) and suspects.txt."""
     table.to_parquet(folder / "scores.parquet", index=False)
     csv = table.copy()
-    for col in ("sigma", "mu"):
+    for col in [c for c in ("sigma", "mu") if c in csv]:
         csv[col] = [" ".join(f"{v:.6g}" for v in x) for x in csv[col]]
     csv.to_csv(folder / "scores.csv", index=False)
     (folder / "suspects.txt").write_text("".join(f"{e}\n" for e in suspects))
 
 
-def audit(ds: DemoSet, ckpt: Checkpoint, top: int = 20, device: Any = "cpu", actions: bool = True,
-          on_progress: Progress | None = None, timings: dict[str, float] | None = None
-          ) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """Score every demo of ``ds`` with ``ckpt``: the ScoreTable (with the old column ``score`` kept for one
-    release) and the summary.  ``actions`` adds the action error (every demo decoded: slower)."""
-    ds = for_model(ds, ckpt)
+def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cpu", actions: bool = True,
+          fpr: float = DEFAULT_FPR, on_progress: Progress | None = None, timings: dict[str, float] | None = None,
+          why_no_model: str | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Score every demo of ``ds`` with ``ckpt`` -- or, with ``ckpt`` None, with the model-free checks alone --
+    and flag those whose combined tail probability is at most ``fpr``: the ScoreTable (with the old column
+    ``score`` kept for one release) and the summary.  ``actions`` adds the scores that decode every demo (the
+    action error and the model-free checks: slower).  ``why_no_model``: the sentence the summary gives for
+    auditing without a model."""
+    if not 0 < fpr < 1:
+        raise DemocheckError(f"--fpr {fpr:g}: the share of clean demos to flag must lie between 0 and 1")
+    if ckpt is not None:
+        ds = for_model(ds, ckpt)
+    elif not actions:
+        raise DemocheckError("without a model every score decodes the demos: --no-actions leaves nothing to score")
     t = dict(timings or {})
     chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
     ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t)
-    table = score_table(ev)
+    table = score_table(ev, fpr)
     for old, new in registry.RENAMED.items():
         if new in table:
             table[old] = table[new]
     fingerprint = dataset_fingerprint(ds) if (ds.root / "meta").is_dir() else None
-    trained_on = ckpt.meta.get("data", {}).get("fingerprint")
-    ref = ckpt.meta.get("reference") or {}
+    meta = ckpt.meta if ckpt is not None else {}
+    trained_on = meta.get("data", {}).get("fingerprint")
+    ref = meta.get("reference") or {}
     shown = [n for n in registry.SCORERS if n in ev.scores]
+    flagged = int(table["is_anomaly"].sum())
     summary = {
         "dataset": str(ds.root), "format": ds.format, "camera": ds.camera, "dataset_fingerprint": fingerprint,
         "frames": {"camera": list(ds.native_shape), "model": list(ds.image_shape),
                    "resized": ds.image_size is not None},
-        "model": str(ckpt.path), "model_trained_on_this_dataset": fingerprint is not None and fingerprint == trained_on,
-        "demos": len(table), "tasks": int(table["task"].nunique()), "flagged": int(table["is_anomaly"].sum()),
-        "suspects_txt": int(table["is_anomaly"].sum()), "top": top,
+        "model": str(ckpt.path) if ckpt is not None else None,
+        "model_trained_on_this_dataset": fingerprint is not None and fingerprint == trained_on,
+        "demos": len(table), "tasks": int(table["task"].nunique()), "flagged": flagged,
+        "suspects_txt": flagged, "top": top,
+        "flag": flag_summary(table, fpr),
         "scores": {n: registry.SCORERS[n].description for n in shown} | {
-            "reason": "what put the demo where it ranks: the score with the largest robust z, and where it is worst",
-            "is_anomaly": "linear one-class SVM on 1/sigma^2, fitted on the model's training demos, or suspicion "
-                          f"above {SUSPICION_FLAG:g}",
+            "p_value": "the combined tail probability of the ranking's scores (suspicion = -log10 p_value)",
+            "reason": "what put the demo where it ranks: the score with the smallest tail probability, and where "
+                      "the demo is worst",
+            "is_anomaly": f"p_value at most the false-positive rate asked for ({fpr:g}), or an exact copy of "
+                          "another demo",
             "score": "the old name of task_uncertainty, kept for one release"},
-        "reference": {k: v for k, v in ref.items() if k != "ocsvm"},
-        "ocsvm": {k: ref.get("ocsvm", {}).get(k) for k in ("nu", "offset", "n_fit", "flagged_fraction_on_fit")},
-        "top_suspects": table.head(top)[["rank", "episode_index", "task", *[n for n in shown if n != "novelty"],
-                                         "is_anomaly", "reason", "score"]].to_dict(orient="records"),
+        "top_suspects": table.head(top)[["rank", "episode_index", "task",
+                                         *[n for n in shown if n != "novelty"], "p_value",
+                                         "is_anomaly", "reason"]].to_dict(orient="records"),
         "timing": t,
     }
+    if ckpt is not None:
+        summary["reference"] = {k: v for k, v in ref.items() if k != "ocsvm"}
+        summary["ocsvm"] = {k: ref.get("ocsvm", {}).get(k) for k in ("nu", "offset", "n_fit", "flagged_fraction_on_fit")}
+        summary["scores"]["ocsvm_margin"] = ("the paper's linear one-class SVM on 1/sigma^2, fitted on the model's "
+                                             "training demos (negative = its anomaly side)")
+        for r in summary["top_suspects"]:
+            r["score"] = r.get("task_uncertainty")
+    else:
+        summary["no_model"] = why_no_model or "audited with the model-free checks alone (--no-model)"
     if "label" in table:
         summary["labels"] = table["label"].value_counts().to_dict()
     summary["warnings"] = warnings(table, ckpt)
     return table, summary
 
 
-def warnings(table: pd.DataFrame, ckpt: Checkpoint) -> list[str]:
+def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
+    """How the flags were set and what they should cost: the level, the number of false flags to expect were the
+    unflagged demos clean, and, with labels, the observed recall per kind and share of clean demos flagged."""
+    flagged = table["is_anomaly"].to_numpy(bool)
+    copies = int(np.isinf(table["duplicate"].to_numpy(np.float64)).sum()) if "duplicate" in table else 0
+    out: dict[str, Any] = {
+        "fpr": fpr, "rule": f"combined tail probability (p_value) at most {fpr:g}, or an exact copy of another demo",
+        # fpr of the clean demos, of whom there are about the unflagged ones plus the false flags themselves:
+        # E = fpr (n - flagged + E).
+        "expected_false_flags": round(fpr * (len(table) - int(flagged.sum())) / (1 - fpr), 2),
+        "exact_copies": copies,
+        "reference": "the audited demos themselves: each score's tail is fitted on its middle half, which holds "
+                     "if fewer than about a quarter of the demos are bad",
+    }
+    if "label" in table:
+        labels = table["label"].fillna("clean").astype(str).to_numpy()
+        clean = labels == "clean"
+        if clean.any():
+            out["observed"] = {"clean_flagged": int(flagged[clean].sum()),
+                               "clean_share_flagged": round(float(flagged[clean].mean()), 4),
+                               "recall": {k: round(float(flagged[labels == k].mean()), 3)
+                                          for k in sorted(set(labels) - {"clean"})}}
+    return out
+
+
+def warnings(table: pd.DataFrame, ckpt: Checkpoint | None) -> list[str]:
     """What makes this audit's scores less trustworthy, in a sentence each: tasks the model never learnt, and
     images unlike any it was trained on."""
     out = []
+    if ckpt is None:
+        return out
     trained = (ckpt.meta.get("data", {}).get("task_split") or {}).get("trained")
     if trained is not None:
         new = sorted(set(table["task"]) - set(trained))
@@ -229,7 +295,8 @@ def suspects(table: pd.DataFrame) -> list[int]:
 
 
 def finish_summary(summary: dict[str, Any], timings: dict[str, float]) -> dict[str, Any]:
-    """The summary with its timings rounded and demos per second, as plain JSON."""
+    """The summary with its timings rounded and demos per second (of the cue pass; without a model, of the
+    decoding pass), as plain JSON."""
     t = {k: round(v, 3) for k, v in timings.items()}
-    return to_json({**summary, "timing": t | {"demos_per_s": round(summary["demos"] / max(timings["score_s"], 1e-9),
-                                                                     1)}})
+    spent = timings["score_s"] if summary.get("model") else timings.get("actions_s", timings["score_s"])
+    return to_json({**summary, "timing": t | {"demos_per_s": round(summary["demos"] / max(spent, 1e-9), 1)}})

@@ -27,7 +27,9 @@ import torch
 
 from democheck.audit.baselines import (HEURISTIC_FEATURES, heuristic_z, knn_same_task, motion_features, random_score,
                                        summarise_motion)
-from democheck.audit.scores import CONSISTENCY_K, calibrated, consistency_terms, ocsvm_margin, rank_order
+from democheck.audit import modelfree
+from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_terms, ocsvm_margin,
+                                    rank_order, tail_probabilities)
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -40,6 +42,7 @@ NEEDS = {
     "reference": "the model's reference of its training demos (the one-class SVM)",
     "tecnet": "a TecNets model trained on the same data (democheck bench --tecnet)",
     "scores": "other scorers' scores",
+    "many": "more than one demo",
 }
 ACTION_STEPS = 25  # timesteps per demo at which the controller's actions are compared with the demo's
 
@@ -73,7 +76,8 @@ class Evidence:
         return {"cues": self.posterior is not None, "model": self.model is not None,
                 "novelty": self.model is not None and bool(self.model.config.novelty),
                 "reference": self.model is not None and bool((self.model.meta.get("reference") or {}).get("ocsvm")),
-                "tecnet": self.embedding is not None, "demos": True, "scores": True}[need]
+                "tecnet": self.embedding is not None, "demos": True, "scores": True,
+                "many": len(self.episodes) > 1}[need]
 
 
 Scores = tuple[np.ndarray, list[str] | None]  # one number per demo, and a reason per demo (or None)
@@ -93,21 +97,35 @@ class Scorer:
     score: Callable[[Evidence], Scores]
     family: str = "democheck"  # "democheck" or "baseline" (what users would pick instead)
     in_audit: bool = True  # computed by ``democheck audit`` (False: ``bench`` only)
-    in_suspicion: bool = False  # one of the scores the ranking takes the largest of
+    in_suspicion: bool = False  # one of the scores the ranking combines
     # In the ranking on a log scale: a score whose clean demos' right tail is long (a squared error) would
     # otherwise put clean demos many robust standard deviations up.
     log_in_ranking: bool = False
     in_robust_sd: bool = False  # its score is already a robust z within the task: the ranking takes it as it is
+    # The least spread a robust standard deviation of this score stands for in the ranking, in its units.
+    ranking_min_scale: float = 0.0
+    # Where its decoding pass's result lands in ``Evidence.behaviour`` (default: its name); scorers that give
+    # the same key share one consumer.
+    behaviour: str = ""
     # For "demos": (evidence, its rows of one dataset, device) -> a consumer of that dataset's decoded demos.
     decode: Callable[[Evidence, slice, Any], DemoConsumer] | None = None
     short: str = ""  # header in narrow terminal tables
     higher_is_more_suspect: bool = True  # the contract: every scorer's direction
 
+    @property
+    def source(self) -> str:
+        """Its key in ``Evidence.behaviour``."""
+        return self.behaviour or self.name
+
+    @property
+    def model_free(self) -> bool:
+        return not {"cues", "model", "novelty", "reference", "tecnet"} & set(self.needs)
+
     def can_run(self, ev: Evidence) -> bool:
         """Whether ``ev`` has what this scorer needs: for one that needs every frame, its decoding pass's result
         (``ev.behaviour``); for the others, every need."""
-        if "demos" in self.needs:
-            return self.name in ev.behaviour
+        if "demos" in self.needs:  # what it needs besides the frames was needed by the decoding pass
+            return self.source in ev.behaviour and ("many" not in self.needs or ev.has("many"))
         return all(ev.has(n) for n in self.needs)
 
     def can_decode(self, ev: Evidence) -> bool:
@@ -186,13 +204,26 @@ class ActionErrors:
         sq = (pred.cpu().numpy() - np.stack([x[3] for x in p])) ** 2
         self.out[rows] = sq.mean(axis=(1, 2))
         for row, per_t, (_, _, _, _, t) in zip(rows, sq.mean(axis=2), p):
-            self.worst[row] = f"worst at timestep {int(t[int(np.argmax(per_t))])}"
+            self.worst[row] = _peak(per_t, t)
         self.pending.clear()
 
     def finish(self) -> tuple[np.ndarray, list[str]]:
         if self.pending:
             self._flush()
         return self.out, self.worst
+
+
+def _peak(per_t: np.ndarray, t: np.ndarray) -> str:
+    """Where a demo's action error peaks: the sampled timesteps around its largest error that stay above half of
+    it, e.g. 'peaks at timesteps 55-70'."""
+    i = int(np.argmax(per_t))
+    high = per_t >= 0.5 * per_t[i]
+    lo, hi = i, i
+    while lo > 0 and high[lo - 1]:
+        lo -= 1
+    while hi < len(per_t) - 1 and high[hi + 1]:
+        hi += 1
+    return f"peaks at timestep {int(t[i])}" if lo == hi else f"peaks at timesteps {int(t[lo])}-{int(t[hi])}"
 
 
 def action_errors(demos, ckpt: Checkpoint, z: np.ndarray, device: Any, steps: int = ACTION_STEPS,
@@ -294,24 +325,72 @@ def _view(ev: Evidence) -> Scores:
     return z, [f"{100 * f:.0f}% of the view featureless" for f in flat]
 
 
-def _suspicion(ev: Evidence) -> Scores:
-    parts = {n: np.log(np.maximum(ev.scores[n], 1e-12)) if s.log_in_ranking else ev.scores[n]
-             for n, s in SCORERS.items() if s.in_suspicion and n in ev.scores}
-    # A score that is a robust z already (its own scale floor included) goes in as it is; the others are
-    # calibrated within their task here.
-    z = np.column_stack([x if SCORERS[n].in_robust_sd else calibrated(x, ev.tasks) for n, x in parts.items()])
-    z = np.where(np.isfinite(z), z, -np.inf)
-    value = np.nanmax(z, axis=1)
-    names = list(parts)
+def ranking_z(ev: Evidence, names: list[str]) -> np.ndarray:
+    """[N, K]: the ranking's scores ``names`` in robust standard deviations within their task (a score on a log
+    scale first where its scorer says so; one that is a robust z already as it is)."""
+    cols = []
+    for n in names:
+        s, x = SCORERS[n], np.asarray(ev.scores[n], np.float64)
+        x = np.log(np.maximum(x, 1e-12)) if s.log_in_ranking else x
+        cols.append(x if s.in_robust_sd else calibrated(x, ev.tasks, min_scale=s.ranking_min_scale))
+    return np.column_stack(cols) if cols else np.zeros((len(ev.episodes), 0))
+
+
+def _combination(ev: Evidence, model_free: bool = False) -> Scores:
+    """-log10 of the combined tail probability of the ranking's scores (``scores.combined_log10``), and the
+    score that drove it."""
+    names = [n for n, s in SCORERS.items() if s.in_suspicion and n in ev.scores and (s.model_free or not model_free)]
+    if not names:
+        return np.full(len(ev.episodes), np.nan), None
+    log_p = tail_probabilities(ranking_z(ev, names))
+    value = -combined_log10(log_p)
     reasons = []
-    for i, row in enumerate(z):
-        if not np.isfinite(value[i]):
-            reasons.append("")
-            continue
-        name = names[int(np.argmax(row))]
-        own = (ev.reasons.get(name) or [""] * len(z))[i]
-        reasons.append(f"{name} {value[i]:.3g} robust SD" + (f" ({own})" if own else ""))
+    for i, row in enumerate(log_p):
+        # The score that drove it, and a second one that is surprising too (often the one that says where).
+        order = [j for j in np.argsort(row, kind="stable")[:2] if j == np.argmin(row) or row[j] < np.log(1e-3)]
+        parts = []
+        for j in order:
+            own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
+            parts.append(f"{names[j]}: {_odds(float(np.exp(row[j])))}" + (f"; {own}" if own else ""))
+        reasons.append(" | ".join(parts) if len(parts) < 2 else f"{parts[0]}; also {parts[1]}")
     return value, reasons
+
+
+def _odds(p: float) -> str:
+    """'as unusual as 1 clean demo in 3,400' for a tail probability."""
+    if p >= 0.5:
+        return "typical"
+    if p >= 1e-6:
+        return f"as unusual as 1 clean demo in {1 / p:,.0f}"
+    return f"far beyond the clean demos (tail probability {p:.1e})"
+
+
+def _suspicion(ev: Evidence) -> Scores:
+    return _combination(ev)
+
+
+def _model_free(ev: Evidence) -> Scores:
+    return _combination(ev, model_free=True)
+
+
+def _idle(ev: Evidence) -> Scores:
+    return modelfree.idle(ev.behaviour["actions"])
+
+
+def _jerk(ev: Evidence) -> Scores:
+    return modelfree.jerk(ev.behaviour["actions"])
+
+
+def _saturation(ev: Evidence) -> Scores:
+    return modelfree.saturation(ev.behaviour["actions"])
+
+
+def _duplicate(ev: Evidence) -> Scores:
+    return modelfree.duplicate(ev.behaviour["actions"], ev.episodes["episode_index"].to_numpy())
+
+
+def _frozen_video(ev: Evidence) -> Scores:
+    return modelfree.frozen_video(ev.behaviour["frozen_video"])
 
 
 def _ocsvm_flag(ev: Evidence) -> Scores:
@@ -353,6 +432,10 @@ def _random(ev: Evidence) -> Scores:
     return out, None
 
 
+def _traces(ev: Evidence, rows: slice, device: Any) -> modelfree.ActionTraces:
+    return modelfree.ActionTraces()
+
+
 SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("task_uncertainty", "PETNet's task uncertainty (the paper's score): mean task standard deviation of the "
            "demo's cue, both parts of the variance", ("cues",), _task_uncertainty, in_suspicion=True,
@@ -369,14 +452,30 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            f"the demo's normalised actions (MSE at {ACTION_STEPS} evenly spaced timesteps)", ("demos", "model"),
            _action_error, in_suspicion=True, log_in_ranking=True, decode=_decode_action_error, short="act."),
     Scorer("motion", "model-free: how unusually much or little the demo's actions move (mean |action| and mean "
-           "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True, in_robust_sd=True,
-           decode=lambda ev, rows, device: MotionStats(), short="mot."),
+           "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True,
+           in_robust_sd=True, decode=lambda ev, rows, device: MotionStats(), short="mot."),
+    Scorer("idle", "model-free: share of steps at which the actions hardly change (under "
+           f"{modelfree.STILL:g} x each dimension's median change), and the longest still stretch", ("demos",),
+           _idle, in_suspicion=True, ranking_min_scale=modelfree.IDLE_MIN_SCALE, behaviour="actions",
+           decode=_traces, short="idle"),
+    Scorer("jerk", "model-free: log mean |third difference of actions| in median-change units (shaking, "
+           "chatter)", ("demos",), _jerk, behaviour="actions", decode=_traces, short="jerk"),
+    Scorer("saturation", "model-free: share of steps at which some action dimension sits at its limit over all "
+           "the demos", ("demos",), _saturation, behaviour="actions", decode=_traces, short="sat."),
+    Scorer("duplicate", "model-free: how much nearer than usual the nearest other demo's actions are (log "
+           "ratio; inf = an exact copy of another demo: actions, state and frames)", ("demos", "many"), _duplicate,
+           behaviour="actions", decode=_traces, short="dup."),
+    Scorer("frozen_video", "model-free: share of steps at which the camera frame repeats while the actions "
+           "change (a camera that stopped delivering)", ("demos",), _frozen_video,
+           decode=lambda ev, rows, device: modelfree.FrameChanges(), short="frozen"),
     Scorer("view", "model-free: how much more of the camera's view is featureless than is usual for the task (a "
            "covered or blocked camera), robust z within its task", ("demos",), _view, in_robust_sd=True,
            decode=lambda ev, rows, device: ViewStats(), short="view"),
-    Scorer("suspicion", "democheck's ranking: the largest of task uncertainty, consistency, action error (log), "
-           "motion and view, each in robust standard deviations within its task", ("scores",), _suspicion,
-           short="susp."),
+    Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty, "
+           "consistency, action error (log), motion and idle, each in robust standard deviations within its "
+           "task (2 = as unusual as 1 clean demo in 100)", ("scores",), _suspicion, short="susp."),
+    Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle): what "
+           "democheck says with no model", ("scores",), _model_free, in_audit=False, short="no-model"),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),
     Scorer("tecnet_knn", "TecNets embedding: mean distance to the 5 nearest other demos of the task", ("tecnet",),

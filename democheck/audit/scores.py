@@ -26,30 +26,29 @@ Every score is one number per demo, higher = more suspect:
   ``scorers.ActionErrors`` in the audit's decoding pass).  The cue sees two frames; this sees the
   behaviour, so it catches an arm that never moved or flailed, or stopped
   half-way, whatever its first and last frames look like.
-- ``suspicion``: the largest of those scores after robust standardisation
-  against the audited demos themselves (median and 1.4826 x MAD, which a
-  minority of bad demos does not move): a demo extreme on any count is
-  suspect, and they are in the same units.  The action error has no
-  training-time scale, and the consistency scale stored with older models
-  (``reference``) belongs to the all-others definition; with the
-  all-others consistency, standardising the cue scores by the training
-  demos instead scored no-action 0.71 and gave-up 0.53 AUROC on the bench
-  (push-v1-test + probes), this rule 0.88 and 0.76; with the current
-  definition the two rules tie on the development set (all kinds 0.88).
-- ``is_anomaly``: flagged by the linear one-class SVM of the paper (nu = 1%
-  by default), fitted on the training demos' task uncertainty, *or* with a
-  suspicion above ``SUSPICION_FLAG`` robust standard deviations.  A linear
-  one-class SVM flags points on the origin's side of its hyperplane, so it
-  is fitted on precisions 1/sigma^2 (the product of Gaussians' currency): a
-  demo is flagged when its precision is low, i.e. its uncertainty high.  It
-  sees sigma only, which barely moves for an idle or flailing arm; the
-  suspicion threshold flags those.  8 was chosen on two development sets
-  (push-v1-dev + probes; Meta-World mw-dev with a your-data model) for at most
-  about the OCSVM's 1% of clean demos once scores are calibrated within tasks:
-  thresholds 6, 8, 10 flag 0.8%, 0.3%, 0.3% of push-v1-dev's clean demos and
-  4.0%, 1.0%, 0.5% of mw-dev's, and 68%, 61%, 56% / 80%, 69%, 69% of their bad
-  ones (``benchmarks/suspicion_choices.py``).  Before the calibration, the
-  same 8 flagged 20% of mw-dev's clean demos.
+- ``suspicion`` (the ranking): how surprising the demo is, all evidence together, as -log10 of a
+  probability (``p_value``): 2 means "as unusual as one clean demo in a hundred".  Each score of the
+  ranking is first put in robust standard deviations within its task (``calibrated``: a task whose demos
+  all score high does not fill the top ranks), then turned into a tail probability by
+  ``tail_probabilities``, and the smallest of those is corrected for the number of scores looked at
+  (Sidak: ``combined_log10``).  The reference is the audited demos themselves -- their middle half, which
+  a minority of bad demos does not move: each score's right tail is taken as exponential from its 25th to
+  its 75th percentile onwards.  So a score whose clean demos spread widely (the task uncertainty of a
+  model on new tasks) needs a larger value to count as much as one whose clean demos agree (how still the
+  arm is), instead of the largest robust z winning whatever its score's usual spread.  Chosen on the
+  development sets (push-v1-dev + probes with the shipped model, Meta-World mw-dev with a your-data model;
+  ``benchmarks/suspicion_choices.py``): mean AUROC over their kinds 0.962 and 0.972 with the largest robust z,
+  0.971 and 0.976 with these tail probabilities; the 50th-75th and 50th-90th percentiles gave 0.970/0.975
+  and 0.963/0.977.  Combining by rank among the audited demos instead (an empirical p-value) helps a set
+  with many bad demos (push-v1-dev 0.975) and hurts one with few (mw-dev 0.919), where ranks cannot tell how
+  far beyond every clean demo a bad one lies; Fisher's sum and the Cauchy combination did worse on both.
+- ``is_anomaly``: ``p_value`` at most the false-positive rate asked for (``audit --fpr``, default
+  ``DEFAULT_FPR``): if the audited demos were all clean, about that share of them would be flagged.  On the
+  development sets at 1%: 0.8% of push-v1-dev's clean demos flagged (without probes, 20% bad) and 2.0% of
+  mw-dev's; the exponential tail is a model, not a law -- with labels, the audit's summary reports the
+  observed rate.  Exact copies of another demo are flagged too.  The paper's linear one-class SVM stays a
+  column (``ocsvm_margin``) and a bench scorer (``ocsvm_flag``): fitted on the training demos' precisions
+  1/sigma^2, it sees sigma only, which barely moves for an idle or flailing arm.
 """
 
 from __future__ import annotations
@@ -63,7 +62,9 @@ from democheck.petnet.posterior import TaskPosterior
 
 
 CONSISTENCY_K = 5
-SUSPICION_FLAG = 8.0  # robust standard deviations; see ``is_anomaly`` above
+DEFAULT_FPR = 0.01  # see ``is_anomaly`` above
+TAIL_QUANTILES = (0.25, 0.75)  # see ``suspicion`` above
+TAIL_MIN_SCALE = 0.5  # robust SD: no tail falls faster than by e per half a robust standard deviation
 
 
 def consistency_terms(post: TaskPosterior, tasks: np.ndarray, k: int | None = CONSISTENCY_K) -> np.ndarray:
@@ -154,11 +155,41 @@ def reference(post: TaskPosterior, tasks: np.ndarray, nu: float = 0.01) -> dict[
             "ocsvm": fit_ocsvm(post.sigma, nu)}
 
 
-def flags(margin: np.ndarray, suspicion_z: np.ndarray) -> np.ndarray:
-    """``is_anomaly``: on the anomalous side of the one-class SVM, or a suspicion above ``SUSPICION_FLAG``."""
-    return (margin < 0) | (suspicion_z > SUSPICION_FLAG)
+def tail_probabilities(z: np.ndarray) -> np.ndarray:
+    """Natural log of the tail probability of each entry of [N, K] scores in robust standard deviations,
+    column by column: an exponential tail through the column's ``TAIL_QUANTILES`` (probability 0.75 at its
+    25th percentile, 0.25 at its 75th), at most 1, its scale at least ``TAIL_MIN_SCALE``.  NaN (no score)
+    gives log 1; +inf (an exact copy) log 0."""
+    lo, hi = TAIL_QUANTILES
+    out = np.zeros(z.shape)
+    for k in range(z.shape[1]):
+        x = z[:, k]
+        ok = np.isfinite(x) | (x == np.inf)
+        if not ok.any():
+            continue
+        q_lo, q_hi = np.quantile(x[np.isfinite(x)], [lo, hi]) if np.isfinite(x).any() else (0.0, 0.0)
+        beta = max((q_hi - q_lo) / np.log((1 - lo) / (1 - hi)), TAIL_MIN_SCALE)
+        tail = np.log(1 - lo) - (x - q_lo) / beta
+        out[:, k] = np.where(ok, np.minimum(tail, 0.0), 0.0)
+    return out
 
 
-def rank_order(suspicion_z: np.ndarray, episode_index: np.ndarray) -> np.ndarray:
+def combined_log10(log_p: np.ndarray) -> np.ndarray:
+    """log10 of the Sidak-corrected smallest of each row's K tail probabilities (given as natural logs):
+    1 - (1 - min p)^K, the chance that the most surprising of K independent clean scores is this surprising."""
+    k = log_p.shape[1]
+    m = np.nan_to_num(log_p.min(axis=1), nan=0.0, neginf=-np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        exact = np.log(-np.expm1(k * np.log1p(-np.exp(np.minimum(m, -1e-16)))))
+    return np.where(m < -30, np.log(k) + m, exact) / np.log(10)
+
+
+def flags(p_value: np.ndarray, fpr: float = DEFAULT_FPR, exact_copy: np.ndarray | None = None) -> np.ndarray:
+    """``is_anomaly``: a combined tail probability at most ``fpr``, or an exact copy of another demo."""
+    out = np.nan_to_num(p_value, nan=1.0) <= fpr
+    return out | exact_copy if exact_copy is not None else out
+
+
+def rank_order(suspicion: np.ndarray, episode_index: np.ndarray) -> np.ndarray:
     """Row order of a ranking: most suspect first, ties by episode index (NaN last)."""
-    return np.lexsort((episode_index, -np.nan_to_num(suspicion_z, nan=-np.inf)))
+    return np.lexsort((episode_index, -np.nan_to_num(suspicion, nan=-np.inf)))

@@ -32,18 +32,26 @@ def audit(
     task: Annotated[Optional[str], typer.Option(help="Task string for robomimic files that do not name their task.")] = None,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     actions: Annotated[bool, typer.Option("--actions/--no-actions", help="Also score how badly the model's controller explains each demo's actions (catches arms that never moved, flailed or stopped half-way). Decodes every demo in full: --no-actions is the fast pass on cue frames only.")] = True,
+    fpr: Annotated[float, typer.Option(help="Flag demos whose combined evidence is as unusual as this share of clean demos: were every demo clean, about this share would be flagged (the summary states the expected number of false flags).")] = 0.01,
+    no_model: Annotated[bool, typer.Option("--no-model", help="Use the model-free checks alone (idle, motion, jerk, frozen video, duplicates, saturation, view): works on any robot before any model is trained. Automatic, with a warning, when the shipped model cannot read the data.")] = False,
+    keep_list: Annotated[Optional[Path], typer.Option(help="Also write the unflagged episode indices to this file as [0, 2, 5] (what a dataset-editing tool takes).")] = None,
+    drop_list: Annotated[Optional[Path], typer.Option(help="Also write the flagged episode indices to this file as [0, 2, 5], e.g. for lerobot-edit-dataset --operation.type delete_episodes --operation.episode_indices \"$(cat FILE)\".")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:
-    """Score every demonstration by task uncertainty, consistency and action error; rank the suspects, flag anomalies."""
+    """Score every demonstration -- task uncertainty, consistency, action error and model-free checks -- combine
+    them into one tail probability, rank the suspects and flag those below --fpr."""
     with user_errors():
         if top < 1:
             raise DemocheckError("--top must be at least 1")
+        if no_model and model is not None:
+            raise DemocheckError("--no-model and --model together: choose one")
         from democheck.workflows import audit_dataset
 
         with Bar("audit", "demos") as bar:
             summary = audit_dataset(dataset, out, model=model, top=top, camera=camera, task=task, device=device,
                                     force=force, on_progress=lambda stage, d, n: bar.update(d, n, stage),
-                                    actions=actions)
+                                    actions=actions, fpr=fpr, no_model=no_model, keep_list=keep_list,
+                                    drop_list=drop_list)
     if json_out:
         console.print_json(json.dumps(summary))
     else:
@@ -58,7 +66,9 @@ def print_audit(summary: dict, out: Path) -> None:
     others are in scores.csv and the report)."""
     from democheck.audit.scorers import SCORERS
 
-    table = Table(title=f"top suspects of {summary['demos']} demos ({summary['flagged']} flagged)")
+    flag = summary["flag"]
+    table = Table(title=f"top suspects of {summary['demos']} demos ({summary['flagged']} flagged at fpr "
+                        f"{flag['fpr']:g}; about {flag['expected_false_flags']:.1f} of them expected clean)")
     cols = [n for n, s in SCORERS.items() if (s.in_suspicion or n == "suspicion") and summary["top_suspects"]
             and n in summary["top_suspects"][0]]
     # Short headers and a clipped task column keep the table readable in an 80-column terminal.
@@ -72,13 +82,24 @@ def print_audit(summary: dict, out: Path) -> None:
     console.print(table)
     for w in summary.get("warnings", []):
         console.print(f"[yellow]warning:[/] {w}", highlight=False)
-    top = summary["top_suspects"][0] if summary["top_suspects"] else None
-    if top and top.get("reason"):
-        console.print(f"rank 1 (episode {top['episode_index']}): {top['reason']}", highlight=False)
+    for r in summary["top_suspects"][:3]:
+        if r.get("reason"):
+            console.print(f"rank {r['rank']} (episode {r['episode_index']}): {r['reason']}", highlight=False)
+    observed = flag.get("observed")
+    if observed:
+        console.print(f"with the labels: {observed['clean_flagged']} clean demos flagged "
+                      f"({100 * observed['clean_share_flagged']:.1f}%); recall "
+                      + ", ".join(f"{k} {v:.2f}" for k, v in observed["recall"].items()), highlight=False)
     t = summary["timing"]
-    console.print(f"scored {summary['demos']} demos in {t['score_s']:.1f} s ({t['demos_per_s']:.0f}/s)"
-                  + (f", their actions in {t['actions_s']:.1f} s" if "actions_s" in t else "")
-                  + f"; model load {t['model_load_s']:.1f} s, t-SNE {t['tsne_s']:.1f} s")
+    if summary.get("model"):
+        console.print(f"scored {summary['demos']} demos in {t['score_s']:.1f} s ({t['demos_per_s']:.0f}/s)"
+                      + (f", their actions in {t['actions_s']:.1f} s" if "actions_s" in t else "")
+                      + f"; model load {t['model_load_s']:.1f} s, t-SNE {t['tsne_s']:.1f} s")
+    else:
+        console.print(f"checked {summary['demos']} demos without a model in {t.get('actions_s', 0):.1f} s "
+                      f"({t['demos_per_s']:.0f}/s)")
+    if summary.get("no_model") and summary["no_model"] not in summary.get("warnings", []):
+        console.print(f"no model: {summary['no_model']}", highlight=False)
     console.print(f"report: {out}/ (scores.parquet, scores.csv, summary.json, suspects.txt)")
     console.print(f"look at it: democheck view {out}")
 

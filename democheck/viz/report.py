@@ -9,7 +9,7 @@ Entities:
     map/demos                     2-D t-SNE map of every demo's task mean, size ~ sigma, colour = task
     map/suspects                  the top suspects on that map, labelled
     scores/task_uncertainty       histogram of the task-uncertainty scores
-    scores/ocsvm_margin           histogram of the one-class SVM margin (below 0 = flagged)
+    scores/suspicion              histogram of the ranking (-log10 of the combined tail probability)
 
 The bench's recording (``write_bench_rrd``):
     bench                         bench.md: the tables, the verdicts, the figures' numbers (markdown)
@@ -56,6 +56,8 @@ def embed_2d(table: pd.DataFrame, top: int, max_points: int = 1500, seed: int = 
 
     n = len(table)
     rows = np.arange(n)
+    if "mu" not in table:  # audited without a model: no task embedding to map
+        return np.zeros((0, 2)), rows[:0]
     if n > max_points:
         rng = np.random.default_rng(seed)
         rest = rng.choice(np.arange(top, n), size=max_points - top, replace=False)
@@ -87,7 +89,8 @@ def suspects_markdown(table: pd.DataFrame, top: int, title: str) -> str:
         lines.append(f"| {r['rank']} | {r['episode_index']} | {cells[0]} | {'yes' if r['is_anomaly'] else ''} | "
                      f"{reason} | {task} | " + " | ".join(cells[1:]) + " |")
     lines += ["", *[f"- {c.replace('_', ' ')}: {SCORERS[c].description}" for c in ["suspicion", *cols]],
-              "- flagged: the one-class SVM, or a suspicion above the flag threshold (see summary.json)"]
+              "- flagged: a combined tail probability (p value, 10^-suspicion) at most the false-positive rate "
+              "asked for, or an exact copy of another demo (see summary.json, flag)"]
     return "\n".join(lines)
 
 
@@ -102,7 +105,7 @@ def _histogram(rec: rr.RecordingStream, path: str, values: np.ndarray, bins: int
     rec.log(path, rr.BarChart(counts, abscissa=(edges[:-1] + edges[1:]) / 2), static=True)
 
 
-def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray, fps: float) -> None:
+def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray | None, fps: float) -> None:
     t = np.arange(len(demo))
     with tempfile.TemporaryDirectory() as tmp:
         size = demo.frames.shape[1]
@@ -119,7 +122,8 @@ def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray,
             for i, img in enumerate(demo.frames):
                 rec.set_time("frame", sequence=i)
                 rec.log(f"{base}/video", rr.Image(img))
-    rec.log(f"{base}/sigma", rr.BarChart(sigma), static=True)
+    if sigma is not None:
+        rec.log(f"{base}/sigma", rr.BarChart(sigma), static=True)
     frame = [rr.TimeColumn("frame", sequence=t)]
     rec.send_columns(f"{base}/actions", indexes=frame, columns=rr.Scalars.columns(scalars=demo.actions))
     rec.send_columns(f"{base}/state", indexes=frame, columns=rr.Scalars.columns(scalars=demo.state))
@@ -137,8 +141,8 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
     top = len(suspects)
     rec.log("suspects", rr.TextDocument(suspects_markdown(table, max(top, 20), title),
                                         media_type=rr.MediaType.MARKDOWN), static=True)
-    sigma = np.stack(table["sigma"].to_numpy()) if len(table) else np.zeros((0, 1))
-    score = table["task_uncertainty"].to_numpy()
+    sigma = np.stack(table["sigma"].to_numpy()) if len(table) and "sigma" in table else None
+    score = table["task_uncertainty"].to_numpy() if "task_uncertainty" in table else None
     if len(embedded_rows):
         sub = table.iloc[embedded_rows]
         s = score[embedded_rows]
@@ -152,23 +156,26 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
                                                 labels=[f"#{r} ep{e}" for r, e in zip(sub["rank"][is_top],
                                                                                       sub["episode_index"][is_top])]),
                     static=True)
-    _histogram(rec, "scores/task_uncertainty", score)
-    _histogram(rec, "scores/ocsvm_margin", table["ocsvm_margin"].to_numpy(dtype=float))
+    _histogram(rec, "scores/suspicion", table["suspicion"].to_numpy(dtype=float))
+    if score is not None:
+        _histogram(rec, "scores/task_uncertainty", score)
     tabs = []
     for demo, row in zip(suspects, table.head(top).itertuples()):
         base = suspect_path(row.rank, row.episode_index)
-        _log_demo(rec, base, demo, sigma[row.Index], fps)
-        tabs.append(rrb.Vertical(
-            rrb.Spatial2DView(origin=f"{base}/video", name="video"),
-            rrb.Horizontal(rrb.BarChartView(origin=f"{base}/sigma", name="sigma"),
-                           rrb.TimeSeriesView(origin=f"{base}/actions", name="actions"),
-                           rrb.TimeSeriesView(origin=f"{base}/state", name="state")),
-            name=f"#{row.rank} ep{row.episode_index}"))
-    left = rrb.Vertical(rrb.TextDocumentView(origin="suspects", name="ranked suspects"),
-                        rrb.Spatial2DView(origin="map", name="task embedding (t-SNE of mu)"),
-                        rrb.Horizontal(rrb.BarChartView(origin="scores/task_uncertainty", name="task uncertainty histogram"),
-                                       rrb.BarChartView(origin="scores/ocsvm_margin",
-                                                        name="OCSVM margin (below 0 = flagged)")))
+        _log_demo(rec, base, demo, None if sigma is None else sigma[row.Index], fps)
+        plots = [rrb.TimeSeriesView(origin=f"{base}/actions", name="actions"),
+                 rrb.TimeSeriesView(origin=f"{base}/state", name="state")]
+        if sigma is not None:
+            plots.insert(0, rrb.BarChartView(origin=f"{base}/sigma", name="sigma"))
+        tabs.append(rrb.Vertical(rrb.Spatial2DView(origin=f"{base}/video", name="video"), rrb.Horizontal(*plots),
+                                 name=f"#{row.rank} ep{row.episode_index}"))
+    hist = [rrb.BarChartView(origin="scores/suspicion", name="suspicion histogram (-log10 p)")]
+    if score is not None:
+        hist.append(rrb.BarChartView(origin="scores/task_uncertainty", name="task uncertainty histogram"))
+    views = [rrb.TextDocumentView(origin="suspects", name="ranked suspects")]
+    if len(embedded_rows):
+        views.append(rrb.Spatial2DView(origin="map", name="task embedding (t-SNE of mu)"))
+    left = rrb.Vertical(*views, rrb.Horizontal(*hist))
     body = rrb.Horizontal(left, rrb.Tabs(*tabs, name="suspects")) if tabs else left
     rec.send_blueprint(rrb.Blueprint(body, collapse_panels=True))
     rec.flush()

@@ -1,0 +1,219 @@
+"""Model-free checks: what a demo's actions, state and frames say without any model.
+
+Each check is a consumer of the audit's decoding pass (``add`` one decoded demo at a time, ``finish`` once)
+and returns one number per demo -- higher is more suspect -- and a reason located in time.  They need no
+training, so ``democheck audit --no-model`` runs them on any robot.
+
+Every scale is the audited demos' own: a step's change of action is measured per action dimension in units of
+that dimension's median change over all the demos (a dimension that hardly moves in a typical demo, a gripper
+held shut, counts in units of 1% of the busiest dimension's, so it cannot make a tiny twitch look huge).
+
+- ``idle``: the share of a demo's steps at which its actions hardly change (every dimension's change under
+  ``STILL`` of its median change, on average over the dimensions): an arm that never moves, or stops half-way.
+  Scripted and teleoperated demos often rest after the task is done; that rest is what the task's other demos
+  also show, so the audit compares each demo's share with its task's.
+- ``jerk``: the log of the mean absolute third difference of the actions, in the same units: shaking,
+  chattering or random commands.
+- ``frozen_video``: the share of steps at which the camera frame repeats (mean absolute grey-level change
+  under ``FROZEN_LEVEL``) while the actions change: a camera that stopped delivering while the arm moved.
+- ``saturation``: the share of steps at which some action dimension sits at its smallest or largest value over
+  all the demos (a command clipped at its limit).
+- ``duplicate``: how close the demo's actions come to another demo's: the log of the median nearest-neighbour
+  distance over this demo's, the actions resampled to ``DUPLICATE_STEPS`` steps and put in each dimension's
+  standard deviation; an exact copy (the same actions, state and frames, bit for bit) is named as such.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import cv2
+import numpy as np
+
+from democheck.data.demo import Demo
+
+STILL = 0.05  # a step is still when its change of action is under 5% of the median change
+FROZEN_LEVEL = 0.1  # grey levels (0-255): a frame this close to the previous one repeats it
+DUPLICATE_STEPS = 32
+IDLE_MIN_SCALE = 0.05  # a robust standard deviation of the idle share stands for at least 5% of the steps
+
+
+def _steps_text(start: int, stop: int, length: int) -> str:
+    return f"frames {start}-{stop} ({100 * (stop - start + 1) / max(length, 1):.0f}% of the demo)"
+
+
+def longest_run(mask: np.ndarray) -> tuple[int, int]:
+    """(start, length) of the longest run of True in a 1-d mask; (0, 0) when there is none."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    edges = np.flatnonzero(np.diff(m.astype(np.int8)))
+    if not len(edges):
+        return 0, 0
+    starts, stops = edges[::2], edges[1::2]
+    i = int(np.argmax(stops - starts))
+    return int(starts[i]), int(stops[i] - starts[i])
+
+
+def change_scale(changes: list[np.ndarray]) -> np.ndarray:
+    """Per action dimension, the unit a step's |change of action| is measured in (see the module docstring)."""
+    if not changes or not sum(len(c) for c in changes):
+        return np.ones(changes[0].shape[1] if changes else 1)
+    median = np.median(np.concatenate(changes), axis=0)
+    return np.maximum(median, max(0.01 * float(median.max()), 1e-9))
+
+
+class ActionTraces:
+    """Consumer of decoded demos: each demo's actions and a fingerprint of its actions, state and frames, kept for the
+    action checks (``idle``, ``jerk``, ``saturation``, ``duplicate``), which need the scales of all the demos."""
+
+    def __init__(self) -> None:
+        self.actions: list[np.ndarray] = []
+        self.digests: list[str] = []
+
+    def add(self, demo: Demo) -> None:
+        a = np.asarray(demo.actions, np.float32)
+        self.actions.append(a)
+        h = hashlib.blake2b(digest_size=16)
+        for x in (a, np.asarray(demo.state, np.float32), demo.frames):
+            h.update(np.ascontiguousarray(x).tobytes())
+        self.digests.append(h.hexdigest())
+
+    def finish(self) -> "ActionTraces":
+        return self
+
+    @classmethod
+    def merged(cls, parts: list["ActionTraces"]) -> "ActionTraces":
+        """One dataset's traces after another's (a bench pools datasets)."""
+        out = cls()
+        for part in parts:
+            out.actions += part.actions
+            out.digests += part.digests
+        return out
+
+
+def idle(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
+    """Share of each demo's steps at which the actions hardly change, and its longest still stretch."""
+    changes = [np.abs(np.diff(a.astype(np.float64), axis=0)) for a in traces.actions]
+    scale = change_scale(changes)
+    out, reasons = np.zeros(len(changes)), []
+    for i, c in enumerate(changes):
+        if not len(c):
+            reasons.append("a single frame")
+            continue
+        still = (c / scale).mean(1) < STILL
+        out[i] = float(still.mean())
+        start, n = longest_run(still)
+        reasons.append(f"still at {100 * out[i]:.0f}% of steps; longest {_steps_text(start, start + n, len(c) + 1)}"
+                       if n else "never still")
+    return out, reasons
+
+
+def jerk(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
+    """log mean |third difference of actions| in median-change units, and where it is largest."""
+    changes = [np.diff(a.astype(np.float64), axis=0) for a in traces.actions]
+    scale = change_scale([np.abs(c) for c in changes])
+    out, reasons = np.full(len(changes), np.nan), []
+    for i, c in enumerate(changes):
+        third = np.abs(np.diff(c, n=2, axis=0)) / scale
+        if not len(third):
+            reasons.append("too short")
+            continue
+        per_step = third.mean(1)
+        out[i] = float(np.log(per_step.mean() + 1e-9))
+        reasons.append(f"largest at frame {int(np.argmax(per_step)) + 2}")
+    return out, reasons
+
+
+def saturation(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
+    """Share of steps at which some action dimension sits at its limit over all the demos."""
+    if not traces.actions:
+        return np.zeros(0), []
+    every = np.concatenate(traces.actions)
+    lo, hi = every.min(0), every.max(0)
+    moving = hi > lo  # a dimension that never changes is at both limits all the time: it does not count
+    out, reasons = np.zeros(len(traces.actions)), []
+    for i, a in enumerate(traces.actions):
+        at = ((a == lo) | (a == hi))[:, moving]
+        hit = at.any(1) if at.size else np.zeros(len(a), bool)
+        out[i] = float(hit.mean()) if len(a) else 0.0
+        dims = np.flatnonzero(moving)[at.any(0)] if at.size else []
+        reasons.append(f"{100 * out[i]:.0f}% of steps at a limit" + (f" (dimension {', '.join(map(str, dims[:3]))})"
+                                                                    if len(dims) else ""))
+    return out, reasons
+
+
+def duplicate(traces: ActionTraces, episode_index: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """How much nearer than usual the demo's nearest other demo is (log ratio), and which demo that is; an exact
+    copy of another demo scores ``inf``."""
+    n = len(traces.actions)
+    out, reasons = np.full(n, np.nan), [""] * n
+    if n < 2:
+        return out, reasons
+    dims = traces.actions[0].shape[1]
+    grid = np.linspace(0.0, 1.0, DUPLICATE_STEPS)
+    rows = []
+    for a in traces.actions:
+        t = np.linspace(0.0, 1.0, len(a)) if len(a) > 1 else np.zeros(1)
+        rows.append(np.column_stack([np.interp(grid, t, a[:, d]) if len(a) > 1 else np.full(DUPLICATE_STEPS, a[0, d])
+                                     for d in range(dims)]))
+    x = np.stack(rows)
+    x = (x / np.maximum(x.reshape(-1, dims).std(0), 1e-9)).reshape(n, -1)
+    from sklearn.neighbors import NearestNeighbors
+
+    dist, idx = NearestNeighbors(n_neighbors=2).fit(x).kneighbors(x)
+    # The first neighbour is the demo itself, unless an identical demo came first: take the nearest other.
+    other = np.where(idx[:, 0] == np.arange(n), idx[:, 1], idx[:, 0])
+    near = np.where(idx[:, 0] == np.arange(n), dist[:, 1], dist[:, 0]) / np.sqrt(x.shape[1])
+    typical = float(np.median(near))
+    out = np.log(max(typical, 1e-12) / np.maximum(near, 1e-12))
+    first: dict[str, int] = {}
+    for i, digest in enumerate(traces.digests):
+        j = first.setdefault(digest, i)
+        if j != i:
+            out[i] = np.inf
+            reasons[i] = f"an exact copy of episode {int(episode_index[j])} (actions, state and frames)"
+        else:
+            reasons[i] = (f"nearest episode {int(episode_index[other[i]])}, {near[i] / max(typical, 1e-12):.2g} x the "
+                          "usual distance")
+    return out, reasons
+
+
+class FrameChanges:
+    """Consumer of decoded demos: per step, the mean absolute grey-level change of the camera frame, and
+    whether the actions changed (the ``frozen_video`` check)."""
+
+    def __init__(self) -> None:
+        self.deltas: list[np.ndarray] = []
+        self.changes: list[np.ndarray] = []
+
+    def add(self, demo: Demo) -> None:
+        grey = np.stack([cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2GRAY) for f in demo.frames])
+        self.deltas.append(np.abs(np.diff(grey.astype(np.int16), axis=0)).mean(axis=(1, 2)).astype(np.float32))
+        self.changes.append(np.abs(np.diff(np.asarray(demo.actions, np.float64), axis=0)))
+
+    def finish(self) -> "FrameChanges":
+        return self
+
+    @classmethod
+    def merged(cls, parts: list["FrameChanges"]) -> "FrameChanges":
+        out = cls()
+        for part in parts:
+            out.deltas += part.deltas
+            out.changes += part.changes
+        return out
+
+
+def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
+    """Share of steps at which the frame repeats while the actions change, and the longest such stretch."""
+    scale = change_scale(frames.changes)
+    out, reasons = np.zeros(len(frames.deltas)), []
+    for i, (d, c) in enumerate(zip(frames.deltas, frames.changes)):
+        n = min(len(d), len(c))
+        if not n:
+            reasons.append("a single frame")
+            continue
+        frozen = (d[:n] < FROZEN_LEVEL) & ((c[:n] / scale).mean(1) >= STILL)
+        out[i] = float(frozen.mean())
+        start, length = longest_run(frozen)
+        reasons.append(f"the frame repeats while the arm moves at {100 * out[i]:.0f}% of steps; longest "
+                       + _steps_text(start, start + length, n + 1) if length else "frames change while the arm moves")
+    return out, reasons

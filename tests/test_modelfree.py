@@ -1,0 +1,171 @@
+"""The model-free checks rank the defect each is for first, say where it is, and the combination's flags
+keep the false-positive rate they state."""
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from democheck.audit import modelfree
+from democheck.audit.scorers import SCORERS, Evidence, compute, select
+from democheck.audit.scores import combined_log10, flags, tail_probabilities
+from democheck.data.demo import Demo
+
+T, A, S = 100, 6, 9
+
+
+def _demo(i: int, rng: np.random.Generator, frames: np.ndarray | None = None) -> Demo:
+    """A busy arm: smooth random actions, a state that follows them, a camera that sees it move."""
+    phase = rng.uniform(0, 2 * np.pi, A)
+    t = np.arange(T)[:, None]
+    actions = (np.sin(0.08 * t + phase) + rng.normal(0, 0.02, (T, A))).astype(np.float32)
+    state = np.concatenate([np.cumsum(actions, 0) * 0.05, rng.normal(0, 0.01, (T, S - A))], 1).astype(np.float32)
+    if frames is None:
+        frames = rng.integers(0, 255, (T, 8, 8, 3), dtype=np.uint8)
+    return Demo(episode_index=i, task="push", frames=frames, state=state, actions=actions)
+
+
+def _planted(kind: str, n: int = 30, seed: int = 0) -> tuple[list[Demo], int]:
+    rng = np.random.default_rng(seed)
+    demos = [_demo(i, rng) for i in range(n)]
+    bad = 17
+    d = demos[bad]
+    if kind == "idle":  # the arm stops at step 40 and never moves again
+        d.actions[40:] = d.actions[40]
+    elif kind == "jerk":
+        d.actions += rng.normal(0, 0.5, d.actions.shape).astype(np.float32)
+    elif kind == "saturation":  # commands clipped at their limit half the time
+        d.actions[::2, 0] = 5.0
+    elif kind == "frozen_video":  # the camera stops delivering at frame 30 while the arm goes on
+        d.frames[30:] = d.frames[30]
+    elif kind == "duplicate":  # a bit-exact copy of demo 3
+        demos[bad] = Demo(episode_index=bad, task="push", frames=demos[3].frames.copy(),
+                          state=demos[3].state.copy(), actions=demos[3].actions.copy())
+    return demos, bad
+
+
+def _evidence(demos: list[Demo], names: list[str]) -> Evidence:
+    eps = pd.DataFrame({"episode_index": [d.episode_index for d in demos], "task": [d.task for d in demos]})
+    ev = Evidence(episodes=eps)
+    chosen = select(names)
+    consumers = {}
+    for s in chosen:
+        if s.decode is not None:
+            consumers.setdefault(s.source, s.decode(ev, slice(0, len(demos)), "cpu"))
+    for d in demos:
+        for c in consumers.values():
+            c.add(d)
+    ev.behaviour = {k: c.finish() for k, c in consumers.items()}
+    return compute(ev, chosen)
+
+
+def _ranks_first(kind: str) -> Evidence:
+    demos, bad = _planted(kind)
+    ev = _evidence(demos, [kind])
+    values = ev.scores[kind]
+    others = np.delete(values, bad)
+    assert values[bad] > np.nanmax(others), (kind, values[bad], np.sort(others)[-3:])
+    return ev
+
+
+def test_idle_ranks_first_and_names_the_frames_it_is_still():
+    ev = _ranks_first("idle")
+    reason = ev.reasons["idle"][17]
+    assert "frames 40-99" in reason and "60% of the demo" in reason, reason
+    assert ev.scores["idle"][17] > 0.55 and np.median(ev.scores["idle"]) < 0.1
+
+
+def test_jerk_and_saturation_rank_first():
+    _ranks_first("jerk")
+    ev = _ranks_first("saturation")
+    assert "dimension 0" in ev.reasons["saturation"][17]
+
+
+def test_frozen_video_ranks_first_and_says_where():
+    ev = _ranks_first("frozen_video")
+    assert "frames 30-99" in ev.reasons["frozen_video"][17], ev.reasons["frozen_video"][17]
+    assert (np.delete(ev.scores["frozen_video"], 17) == 0).all()
+
+
+def test_an_exact_copy_is_named_and_flagged():
+    demos, bad = _planted("duplicate")
+    ev = _evidence(demos, ["duplicate"])
+    assert np.isinf(ev.scores["duplicate"][bad]) and np.isfinite(np.delete(ev.scores["duplicate"], bad)).all()
+    assert ev.reasons["duplicate"][bad] == "an exact copy of episode 3 (actions, state and frames)"
+    p = np.ones(len(demos))
+    assert flags(p, 0.01, np.isinf(ev.scores["duplicate"])).tolist() == [i == bad for i in range(len(demos))]
+    # The same actions with other frames (a probe that covers the camera) is near, not a copy.
+    demos[bad].frames = demos[bad].frames[::-1].copy()
+    ev = _evidence(demos, ["duplicate"])
+    assert np.isfinite(ev.scores["duplicate"][bad]) and ev.scores["duplicate"][bad] == ev.scores["duplicate"].max()
+
+
+def test_model_free_suspicion_without_a_model_ranks_the_still_arm_first():
+    demos, bad = _planted("idle")
+    ev = _evidence(demos, [n for n, s in SCORERS.items() if s.model_free and s.in_audit])
+    assert int(np.argmax(ev.scores["suspicion"])) == bad
+    assert ev.reasons["suspicion"][bad].startswith(("idle:", "motion:"))
+
+
+def test_the_combined_tail_probability_keeps_its_false_alarm_rate():
+    """On scores whose tail really is exponential, the flags at a level flag that share of clean demos, within
+    the binomial interval; the Sidak correction keeps it for several independent scores."""
+    rng = np.random.default_rng(0)
+    n, k = 20000, 4
+    z = rng.exponential(1.0, (n, k))  # clean demos' scores in robust SD: an exponential tail
+    p = 10.0 ** combined_log10(tail_probabilities(z))
+    for fpr in (0.01, 0.05):
+        flagged = int(flags(p, fpr).sum())
+        lo, hi = stats.binom.interval(0.999, n, fpr)
+        assert lo <= flagged <= hi, (fpr, flagged, lo, hi)
+    # A bad demo far out on one score is far more surprising than any clean one.
+    z[0, 2] = 40.0
+    p = 10.0 ** combined_log10(tail_probabilities(z))
+    assert p[0] < 1e-12 and p[0] == p.min()
+
+
+def test_a_minority_of_bad_demos_makes_the_tail_probabilities_conservative_and_missing_scores_count_nothing():
+    rng = np.random.default_rng(1)
+    clean = rng.exponential(1.0, (900, 1))
+    with_bad = np.concatenate([clean, np.full((100, 1), 30.0)])
+    a = np.exp(tail_probabilities(clean)[:, 0])
+    b = np.exp(tail_probabilities(with_bad)[:, 0])
+    # 10% bad demos shift the fitted tail outwards: the clean demos' flags grow fewer, never more (the rate a
+    # user is told is an upper bound then), and the bad ones stay beyond every clean demo.
+    for fpr in (0.01, 0.05):
+        assert (b[:900] <= fpr).sum() <= (a <= fpr).sum()
+    assert b[900:].max() < 1e-6 < b[:900].min()
+    z = np.array([[np.nan], [1.0], [2.0], [np.inf]])
+    lp = tail_probabilities(z)[:, 0]
+    assert lp[0] == 0.0 and lp[3] == -np.inf
+
+
+def test_audit_without_a_model_on_data_the_shipped_model_cannot_read(tmp_path):
+    """A Meta-World dataset LeRobot's writer made (4-d actions, 39-d state): the audit falls back to the model-free
+    checks, says why, and still flags the planted still, random and stopped arms; --no-model does the same on
+    purpose; --drop-list holds what suspects.txt holds."""
+    import json
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from democheck.cli import app
+
+    data = Path(__file__).resolve().parents[1] / "benchmarks/foreign/data/mw-tiny"
+    labels = pd.read_csv(data.with_name("mw-tiny.labels.csv")).set_index("episode_index")["label"]
+    runner = CliRunner()
+    for extra in ([], ["--no-model"]):
+        out = tmp_path / ("auto" if not extra else "none")
+        res = runner.invoke(app, ["audit", str(data), "--out", str(out), "--drop-list", str(out) + ".json", *extra])
+        assert res.exit_code == 0, res.output
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["model"] is None and summary["no_model"]
+        assert any("cannot read this data" in w for w in summary["warnings"]) == (not extra)
+        table = pd.read_parquet(out / "scores.parquet")
+        assert "task_uncertainty" not in table and {"motion", "idle", "duplicate", "suspicion"} <= set(table)
+        flagged = table.loc[table["is_anomaly"], "episode_index"].tolist()
+        assert {"idle", "random", "gave-up"} <= set(labels[flagged])
+        assert (labels[flagged] == "clean").sum() <= 1
+        assert json.loads(Path(str(out) + ".json").read_text()) == sorted(flagged)
+        assert (out / "report.rrd").stat().st_size > 0
+    res = runner.invoke(app, ["audit", str(data), "--out", str(tmp_path / "x"), "--no-model", "--no-actions"])
+    assert res.exit_code == 2 and "nothing to score" in res.output
