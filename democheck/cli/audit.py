@@ -66,20 +66,22 @@ def print_audit(summary: dict, out: Path) -> None:
     others are in scores.csv and the report)."""
     from democheck.audit.scorers import SCORERS
 
+    from rich import box
+
     flag = summary["flag"]
-    table = Table(title=f"top suspects of {summary['demos']} demos ({summary['flagged']} flagged at fpr "
-                        f"{flag['fpr']:g}; about {flag['expected_false_flags']:.1f} of them expected clean)")
+    # No vertical rules, short headers and a clipped task column: every score of the ranking fits 80 columns.
+    table = Table(title=f"top suspects of {summary['demos']} demos", box=box.SIMPLE_HEAD, pad_edge=False)
     cols = [n for n, s in SCORERS.items() if (s.in_suspicion or n == "suspicion") and summary["top_suspects"]
             and n in summary["top_suspects"][0]]
-    # Short headers and a clipped task column keep the table readable in an 80-column terminal.
     for col in ("rank", "ep", "task", *(SCORERS[c].short for c in cols), "flag"):
         table.add_column(col, justify="left" if col == "task" else "right", no_wrap=True, overflow="ellipsis",
-                         max_width=max(12, 36 - 4 * len(cols)) if col == "task" else None,
-                         min_width=None if col == "task" else 4 if col in ("rank", "ep", "flag") else 5)
+                         max_width=max(10, 34 - 4 * len(cols)) if col == "task" else None)
     for r in summary["top_suspects"]:
         cells = ["n/a" if r[c] is None else short(r[c]) for c in cols]
         table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"], *cells, "[red]yes[/]" if r["is_anomaly"] else "")
     console.print(table)
+    console.print(f"{summary['flagged']} flagged at --fpr {flag['fpr']:g} (about {flag['expected_false_flags']:.1f} "
+                  "false flags expected among them)", highlight=False)
     for w in summary.get("warnings", []):
         console.print(f"[yellow]warning:[/] {w}", highlight=False)
     for r in summary["top_suspects"][:3]:
