@@ -171,6 +171,23 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
     assert actions.num_rows == 12 and len(actions.column("Scalars:scalars").to_pylist()[0]) == 7
     pts = rrd["/map/demos"][0].column("Points2D:positions").to_pylist()[0]
     assert len(pts) == 12
+    # What a reviewer decides from: each suspect's reason beside its video, the list's short form of it, the
+    # dataset's own names for its action series, histograms whose bars are as wide as their bins.
+    from democheck.viz.report import short_reason
+
+    about = rrd[f"{base}/about"][0].column("TextDocument:text").to_pylist()[0][0]
+    assert top["reason"].split("; also ")[0] in about and ("FLAGGED" in about) == bool(top["is_anomaly"])
+    assert f"| {short_reason(top['reason']).replace('|', chr(92) + '|')} |" in text
+    series = [b for b in rrd[f"{base}/actions"] if "SeriesLines:names" in b.schema.names][0]
+    assert series.column("SeriesLines:names").to_pylist()[0] == ds.names("action")
+    assert ds.names("action")[0] == "shoulder_pan.torque"  # as the dataset's info.json names it
+    for name in ("suspicion", "task_uncertainty", "action_error"):
+        bars = rrd[f"/scores/{name}/all"][0]
+        centres = np.asarray(bars.column("BarChart:abscissa").to_pylist()[0][0]["buffer"])
+        widths = np.asarray(bars.column("BarChart:widths").to_pylist()[0])
+        np.testing.assert_allclose(widths, 0.95 * np.diff(centres).mean(), rtol=1e-4)
+        counts = np.asarray(bars.column("BarChart:values").to_pylist()[0][0]["buffer"])
+        assert counts.sum() == 12
 
 
 def _write_robomimic(path, n=6, T=8, size=16, joints=14):

@@ -146,6 +146,13 @@ class DemoSet:
     def action_dim(self) -> int:
         return self._src.action_dim
 
+    def names(self, what: str) -> list[str]:
+        """Names of the ``state`` or ``action`` dimensions: the dataset's own where it gives them, else
+        ``state[0]``, ``state[1]``, ..."""
+        dim = self.state_dim if what == "state" else self.action_dim
+        given = getattr(self._src, f"{what}_names", None)
+        return list(given) if given and len(given) == dim else [f"{what}[{i}]" for i in range(dim)]
+
     @property
     def episodes(self) -> pd.DataFrame:
         """One row per episode (index: episode_index): task, length, and split/success/label when known."""

@@ -94,6 +94,17 @@ def _frame(path: Path) -> pd.DataFrame:
         raise DatasetError(f"{path}: unreadable values ({str(exc).splitlines()[0][:80]})") from None
 
 
+def feature_names(feature: dict[str, Any], dim: int) -> list[str] | None:
+    """A vector feature's per-dimension names from ``info.json`` (a list, or LeRobot's older ``{"motors": [...]}``),
+    or None when it names none or not one per dimension."""
+    names = feature.get("names")
+    if isinstance(names, dict):
+        names = next((v for v in names.values() if isinstance(v, list)), None)
+    if isinstance(names, list) and len(names) == dim and all(isinstance(n, str) for n in names):
+        return list(names)
+    return None
+
+
 def _template(info: dict[str, Any], key: str, default: str | None, root: Path, **fields: Any) -> str:
     """A file path from one of info.json's path templates, with a malformed template as a DatasetError."""
     tpl = info.get(key, default)
@@ -155,6 +166,8 @@ class _LeRobotBase:
         self.action_key = self._pick_key(action_key, [ACTION_KEY, "actions"], "action", "--action-key")
         self.state_dim = int(np.prod(self.features[self.state_key].get("shape", [1])))
         self.action_dim = int(np.prod(self.features[self.action_key].get("shape", [1])))
+        self.state_names = feature_names(self.features[self.state_key], self.state_dim)
+        self.action_names = feature_names(self.features[self.action_key], self.action_dim)
         self._cache: OrderedDict[Path, dict[str, Any]] = OrderedDict()
 
     def _pick_camera(self, camera: str | None) -> str:

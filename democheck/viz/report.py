@@ -1,15 +1,17 @@
-"""The audit's Rerun recording: what a reviewer looks at.  The only module that imports ``rerun``.
+"""The audit's Rerun recording: what a reviewer decides from.  The only module that imports ``rerun``.
 
 Entities:
-    suspects                      the ranked suspect list (markdown)
-    suspects/<rank>_ep<e>/video   the suspect's camera video on the ``frame`` timeline
-    suspects/<rank>_ep<e>/sigma   its task standard deviation per embedding dimension (bar chart)
-    suspects/<rank>_ep<e>/actions its actions, one series per joint
-    suspects/<rank>_ep<e>/state   its robot state, one series per dimension
-    map/demos                     2-D t-SNE map of every demo's task mean, size ~ sigma, colour = task
-    map/suspects                  the top suspects on that map, labelled
-    scores/task_uncertainty       histogram of the task-uncertainty scores
-    scores/suspicion              histogram of the ranking (-log10 of the combined tail probability)
+    suspects                      the ranked list (markdown): rank, episode, suspicion, flagged, why, task, scores
+    suspects/<rank>_ep<e>/about   the suspect's scores, flag and full reason (markdown)
+    suspects/<rank>_ep<e>/video   its camera video on the ``frame`` timeline
+    suspects/<rank>_ep<e>/sigma   its task standard deviation per embedding dimension over the median of the
+                                  unflagged demos' (1 = typical), with a model
+    suspects/<rank>_ep<e>/actions its actions, one series per dimension, named as the dataset names them
+    suspects/<rank>_ep<e>/state   its robot state, likewise
+    map/demos                     2-D t-SNE map of every demo's task mean, coloured by suspicion (hover: rank,
+                                  episode, task); map/flagged the flagged demos on top, labelled
+    scores/<name>/all, /flagged   a histogram per score (bars as wide as their bins; the flagged demos' share
+                                  of each bar in red), suspicion with the flag level
 
 The bench's recording (``write_bench_rrd``):
     bench                         bench.md: the tables, the verdicts, the figures' numbers (markdown)
@@ -23,9 +25,8 @@ The meta-test's recording (``write_eval_rrd``):
 
 from __future__ import annotations
 
-import colorsys
+import re
 import tempfile
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -38,14 +39,24 @@ from democheck.data.demo import Demo
 from democheck.data.video import VideoWriter
 from democheck.evaluate.meta_test import fmt_rate
 
+FLAG_RED = [230, 40, 40]
+BAR_BLUE = [90, 140, 220]
+# Scores shown as histograms, and how: on a log10 scale where the score's right tail is long.
+HISTOGRAMS = {"suspicion": False, "task_uncertainty": False, "consistency": False, "action_error": True,
+              "motion": False, "idle": False, "novelty": True}
 
-def _task_colours(tasks: np.ndarray) -> np.ndarray:
-    """A stable colour per task string."""
-    out = np.zeros((len(tasks), 3), np.uint8)
-    for i, t in enumerate(tasks):
-        h = (zlib.crc32(str(t).encode()) % 360) / 360.0
-        out[i] = np.array(colorsys.hsv_to_rgb(h, 0.75, 0.95)) * 255
-    return out
+
+def _ramp(values: np.ndarray) -> np.ndarray:
+    """Colours for values by rank: dark blue (least suspect) through teal to yellow (most); never red, which
+    marks the flagged demos."""
+    v = np.asarray(values, np.float64)
+    order = np.argsort(np.argsort(np.nan_to_num(v, nan=-np.inf)))
+    t = order / max(len(v) - 1, 1)
+    stops = np.array([[40, 50, 120], [30, 140, 150], [120, 200, 90], [250, 230, 60]], np.float64)
+    x = t * (len(stops) - 1)
+    i = np.minimum(x.astype(int), len(stops) - 2)
+    f = (x - i)[:, None]
+    return (stops[i] * (1 - f) + stops[i + 1] * f).astype(np.uint8)
 
 
 def embed_2d(table: pd.DataFrame, top: int, max_points: int = 1500, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -76,36 +87,68 @@ def suspect_path(rank: int, episode_index: int) -> str:
     return f"suspects/{rank:03d}_ep{episode_index}"
 
 
-def suspects_markdown(table: pd.DataFrame, top: int, title: str) -> str:
-    """The ranked list: what a reviewer decides by first (the ranking, the flag, the reason), then the task and
-    every other registered score the table has, and what each column means."""
+def short_reason(reason: str) -> str:
+    """The reason as the ranked list shows it: the driving score, how rare, where (the details are in each
+    suspect's tab)."""
+    text = str(reason).split("; also ")[0]
+    text = re.sub(r"as unusual as 1 clean demo in ([\d,]+)", r"1 in \1", text)
+    text = re.sub(r"far beyond the clean demos \(tail probability ([^)]+)\)", r"p \1", text)
+    return text
+
+
+def _cell(value) -> str:
+    if isinstance(value, (float, np.floating)):
+        return "n/a" if not np.isfinite(value) else f"{value:.3g}"
+    return str(value)
+
+
+def suspects_markdown(table: pd.DataFrame, top: int, title: str, fpr: float | None = None) -> str:
+    """The ranked list: what a reviewer decides by first (rank, episode, the ranking, the flag, why), then the
+    task and every other registered score the table has, and what each column means."""
     cols = [n for n, s in SCORERS.items() if s.in_audit and n in table and n != "suspicion"]
-    lines = [f"# {title}", "", "| rank | episode | suspicion | flagged | reason | task | "
+    lines = [f"# {title}", "", "| rank | episode | suspicion | flagged | why | task | "
              + " | ".join(c.replace("_", " ") for c in cols) + " |",
              "|---:|---:|---:|:---:|---|---|" + "---:|" * len(cols)]
     for r in table.head(top).to_dict(orient="records"):
-        cells = ["n/a" if not np.isfinite(r[c]) else f"{r[c]:.4g}" for c in ["suspicion", *cols]]
-        reason, task = (str(x).replace("|", "\\|") for x in (r.get("reason", ""), r["task"]))  # "mean |action|"
-        lines.append(f"| {r['rank']} | {r['episode_index']} | {cells[0]} | {'yes' if r['is_anomaly'] else ''} | "
-                     f"{reason} | {task} | " + " | ".join(cells[1:]) + " |")
-    lines += ["", *[f"- {c.replace('_', ' ')}: {SCORERS[c].description}" for c in ["suspicion", *cols]],
-              "- flagged: a combined tail probability (p value, 10^-suspicion) at most the false-positive rate "
-              "asked for, or an exact copy of another demo (see summary.json, flag)"]
+        why, task = (str(x).replace("|", "\\|") for x in (short_reason(r.get("reason", "")), r["task"]))
+        lines.append(f"| {r['rank']} | {r['episode_index']} | {_cell(r['suspicion'])} | "
+                     f"{'**yes**' if r['is_anomaly'] else ''} | {why} | {task} | "
+                     + " | ".join(_cell(r[c]) for c in cols) + " |")
+    level = f"at most {fpr:g}" if fpr is not None else "at most the false-positive rate asked for"
+    lines += ["", f"{int(table['is_anomaly'].sum())} of {len(table)} demos flagged.", "",
+              *[f"- {c.replace('_', ' ')}: {SCORERS[c].description}" for c in ["suspicion", *cols]],
+              f"- flagged: a combined tail probability (10^-suspicion) {level}, or an exact copy of another demo "
+              "(summary.json, flag)",
+              "- why: the score that drove the ranking, how rare among clean demos, and where in the demo"]
     return "\n".join(lines)
 
 
-def _histogram(rec: rr.RecordingStream, path: str, values: np.ndarray, bins: int = 40) -> None:
-    values = values[np.isfinite(values)]
-    if not len(values):
+def _suspect_markdown(row: dict, cols: list[str]) -> str:
+    head = f"## #{row['rank']}: episode {row['episode_index']} -- {'FLAGGED' if row['is_anomaly'] else 'not flagged'}"
+    scores = ", ".join(f"{c.replace('_', ' ')} {_cell(row[c])}" for c in ["suspicion", *cols] if c in row)
+    reason = str(row.get("reason", "")).replace("; also ", "\n\nalso ")
+    return f"{head}\n\ntask: {row['task']}\n\n{scores}\n\n{reason}"
+
+
+def _histogram(rec: rr.RecordingStream, path: str, values: np.ndarray, flagged: np.ndarray, bins: int = 30) -> None:
+    """Bars as wide as their bins (``path/all``), and the flagged demos' part of each bar (``path/flagged``)."""
+    ok = np.isfinite(values)
+    if not ok.any():
         return
-    try:
-        counts, edges = np.histogram(values, bins=bins)
-    except ValueError:  # all values (nearly) equal: too narrow a range for that many bins, so one bar
-        counts, edges = np.histogram(values, bins=1, range=(values.min() - 0.5, values.max() + 0.5))
-    rec.log(path, rr.BarChart(counts, abscissa=(edges[:-1] + edges[1:]) / 2), static=True)
+    v, f = values[ok], flagged[ok]
+    lo, hi = float(v.min()), float(v.max())
+    if hi - lo < 1e-12:
+        lo, hi = lo - 0.5, hi + 0.5
+    edges = np.linspace(lo, hi, bins + 1)
+    centres, widths = (edges[:-1] + edges[1:]) / 2, np.diff(edges) * 0.95
+    rec.log(f"{path}/all", rr.BarChart(np.histogram(v, edges)[0], abscissa=centres, widths=widths, color=BAR_BLUE),
+            static=True)
+    rec.log(f"{path}/flagged", rr.BarChart(np.histogram(v[f], edges)[0], abscissa=centres, widths=widths,
+                                           color=FLAG_RED), static=True)
 
 
-def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray | None, fps: float) -> None:
+def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray | None, fps: float,
+              names: dict[str, list[str]] | None = None) -> None:
     t = np.arange(len(demo))
     with tempfile.TemporaryDirectory() as tmp:
         size = demo.frames.shape[1]
@@ -125,59 +168,88 @@ def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray 
     if sigma is not None:
         rec.log(f"{base}/sigma", rr.BarChart(sigma), static=True)
     frame = [rr.TimeColumn("frame", sequence=t)]
-    rec.send_columns(f"{base}/actions", indexes=frame, columns=rr.Scalars.columns(scalars=demo.actions))
-    rec.send_columns(f"{base}/state", indexes=frame, columns=rr.Scalars.columns(scalars=demo.state))
+    for what, values in (("actions", demo.actions), ("state", demo.state)):
+        given = (names or {}).get("action" if what == "actions" else "state")
+        if given and len(given) == values.shape[1]:
+            rec.log(f"{base}/{what}", rr.SeriesLines(names=given), static=True)
+        rec.send_columns(f"{base}/{what}", indexes=frame, columns=rr.Scalars.columns(scalars=values))
 
 
 def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embedding: np.ndarray,
-                     embedded_rows: np.ndarray, fps: float, title: str) -> None:
-    """One recording with a reviewer's blueprint: suspect list, suspects' evidence, embedding map, score histograms.
+                     embedded_rows: np.ndarray, fps: float, title: str, names: dict[str, list[str]] | None = None,
+                     fpr: float | None = None) -> None:
+    """One recording with a reviewer's blueprint: the ranked list beside each suspect's evidence, the map and the
+    score histograms.
 
     ``suspects`` are the top demos in rank order; ``embedding`` [M, 2] are t-SNE positions of ``table`` rows
-    ``embedded_rows``.
+    ``embedded_rows``; ``names``: the dataset's names of its ``state`` and ``action`` dimensions; ``fpr``: the
+    flag's level (marked on the suspicion histogram's title).
     """
     rec = rr.RecordingStream("democheck")
     rec.save(str(path))
     top = len(suspects)
-    rec.log("suspects", rr.TextDocument(suspects_markdown(table, max(top, 20), title),
+    flagged = table["is_anomaly"].to_numpy(bool)
+    rec.log("suspects", rr.TextDocument(suspects_markdown(table, max(top, 20), title, fpr),
                                         media_type=rr.MediaType.MARKDOWN), static=True)
-    sigma = np.stack(table["sigma"].to_numpy()) if len(table) and "sigma" in table else None
-    score = table["task_uncertainty"].to_numpy() if "task_uncertainty" in table else None
     if len(embedded_rows):
         sub = table.iloc[embedded_rows]
-        s = score[embedded_rows]
-        radii = 0.3 + 1.7 * (s - s.min()) / max(s.max() - s.min(), 1e-9)  # point size ~ sigma
-        rec.log("map/demos", rr.Points2D(embedding, radii=radii, colors=_task_colours(sub["task"].to_numpy()),
-                                         class_ids=sub["rank"].to_numpy()), static=True)
-        is_top = sub["rank"].to_numpy() <= top
-        if is_top.any():
-            rec.log("map/suspects", rr.Points2D(embedding[is_top], radii=radii[is_top] + 0.5,
-                                                colors=[255, 40, 40],
-                                                labels=[f"#{r} ep{e}" for r, e in zip(sub["rank"][is_top],
-                                                                                      sub["episode_index"][is_top])]),
+        labels = [f"#{r} ep{e}: {t}" for r, e, t in zip(sub["rank"], sub["episode_index"], sub["task"])]
+        rec.log("map/demos", rr.Points2D(embedding, radii=0.6, colors=_ramp(sub["suspicion"].to_numpy()),
+                                         labels=labels, show_labels=False, draw_order=1.0), static=True)
+        is_flagged = flagged[embedded_rows]
+        if is_flagged.any():
+            rec.log("map/flagged", rr.Points2D(embedding[is_flagged], radii=1.1, colors=FLAG_RED,
+                                               labels=[f"#{r} ep{e}" for r, e in zip(sub["rank"][is_flagged],
+                                                                                   sub["episode_index"][is_flagged])],
+                                               show_labels=int(is_flagged.sum()) <= 12, draw_order=2.0),
                     static=True)
-    _histogram(rec, "scores/suspicion", table["suspicion"].to_numpy(dtype=float))
-    if score is not None:
-        _histogram(rec, "scores/task_uncertainty", score)
+    hist_views = []
+    for name, log10 in HISTOGRAMS.items():
+        if name not in table:
+            continue
+        values = table[name].to_numpy(np.float64)
+        if log10:
+            values = np.log10(np.maximum(values, 1e-12))
+        _histogram(rec, f"scores/{name}", values, flagged)
+        what = name.replace("_", " ") + (" (log10)" if log10 else "")
+        if name == "suspicion" and fpr is not None:
+            what += f": flagged at {-np.log10(fpr):g} and above (fpr {fpr:g})"
+        hist_views.append(rrb.BarChartView(origin=f"scores/{name}", name=what, plot_legend=rrb.PlotLegend(visible=False)))
+    sigma = np.stack(table["sigma"].to_numpy()) if len(table) and "sigma" in table else None
+    typical = np.median(sigma[~flagged] if (~flagged).any() else sigma, axis=0) if sigma is not None else None
+    cols = [n for n, s in SCORERS.items() if s.in_suspicion and n in table]
     tabs = []
-    for demo, row in zip(suspects, table.head(top).itertuples()):
-        base = suspect_path(row.rank, row.episode_index)
-        _log_demo(rec, base, demo, None if sigma is None else sigma[row.Index], fps)
-        plots = [rrb.TimeSeriesView(origin=f"{base}/actions", name="actions"),
-                 rrb.TimeSeriesView(origin=f"{base}/state", name="state")]
+    for demo, row in zip(suspects, table.head(top).to_dict(orient="records")):
+        base = suspect_path(row["rank"], row["episode_index"])
+        rec.log(f"{base}/about", rr.TextDocument(_suspect_markdown(row, cols), media_type=rr.MediaType.MARKDOWN),
+                static=True)
+        ratio = None if sigma is None else np.asarray(row["sigma"], np.float64) / np.maximum(typical, 1e-12)
+        _log_demo(rec, base, demo, ratio, fps, names)
+        # No legends over the curves: hovering a curve names it (as the dataset names its dimensions).
+        plots = [rrb.TimeSeriesView(origin=f"{base}/{what}", name=f"{what} (hover a curve for its name)",
+                                    plot_legend=rrb.PlotLegend(visible=False)) for what in ("actions", "state")]
         if sigma is not None:
-            plots.insert(0, rrb.BarChartView(origin=f"{base}/sigma", name="sigma"))
-        tabs.append(rrb.Vertical(rrb.Spatial2DView(origin=f"{base}/video", name="video"), rrb.Horizontal(*plots),
-                                 name=f"#{row.rank} ep{row.episode_index}"))
-    hist = [rrb.BarChartView(origin="scores/suspicion", name="suspicion histogram (-log10 p)")]
-    if score is not None:
-        hist.append(rrb.BarChartView(origin="scores/task_uncertainty", name="task uncertainty histogram"))
-    views = [rrb.TextDocumentView(origin="suspects", name="ranked suspects")]
+            plots.insert(0, rrb.BarChartView(origin=f"{base}/sigma", name="sigma / median of unflagged (1 = typical)",
+                                             plot_legend=rrb.PlotLegend(visible=False)))
+        tabs.append(rrb.Vertical(
+            rrb.Horizontal(rrb.TextDocumentView(origin=f"{base}/about", name="why"),
+                           rrb.Spatial2DView(origin=f"{base}/video", name="video"), column_shares=[1, 1]),
+            rrb.Horizontal(*plots), row_shares=[3, 2],
+            name=f"#{row['rank']} ep{row['episode_index']}{' FLAGGED' if row['is_anomaly'] else ''}"))
+    # Only the list itself: each suspect's "about" document lives under it too.
+    left = [rrb.TextDocumentView(origin="suspects", contents="$origin", name="ranked suspects")]
+    bottom = []
     if len(embedded_rows):
-        views.append(rrb.Spatial2DView(origin="map", name="task embedding (t-SNE of mu)"))
-    left = rrb.Vertical(*views, rrb.Horizontal(*hist))
-    body = rrb.Horizontal(left, rrb.Tabs(*tabs, name="suspects")) if tabs else left
-    rec.send_blueprint(rrb.Blueprint(body, collapse_panels=True))
+        bottom.append(rrb.Spatial2DView(origin="map", name="task embedding (t-SNE of mu): colour = suspicion "
+                                        "(yellow = most suspect), red = flagged; hover a point for its episode"))
+    if hist_views:
+        bottom.append(rrb.Tabs(*hist_views, name="score histograms"))
+    if bottom:
+        left.append(rrb.Horizontal(*bottom))
+    body_left = rrb.Vertical(*left, row_shares=[1, 1][:len(left)])
+    body = rrb.Horizontal(body_left, rrb.Tabs(*tabs, name="suspects"), column_shares=[3, 2]) if tabs else body_left
+    rec.send_blueprint(rrb.Blueprint(body, rrb.TimePanel(fps=fps, timeline="frame", state="collapsed"),
+                                     collapse_panels=True))
     rec.flush()
 
 
@@ -233,5 +305,6 @@ def write_eval_rrd(path: Path, summary: dict, rollouts: list, fps: float, per_ou
                                  name=f"{outcome} {shown[outcome]}"))
     rec.log("eval", rr.TextDocument("\n\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
     body = rrb.Horizontal(rrb.TextDocumentView(origin="eval", name="success"), *([rrb.Tabs(*tabs)] if tabs else []))
-    rec.send_blueprint(rrb.Blueprint(body, collapse_panels=True))
+    rec.send_blueprint(rrb.Blueprint(body, rrb.TimePanel(fps=fps, timeline="frame", state="collapsed"),
+                                     collapse_panels=True))
     rec.flush()
