@@ -109,3 +109,33 @@ def test_the_readme_walkthrough_runs_as_written_on_a_foreign_dataset(tmp_path):
     assert summary["demos"] == len(open(root / "benchmarks/foreign/data/mw-tiny.labels.csv").readlines()) - 1
     assert summary["frames"]["model"] == [64, 64, 3] and (tmp_path / "report" / "suspects.txt").exists()
     assert not summary["warnings"]  # the model learnt every task of the data it audits
+
+
+@pytest.mark.slow
+def test_the_demo_report_draws_in_the_native_viewer(tmp_path):
+    """The demo's report.rrd opened in the native Rerun viewer on a virtual display: the screenshot is not blank
+    and each main panel -- the ranked list (top left), the map and histograms (bottom left), the first suspect's
+    reason and video (right) -- holds content.  Skipped without Xvfb/ImageMagick."""
+    import shutil
+    import sys
+    from pathlib import Path
+
+    if shutil.which("Xvfb") is None or shutil.which("import") is None:
+        pytest.skip("needs Xvfb and ImageMagick (apt-get install xvfb imagemagick mesa-vulkan-drivers)")
+    sys.path.insert(0, str(Path(__file__).parent))
+    import cv2
+    from viewer_screenshot import drawn_share, screenshot
+
+    res = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "demo")])
+    assert res.exit_code == 0, res.output
+    png = tmp_path / "report.png"
+    assert screenshot(tmp_path / "demo" / "report" / "report.rrd", png, "1600x1000", wait=30) > 0.08
+    img = cv2.imread(str(png))
+    h, w = img.shape[:2]
+    panels = {"ranked list": img[int(0.08 * h):int(0.45 * h), :int(0.58 * w)],
+              "map and histograms": img[int(0.55 * h):int(0.95 * h), :int(0.58 * w)],
+              "suspect's reason and video": img[int(0.08 * h):int(0.6 * h), int(0.62 * w):]}
+    for name, crop in panels.items():
+        part = tmp_path / f"{name}.png"
+        cv2.imwrite(str(part), crop)
+        assert drawn_share(part) > 0.03, name

@@ -321,3 +321,22 @@ def test_controller_z_is_the_other_demos_posterior_or_the_demos_own():
     var = np.array([[1.0], [1.0], [1.0], [1.0]])
     z = controller_z(_post(mu, var), np.array(["a", "a", "a", "b"]))
     assert np.allclose(z[:, 0], [3.0, 2.0, 1.0, 9.0])  # leave-one-out means; b's lone demo keeps its own
+
+
+def test_view_says_what_the_viewer_needs(tmp_path, monkeypatch):
+    """No display: the commands for another machine and for a browser here, bound to this machine only; no ffmpeg:
+    that the videos will not play, and how to get it."""
+    import shutil as sh
+
+    rrd = tmp_path / "report.rrd"
+    rrd.write_bytes(b"")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    real = sh.which
+    monkeypatch.setattr(sh, "which", lambda name, *a, **k: None if name == "ffmpeg" else real(name, *a, **k))
+    res = runner.invoke(app, ["view", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    out = " ".join(res.output.split())
+    assert "rerun --web-viewer --bind 127.0.0.1" in out and "no ffmpeg" in out and "apt-get install ffmpeg" in out
+    res = runner.invoke(app, ["view", str(tmp_path / "nothing")])
+    assert res.exit_code == 2 and "run democheck audit first" in res.output

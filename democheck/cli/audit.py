@@ -117,9 +117,14 @@ def view(
             raise DemocheckError(f"{rrd}: no recording here; run democheck audit first")
         viewer = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
         has_display = sys.platform == "darwin" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+        if shutil.which("ffmpeg") is None:
+            console.print("note: no ffmpeg program here: the Rerun viewer decodes the suspects' H.264 video with it, so "
+                          "their videos will not play (Debian/Ubuntu: sudo apt-get install ffmpeg; macOS: brew "
+                          "install ffmpeg)", highlight=False)
         if not has_display or not Path(viewer).exists():
             console.print(f"no display here; on a machine with one (pip install rerun-sdk) run:\n  rerun {rrd}\n"
-                          f"or serve it to a browser from here:\n  rerun --web-viewer {rrd}")
+                          f"or serve it to a browser on this machine only:\n  rerun --web-viewer --bind 127.0.0.1 {rrd}",
+                          highlight=False)
             return
         subprocess.Popen([viewer, str(rrd)])
         console.print(f"opened {rrd} in the Rerun viewer")
