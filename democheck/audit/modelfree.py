@@ -61,13 +61,35 @@ def change_scale(changes: list[np.ndarray]) -> np.ndarray:
     return np.maximum(median, max(0.01 * float(median.max()), 1e-9))
 
 
-class ActionTraces:
+class PerDemo:
+    """A consumer that keeps lists with one entry per demo (``fields``); ``merged`` puts several datasets' lists
+    one after another (a bench pools datasets)."""
+
+    fields: tuple[str, ...] = ()
+
+    def __init__(self) -> None:
+        for name in self.fields:
+            setattr(self, name, [])
+
+    def finish(self) -> "PerDemo":
+        return self
+
+    @classmethod
+    def merged(cls, parts: list["PerDemo"]) -> "PerDemo":
+        out = cls()
+        for part in parts:
+            for name in cls.fields:
+                getattr(out, name).extend(getattr(part, name))
+        return out
+
+
+class ActionTraces(PerDemo):
     """Consumer of decoded demos: each demo's actions and a fingerprint of its actions, state and frames, kept for the
     action checks (``idle``, ``jerk``, ``saturation``, ``duplicate``), which need the scales of all the demos."""
 
-    def __init__(self) -> None:
-        self.actions: list[np.ndarray] = []
-        self.digests: list[str] = []
+    fields = ("actions", "digests")
+    actions: list[np.ndarray]
+    digests: list[str]
 
     def add(self, demo: Demo) -> None:
         a = np.asarray(demo.actions, np.float32)
@@ -76,18 +98,6 @@ class ActionTraces:
         for x in (a, np.asarray(demo.state, np.float32), demo.frames):
             h.update(np.ascontiguousarray(x).tobytes())
         self.digests.append(h.hexdigest())
-
-    def finish(self) -> "ActionTraces":
-        return self
-
-    @classmethod
-    def merged(cls, parts: list["ActionTraces"]) -> "ActionTraces":
-        """One dataset's traces after another's (a bench pools datasets)."""
-        out = cls()
-        for part in parts:
-            out.actions += part.actions
-            out.digests += part.digests
-        return out
 
 
 def idle(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
@@ -177,29 +187,18 @@ def duplicate(traces: ActionTraces, episode_index: np.ndarray) -> tuple[np.ndarr
     return out, reasons
 
 
-class FrameChanges:
+class FrameChanges(PerDemo):
     """Consumer of decoded demos: per step, the mean absolute grey-level change of the camera frame, and
     whether the actions changed (the ``frozen_video`` check)."""
 
-    def __init__(self) -> None:
-        self.deltas: list[np.ndarray] = []
-        self.changes: list[np.ndarray] = []
+    fields = ("deltas", "changes")
+    deltas: list[np.ndarray]
+    changes: list[np.ndarray]
 
     def add(self, demo: Demo) -> None:
         grey = np.stack([cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2GRAY) for f in demo.frames])
         self.deltas.append(np.abs(np.diff(grey.astype(np.int16), axis=0)).mean(axis=(1, 2)).astype(np.float32))
         self.changes.append(np.abs(np.diff(np.asarray(demo.actions, np.float64), axis=0)))
-
-    def finish(self) -> "FrameChanges":
-        return self
-
-    @classmethod
-    def merged(cls, parts: list["FrameChanges"]) -> "FrameChanges":
-        out = cls()
-        for part in parts:
-            out.deltas += part.deltas
-            out.changes += part.changes
-        return out
 
 
 def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
