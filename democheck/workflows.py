@@ -28,7 +28,8 @@ from democheck.audit.metrics import by_label
 from democheck.audit.run import audit, finish_summary, for_model, suspects, write_tables
 from democheck.audit.scores import DEFAULT_FPR, reference
 from democheck.data import open_dataset
-from democheck.data.cache import build_cache
+from democheck.data.cache import build_cache, dataset_fingerprint
+from democheck.data.subset import write_subset
 from democheck.errors import DatasetError, DemocheckError
 from democheck.evaluate.meta_test import markdown as eval_markdown, meta_test
 from democheck.fsutil import atomic_output_dir, refuse_existing, to_json, write_json
@@ -197,6 +198,52 @@ def write_episode_list(path: str | Path, table: pd.DataFrame, flagged: bool) -> 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(sorted(int(e) for e in rows)) + "\n")
+
+
+def episodes_to_drop(report: Path, drop: str) -> list[int]:
+    """The episodes ``democheck clean --drop`` names: ``flagged`` (the report's flags), ``top:K`` (its K most
+    suspect) or ``list:FILE`` (episode indices as ``[3, 17]`` or one per line)."""
+    table = pd.read_parquet(report / "scores.parquet", columns=["episode_index", "rank", "is_anomaly"])
+    if drop == "flagged":
+        return table.loc[table["is_anomaly"], "episode_index"].astype(int).tolist()
+    kind, _, arg = drop.partition(":")
+    if kind == "top" and arg.isdigit():
+        return table.sort_values("rank").head(int(arg))["episode_index"].astype(int).tolist()
+    if kind == "list" and arg:
+        text = Path(arg).read_text() if Path(arg).is_file() else None
+        if text is None:
+            raise DemocheckError(f"--drop list:{arg}: no such file")
+        try:
+            got = json.loads(text) if text.strip().startswith("[") else [int(x) for x in text.split()]
+            return [int(e) for e in got]
+        except (ValueError, TypeError):
+            raise DemocheckError(f"{arg}: not a list of episode indices ([3, 17] or one per line)") from None
+    raise DemocheckError(f"--drop {drop!r}: one of flagged, top:K, list:FILE")
+
+
+def clean_dataset(dataset: str | Path, report: str | Path, out: str | Path, drop: str = "flagged",
+                  force: bool = False) -> dict[str, Any]:
+    """Write ``dataset`` without the episodes ``drop`` names from the audit ``report`` (``data.subset``), after
+    checking the report was made on this very dataset; returns what was kept and dropped."""
+    report, out = Path(report), Path(out)
+    refuse_existing(out, force)
+    summary_path = report / "summary.json"
+    if not summary_path.is_file():
+        raise DemocheckError(f"{report}: no summary.json here; give the folder democheck audit wrote")
+    summary = json.loads(summary_path.read_text())
+    ds = open_dataset(dataset, camera=summary.get("camera"))
+    if ds.format != "lerobot-v3.0":
+        raise DemocheckError(f"{ds.root}: a {ds.format} dataset; democheck clean writes LeRobot v3.0 datasets")
+    if summary.get("dataset_fingerprint") != dataset_fingerprint(ds):
+        raise DemocheckError(f"{report} was made on another dataset than {ds.root} (fingerprint "
+                             f"{summary.get('dataset_fingerprint')} vs {dataset_fingerprint(ds)}); audit this one first")
+    dropped = sorted(set(episodes_to_drop(report, drop)))
+    keep = [e for e in ds.episode_indices if e not in set(dropped)]
+    if not keep:
+        raise DemocheckError(f"--drop {drop} drops every episode of {ds.root}")
+    with atomic_output_dir(out, force=force) as tmp:
+        got = write_subset(ds.root, keep, tmp)
+    return {**got, "dropped_episodes": dropped, "out": str(out), "source": str(ds.root), "drop": drop}
 
 
 def read_labels(path: str | Path, ds) -> dict[int, str]:

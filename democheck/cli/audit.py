@@ -88,7 +88,7 @@ def print_audit(summary: dict, out: Path) -> None:
         if r.get("reason"):
             console.print(f"rank {r['rank']} (episode {r['episode_index']}): {r['reason']}", highlight=False)
     observed = flag.get("observed")
-    if observed:
+    if observed and observed["recall"]:
         console.print(f"with the labels: {observed['clean_flagged']} clean demos flagged "
                       f"({100 * observed['clean_share_flagged']:.1f}%); recall "
                       + ", ".join(f"{k} {v:.2f}" for k, v in observed["recall"].items()), highlight=False)
@@ -104,6 +104,26 @@ def print_audit(summary: dict, out: Path) -> None:
         console.print(f"no model: {summary['no_model']}", highlight=False)
     console.print(f"report: {out}/ (scores.parquet, scores.csv, summary.json, suspects.txt)")
     console.print(f"look at it: democheck view {out}")
+
+
+@app.command()
+def clean(
+    dataset: Annotated[Path, typer.Argument(help="The LeRobot v3.0 dataset that was audited.")],
+    report: Annotated[Path, typer.Option("--report", "-r", help="The audit's report folder (democheck audit --out).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the cleaned dataset (LeRobot v3.0).")],
+    drop: Annotated[str, typer.Option(help="What to drop: flagged (the report's flags), top:K (its K most suspect), or list:FILE (episode indices as [3, 17] or one per line).")] = "flagged",
+    force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
+) -> None:
+    """Write the dataset without the demos the audit flagged (or another choice): episodes re-indexed, meta/
+    consistent, videos copied so the kept episodes decode to the same frames; the input is not touched."""
+    with user_errors():
+        from democheck.workflows import clean_dataset
+
+        got = clean_dataset(dataset, report, out, drop=drop, force=force)
+    shown = ", ".join(map(str, got["dropped_episodes"][:12])) + (" ..." if len(got["dropped_episodes"]) > 12 else "")
+    console.print(f"{out}: {got['kept']} episodes kept ({got['frames']} frames), {got['dropped']} dropped"
+                  + (f" ({shown})" if shown else "") + f"; audit it again: democheck audit {out} --out <report>",
+                  highlight=False)
 
 
 @app.command()
