@@ -104,11 +104,15 @@ def test_the_readme_walkthrough_runs_as_written_on_a_foreign_dataset(tmp_path):
         res = subprocess.run([str(exe), *argv], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
         assert res.returncode == 0, (argv, res.stdout[-2000:], res.stderr[-2000:])
         ran.append(argv[0])
-    assert ran == ["info", "train", "audit", "view"]
+    assert ran == ["info", "audit", "train", "audit", "view", "clean"]
+    first = json.loads((tmp_path / "first-look" / "summary.json").read_text())
+    assert first["model"] is None and first["flagged"] >= 1  # the model-free look already sees the still arm
     summary = json.loads((tmp_path / "report" / "summary.json").read_text())
     assert summary["demos"] == len(open(root / "benchmarks/foreign/data/mw-tiny.labels.csv").readlines()) - 1
     assert summary["frames"]["model"] == [64, 64, 3] and (tmp_path / "report" / "suspects.txt").exists()
     assert not summary["warnings"]  # the model learnt every task of the data it audits
+    cleaned = json.loads((tmp_path / "mine-clean" / "meta" / "info.json").read_text())
+    assert cleaned["total_episodes"] == summary["demos"] - summary["flagged"]
 
 
 @pytest.mark.slow
