@@ -26,7 +26,7 @@ from democheck import __version__
 from democheck.audit.bench import bench, markdown as bench_markdown
 from democheck.audit.metrics import by_label
 from democheck.audit.run import audit, finish_summary, for_model, suspects, write_tables
-from democheck.audit.scores import DEFAULT_FPR, reference
+from democheck.audit.scores import DEFAULT_FPR, flags, reference
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache, dataset_fingerprint
 from democheck.data.subset import write_subset
@@ -201,12 +201,22 @@ def write_episode_list(path: str | Path, table: pd.DataFrame, flagged: bool) -> 
 
 
 def episodes_to_drop(report: Path, drop: str) -> list[int]:
-    """The episodes ``democheck clean --drop`` names: ``flagged`` (the report's flags), ``top:K`` (its K most
-    suspect) or ``list:FILE`` (episode indices as ``[3, 17]`` or one per line)."""
-    table = pd.read_parquet(report / "scores.parquet", columns=["episode_index", "rank", "is_anomaly"])
+    """The episodes ``democheck clean --drop`` names: ``flagged`` (the report's flags), ``fpr:X`` (those the
+    report would flag at --fpr X: a p_value at most X, or an exact copy), ``top:K`` (its K most suspect) or
+    ``list:FILE`` (episode indices as ``[3, 17]`` or one per line)."""
+    table = pd.read_parquet(report / "scores.parquet")
     if drop == "flagged":
         return table.loc[table["is_anomaly"], "episode_index"].astype(int).tolist()
     kind, _, arg = drop.partition(":")
+    if kind == "fpr":
+        try:
+            level = float(arg)
+        except ValueError:
+            level = -1.0
+        if not 0 < level < 1:
+            raise DemocheckError(f"--drop {drop}: the level must lie between 0 and 1")
+        copies = np.isinf(table["duplicate"].to_numpy(np.float64)) if "duplicate" in table else None
+        return table.loc[flags(table["p_value"].to_numpy(), level, copies), "episode_index"].astype(int).tolist()
     if kind == "top" and arg.isdigit():
         return table.sort_values("rank").head(int(arg))["episode_index"].astype(int).tolist()
     if kind == "list" and arg:
@@ -218,7 +228,7 @@ def episodes_to_drop(report: Path, drop: str) -> list[int]:
             return [int(e) for e in got]
         except (ValueError, TypeError):
             raise DemocheckError(f"{arg}: not a list of episode indices ([3, 17] or one per line)") from None
-    raise DemocheckError(f"--drop {drop!r}: one of flagged, top:K, list:FILE")
+    raise DemocheckError(f"--drop {drop!r}: one of flagged, fpr:X, top:K, list:FILE")
 
 
 def clean_dataset(dataset: str | Path, report: str | Path, out: str | Path, drop: str = "flagged",

@@ -79,6 +79,11 @@ def test_clean_other_choices_and_refusals(audited, tmp_path):
     assert res.exit_code == 2 and "another dataset" in res.output and not (tmp_path / "x").exists()
     res = runner.invoke(app, ["clean", str(root), "--report", str(report), "--out", str(tmp_path / "x"),
                               "--drop", "worst"])
-    assert res.exit_code == 2 and "one of flagged, top:K, list:FILE" in res.output
+    assert res.exit_code == 2 and "one of flagged, fpr:X, top:K, list:FILE" in res.output
+    # fpr:X flags what the audit would at --fpr X: more as X grows, the report's own flags at its level.
+    from democheck.workflows import episodes_to_drop
+
+    assert episodes_to_drop(report, "fpr:0.01") == episodes_to_drop(report, "flagged")
+    assert len(episodes_to_drop(report, "fpr:0.5")) >= len(episodes_to_drop(report, "fpr:0.01"))
     res = runner.invoke(app, ["clean", str(root), "--report", str(report), "--out", str(tmp_path / "t")])
     assert res.exit_code == 2 and "already exists" in res.output

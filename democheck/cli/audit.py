@@ -111,7 +111,7 @@ def clean(
     dataset: Annotated[Path, typer.Argument(help="The LeRobot v3.0 dataset that was audited.")],
     report: Annotated[Path, typer.Option("--report", "-r", help="The audit's report folder (democheck audit --out).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the cleaned dataset (LeRobot v3.0).")],
-    drop: Annotated[str, typer.Option(help="What to drop: flagged (the report's flags), top:K (its K most suspect), or list:FILE (episode indices as [3, 17] or one per line).")] = "flagged",
+    drop: Annotated[str, typer.Option(help="What to drop: flagged (the report's flags), fpr:X (what the audit would flag at --fpr X), top:K (its K most suspect), or list:FILE (episode indices as [3, 17] or one per line).")] = "flagged",
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:
     """Write the dataset without the demos the audit flagged (or another choice): episodes re-indexed, meta/
