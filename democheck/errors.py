@@ -7,7 +7,11 @@ the CLI prints it and exits with status 2, without a traceback.
 
 
 class DemocheckError(Exception):
-    """A problem with the user's input, reported as one line."""
+    """A problem with the user's input, reported as one line: a line break in it (a file name or a value from
+    the user's metadata can hold one) is shown as ``\\n``."""
+
+    def __str__(self) -> str:
+        return super().__str__().replace("\r", "\\r").replace("\n", "\\n")
 
 
 class DatasetError(DemocheckError):

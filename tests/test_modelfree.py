@@ -169,3 +169,22 @@ def test_audit_without_a_model_on_data_the_shipped_model_cannot_read(tmp_path):
         assert (out / "report.rrd").stat().st_size > 0
     res = runner.invoke(app, ["audit", str(data), "--out", str(tmp_path / "x"), "--no-model", "--no-actions"])
     assert res.exit_code == 2 and "nothing to score" in res.output
+
+
+def test_the_decoding_pass_in_two_worker_processes_gives_the_same_scores(tmp_path, monkeypatch):
+    """Shards decoded in spawned workers, merged before the checks finish: every score as in one process."""
+    from democheck.audit import run
+    from democheck.audit.run import audit
+    from democheck.data import open_dataset
+    from democheck.sim.suite import generate
+    from tests.conftest import TINY
+    from dataclasses import replace
+
+    root = tmp_path / "d"
+    generate(replace(TINY, seed=6, demos_per_task=6, steps=16, defects=(("idle", 1),)), root, workers=1)
+    ds = open_dataset(root)
+    monkeypatch.setattr(run, "SHARD", 4)  # 24 demos: six shards, three per worker
+    one, _ = audit(ds, None, workers=1)
+    two, _ = audit(ds, None, workers=2)
+    for col in one.columns:
+        assert one[col].equals(two[col]), col

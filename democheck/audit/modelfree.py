@@ -62,8 +62,9 @@ def change_scale(changes: list[np.ndarray]) -> np.ndarray:
 
 
 class PerDemo:
-    """A consumer that keeps lists with one entry per demo (``fields``); ``merged`` puts several datasets' lists
-    one after another (a bench pools datasets)."""
+    """A consumer that keeps lists with one entry per demo (``fields``); ``merged`` puts several consumers'
+    lists one after another -- the shards of one dataset decoded in parallel, or the datasets a bench pools --
+    and ``finish`` (here: the consumer itself) then sees them as if one consumer had been fed them all."""
 
     fields: tuple[str, ...] = ()
 

@@ -16,7 +16,7 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
-from democheck.audit import scorers as registry
+from democheck.audit import modelfree, scorers as registry
 from democheck.audit.scorers import Evidence, Scorer
 from democheck.audit.scores import DEFAULT_FPR, flags, ocsvm_margin, rank_order
 from democheck.data.cache import dataset_fingerprint
@@ -71,13 +71,15 @@ def decoding_pass(ds: DemoSet, consumers: list, on_progress: Callable[[int, int]
 
 def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[Scorer], device: Any,
                     tecnet: Checkpoint | None = None, episodes: pd.DataFrame | None = None, seed: int = 0,
-                    on_progress: Progress | None = None, timings: dict[str, float] | None = None) -> Evidence:
+                    on_progress: Progress | None = None, timings: dict[str, float] | None = None,
+                    workers: int = 1) -> Evidence:
     """Score the demos of ``sets``, pooled in order, with ``scorers``: the cue pass (PETNet, when ``ckpt`` is
     given, and TecNets when given), one decoding pass per dataset for the scorers that need every frame, then
     each scorer.
 
     ``episodes``: the pooled demos' table (default: the datasets' episode tables one after the other).
-    ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).
+    ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).  ``workers`` > 1 decodes in that
+    many spawned processes (``parallel_decoding``), with the same results.
     """
     t = timings if timings is not None else {}
 
@@ -107,15 +109,88 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
         start = 0
         for ds in sets:
             rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
-            consumers = {key: s.decode(ev, rows, device) for key, s in decoding.items()}
-            decoding_pass(ds, list(consumers.values()), stage("decoding" if ckpt is None else "actions", ds))
-            for key, consumer in consumers.items():
-                parts[key].append(consumer.finish())
+            progress = stage("decoding" if ckpt is None else "actions", ds)
+            if workers > 1 and len(ds) >= PARALLEL_MIN_SHARDS * SHARD * workers:
+                for key, got in parallel_decoding(ds, ev, rows, decoding, device, workers, progress).items():
+                    parts[key].append(got)
+            else:
+                consumers = {key: s.decode(ev, rows, device) for key, s in decoding.items()}
+                decoding_pass(ds, list(consumers.values()), progress)
+                for key, consumer in consumers.items():
+                    parts[key].append(consumer.finish())
             start += len(ds)
         for key, got in parts.items():
             ev.behaviour[key] = _concat(got)
         t["actions_s"] = time.perf_counter() - t1
     return registry.compute(ev, scorers)
+
+
+# Demos per shard of a parallel decoding pass: a multiple of the action error's batch, so that every batch the
+# controller sees holds the same demos as in one process (and the numbers are the same).
+SHARD = 4 * registry.ACTION_BATCH
+# Below this many shards per worker, starting the workers (each imports torch and loads the model, ~2 s) costs
+# more than it saves: on push-v1, 168 demos took 2.1 s in one process and 3.4 s in two, 768 demos 10.1 s and
+# 7.5 s, 6,048 demos 78.6 s and 47.8 s (identical scores each time; benchmarks/parallel_audit.py).
+PARALLEL_MIN_SHARDS = 2
+
+
+def parallel_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str, Scorer], device: Any, workers: int,
+                      on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """The decoding pass of ``ds`` (its rows ``rows`` of the evidence) in ``workers`` spawned processes: each
+    decodes shards of ``SHARD`` consecutive demos with its own copy of the model; what a consumer keeps per demo
+    (``modelfree.PerDemo``) is merged before it finishes, what it finishes per demo is pooled after."""
+    from democheck import pool
+
+    eps = ds.episode_indices
+    z = ev.task_variables()[rows] if ev.posterior is not None else None
+    jobs = [(i, {"root": str(ds.root), "camera": ds.camera, "image_size": ds.image_size,
+                 "tasks": ds.episodes.loc[eps[s:s + SHARD], "task"].tolist(), "names": [x.name for x in decoding.values()],
+                 "z": None if z is None else z[s:s + SHARD]}, eps[s:s + SHARD])
+            for i, s in enumerate(range(0, len(eps), SHARD))]
+    model = str(ev.model.path) if ev.model is not None else None
+    got = pool.run_shards(jobs, _decode_shard, _decode_init, (model, str(device)), workers, len(eps), on_progress)
+    got = sorted(got, key=lambda r: r["shard"])
+    out = {}
+    for key, s in decoding.items():
+        parts = [r["parts"][key] for r in got]
+        out[key] = (type(parts[0]).merged(parts).finish() if isinstance(parts[0], modelfree.PerDemo)
+                    else _concat([p[1] for p in parts]))
+    return out
+
+
+def _decode_init(model: str | None, device: str) -> None:
+    import torch
+
+    from democheck import pool
+    from democheck.petnet.checkpoint import load_checkpoint
+
+    torch.set_num_threads(1)  # one core per worker process
+    pool.state.update(ckpt=load_checkpoint(model, device=device) if model else None, device=device, sets={})
+
+
+def _decode_shard(job: tuple) -> list[dict[str, Any]]:
+    from democheck import pool
+    from democheck.data import open_dataset
+
+    index, spec, eps = job
+    key = (spec["root"], spec["camera"], spec["image_size"])
+    sets = pool.state["sets"]
+    if key not in sets:
+        sets[key] = open_dataset(spec["root"], camera=spec["camera"]).resized(spec["image_size"])
+    ds = sets[key]
+    ev = Evidence(episodes=pd.DataFrame({"episode_index": eps, "task": spec["tasks"]}), model=pool.state["ckpt"])
+    ev._z = spec["z"]
+    consumers = {}
+    for name in spec["names"]:
+        s = registry.SCORERS[name]
+        consumers.setdefault(s.source, s.decode(ev, slice(0, len(eps)), pool.state["device"]))
+    for e in eps:
+        demo = ds[e]
+        for c in consumers.values():
+            c.add(demo)
+        pool.tick()
+    parts = {k: c if isinstance(c, modelfree.PerDemo) else ("done", c.finish()) for k, c in consumers.items()}
+    return [{"shard": index, "parts": parts}]
 
 
 def _concat(parts: list) -> Any:
@@ -182,7 +257,7 @@ def write_tables(folder: Path, table: pd.DataFrame, suspects: list[int]) -> None
 
 def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cpu", actions: bool = True,
           fpr: float = DEFAULT_FPR, on_progress: Progress | None = None, timings: dict[str, float] | None = None,
-          why_no_model: str | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
+          why_no_model: str | None = None, workers: int = 1) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Score every demo of ``ds`` with ``ckpt`` -- or, with ``ckpt`` None, with the model-free checks alone --
     and flag those whose combined tail probability is at most ``fpr``: the ScoreTable (with the old column
     ``score`` kept for one release) and the summary.  ``actions`` adds the scores that decode every demo (the
@@ -196,7 +271,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         raise DemocheckError("without a model every score decodes the demos: --no-actions leaves nothing to score")
     t = dict(timings or {})
     chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
-    ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t)
+    ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers)
     table = score_table(ev, fpr)
     for old, new in registry.RENAMED.items():
         if new in table:

@@ -45,6 +45,7 @@ NEEDS = {
     "many": "more than one demo",
 }
 ACTION_STEPS = 25  # timesteps per demo at which the controller's actions are compared with the demo's
+ACTION_BATCH = 32  # demos per controller batch in the action error's pass
 
 
 @dataclass
@@ -176,7 +177,8 @@ class ActionErrors:
     controller's under its task variable ``z``, at ``steps`` evenly spaced timesteps (all of them when the demo
     is shorter), and the timestep where they differ most."""
 
-    def __init__(self, ckpt: Checkpoint, z: np.ndarray, device: Any, steps: int = ACTION_STEPS, batch: int = 32):
+    def __init__(self, ckpt: Checkpoint, z: np.ndarray, device: Any, steps: int = ACTION_STEPS,
+                 batch: int = ACTION_BATCH):
         self.ckpt, self.z, self.device, self.steps, self.batch = ckpt, z, device, steps, batch
         self.out = np.full(len(z), np.nan)
         self.worst: list[str] = [""] * len(z)
@@ -245,13 +247,13 @@ def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors
     return ActionErrors(ev.model, ev.task_variables()[rows], device)
 
 
-class MotionStats:
+class MotionStats(modelfree.PerDemo):
     """Consumer of decoded demos: how much each demo's actions move, model-free -- per action dimension the mean
     |action| and the mean |change of action| between steps."""
 
-    def __init__(self) -> None:
-        self.level: list[np.ndarray] = []
-        self.change: list[np.ndarray] = []
+    fields = ("level", "change")
+    level: list[np.ndarray]
+    change: list[np.ndarray]
 
     def add(self, demo: Demo) -> None:
         a = np.asarray(demo.actions, np.float64)
@@ -292,12 +294,12 @@ def _motion(ev: Evidence) -> Scores:
     return z.max(axis=1), reasons
 
 
-class ViewStats:
+class ViewStats(modelfree.PerDemo):
     """Consumer of decoded demos: the share of the camera's view that is featureless -- pixels whose 3x3
     neighbourhood spans fewer than ``FLAT_LEVELS`` grey levels -- over every ``VIEW_EVERY``-th frame."""
 
-    def __init__(self) -> None:
-        self.flat: list[float] = []
+    fields = ("flat",)
+    flat: list[float]
 
     def add(self, demo: Demo) -> None:
         kernel = np.ones((3, 3), np.uint8)
@@ -406,11 +408,11 @@ def _tecnet_knn(ev: Evidence) -> Scores:
     return knn_same_task(ev.embedding, ev.tasks), None
 
 
-class MotionFeatures:
+class MotionFeatures(modelfree.PerDemo):
     """Consumer of decoded demos: the linter heuristics' features (``baselines.summarise_motion``)."""
 
-    def __init__(self) -> None:
-        self.parts: list[tuple[np.ndarray, float, float]] = []
+    fields = ("parts",)
+    parts: list[tuple[np.ndarray, float, float]]
 
     def add(self, demo: Demo) -> None:
         self.parts.append(motion_features(demo.state, demo.actions))

@@ -36,6 +36,7 @@ def audit(
     no_model: Annotated[bool, typer.Option("--no-model", help="Use the model-free checks alone (idle, motion, jerk, frozen video, duplicates, saturation, view): works on any robot before any model is trained. Automatic, with a warning, when the shipped model cannot read the data.")] = False,
     keep_list: Annotated[Optional[Path], typer.Option(help="Also write the unflagged episode indices to this file as [0, 2, 5] (what a dataset-editing tool takes).")] = None,
     drop_list: Annotated[Optional[Path], typer.Option(help="Also write the flagged episode indices to this file as [0, 2, 5], e.g. for lerobot-edit-dataset --operation.type delete_episodes --operation.episode_indices \"$(cat FILE)\".")] = None,
+    workers: Annotated[Optional[int], typer.Option(help="Processes for the pass that decodes every demo (default: the machine's cores; small datasets stay in one). The scores are the same for any number.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:
     """Score every demonstration -- task uncertainty, consistency, action error and model-free checks -- combine
@@ -51,7 +52,7 @@ def audit(
             summary = audit_dataset(dataset, out, model=model, top=top, camera=camera, task=task, device=device,
                                     force=force, on_progress=lambda stage, d, n: bar.update(d, n, stage),
                                     actions=actions, fpr=fpr, no_model=no_model, keep_list=keep_list,
-                                    drop_list=drop_list)
+                                    drop_list=drop_list, workers=workers or os.cpu_count() or 1)
     if json_out:
         console.print_json(json.dumps(summary))
     else:
