@@ -37,11 +37,11 @@ Every score is one number per demo, higher = more suspect:
   model on new tasks) needs a larger value to count as much as one whose clean demos agree (how still the
   arm is), instead of the largest robust z winning whatever its score's usual spread.  Chosen on the
   development sets (push-v1-dev + probes with the shipped model, Meta-World mw-dev with a your-data model;
-  ``benchmarks/suspicion_choices.py``): mean AUROC over their kinds 0.962 and 0.972 with the largest robust z,
-  0.971 and 0.976 with these tail probabilities; the 50th-75th and 50th-90th percentiles gave 0.970/0.975
-  and 0.963/0.977.  Combining by rank among the audited demos instead (an empirical p-value) helps a set
-  with many bad demos (push-v1-dev 0.975) and hurts one with few (mw-dev 0.919), where ranks cannot tell how
-  far beyond every clean demo a bad one lies; Fisher's sum and the Cauchy combination did worse on both.
+  ``benchmarks/suspicion_choices.py``): mean AUROC over their kinds 0.962 and 0.957 with the largest robust z,
+  0.971 and 0.965 with these tail probabilities; the 25th-50th, 50th-75th and 50th-90th percentiles gave
+  0.975/0.961, 0.970/0.966 and 0.963/0.975 (no better on both).  Combining by rank among the audited demos
+  instead (empirical p-values: their minimum, or Fisher's sum) gave 0.966/0.953 and 0.956/0.948: ranks cannot
+  tell how far beyond every clean demo a bad one lies.
 - ``is_anomaly``: ``p_value`` at most the false-positive rate asked for (``audit --fpr``, default
   ``DEFAULT_FPR``): if the audited demos were all clean, about that share of them would be flagged.  On the
   development sets at 1%: 0.8% of push-v1-dev's clean demos flagged (without probes, 20% bad) and 2.0% of
