@@ -263,7 +263,13 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     from tests.test_audit import _read_rrd
 
     ents = _read_rrd(out / "bench.rrd")
-    assert {"/bench", "/figure_5a/mean", "/figure_5a/std", "/figure_5b/mean_sigma"} <= set(ents)
+    # One named bar per kind (the legend says which), at its own place, as high as the kind's mean sigma.
+    assert {"/bench", "/figure_5b/mean_sigma"} <= set(ents)
+    for i, kind in enumerate(doc["figure_5a"]):
+        bar = ents[f"/figure_5a/mean/{kind}"][0]
+        assert bar.column("BarChart:abscissa").to_pylist()[0][0]["buffer"] == [float(i)]
+        assert np.isclose(bar.column("BarChart:values").to_pylist()[0][0]["buffer"][0], doc["figure_5a"][kind]["mean"])
+        assert f"/figure_5a/std/{kind}" in ents
 
 
 def test_heuristic_scorer_catches_an_idle_demo():

@@ -254,7 +254,8 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
 
 
 def write_bench_rrd(path: Path, summary: dict, text: str) -> None:
-    """The bench's figures: 5A (sigma per kind) as bar charts, 5B (sigma vs number of cues) as a curve.
+    """The bench's figures: 5A (sigma per kind) as bar charts, one named bar per kind so the legend says which,
+    5B (sigma vs number of cues) as a curve on the ``cues`` timeline.
 
     ``text`` is bench.md, shown beside them.
     """
@@ -264,17 +265,24 @@ def write_bench_rrd(path: Path, summary: dict, text: str) -> None:
     kinds = list(fig_a)
     text += "\nFigure 5A bars, left to right: " + ", ".join(kinds) + "\n"
     rec.log("bench", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
-    rec.log("figure_5a/mean", rr.BarChart([fig_a[k]["mean"] for k in kinds]), static=True)
-    rec.log("figure_5a/std", rr.BarChart([fig_a[k]["std"] for k in kinds]), static=True)
+    colours = _ramp(np.arange(len(kinds), dtype=np.float64))
+    for i, kind in enumerate(kinds):
+        colour = [150, 150, 150] if kind == "clean" else colours[i].tolist()
+        for stat in ("mean", "std"):
+            rec.log(f"figure_5a/{stat}/{kind}", rr.BarChart([fig_a[kind][stat]], abscissa=[float(i)], widths=[0.8],
+                                                            color=colour), static=True)
     curve = summary["figure_5b"]
     if curve:
+        rec.log("figure_5b/mean_sigma", rr.SeriesLines(names="mean sigma of the product of N clean cues"),
+                static=True)
         rec.send_columns("figure_5b/mean_sigma", indexes=[rr.TimeColumn("cues", sequence=[c["cues"] for c in curve])],
                          columns=rr.Scalars.columns(scalars=[c["mean_sigma"] for c in curve]))
     rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(
         rrb.TextDocumentView(origin="bench", name="AUROC"),
-        rrb.Vertical(rrb.BarChartView(origin="figure_5a/mean", name="Figure 5A: mean sigma per kind"),
+        rrb.Vertical(rrb.BarChartView(origin="figure_5a/mean", name="Figure 5A: mean sigma per kind (legend: kind)"),
                      rrb.BarChartView(origin="figure_5a/std", name="Figure 5A: spread (std) per kind")),
-        rrb.TimeSeriesView(origin="figure_5b", name="Figure 5B: sigma vs number of cues")), collapse_panels=True))
+        rrb.TimeSeriesView(origin="figure_5b", name="Figure 5B: sigma vs number of cues"), column_shares=[2, 2, 1]),
+        rrb.TimePanel(timeline="cues", state="collapsed"), collapse_panels=True))
     rec.flush()
 
 
