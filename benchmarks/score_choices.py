@@ -1,13 +1,13 @@
-"""The measurements behind two choices in ``democheck.audit.scores``, on a bench's scores.parquet.
+"""The measurement behind ``CONSISTENCY_K`` in ``democheck.audit.scores``, on a bench's scores.parquet (the
+ranking's combination and its flag levels: ``benchmarks/suspicion_choices.py``).
 
     democheck synth push-v1-test --seed 2 --out data/push-v1-dev       # a development set, not the test bench
     democheck probe data/push-v1-dev --out data/push-v1-dev-probes --seed 2
     democheck bench data/push-v1-dev data/push-v1-dev-probes --out runs/bench-dev
     python benchmarks/score_choices.py runs/bench-dev/scores.parquet
 
-1. ``CONSISTENCY_K``: AUROC of consistency against the k nearest other demos of the task, per kind, for
-   several k (and all others).
-2. ``SUSPICION_FLAG``: the share of clean and of each bad kind above several suspicion thresholds.
+It prints the AUROC of consistency against the k nearest other demos of the task, per kind, for several k
+(and all others).  The bench must have been written with a model (its table holds ``mu`` and ``sigma``).
 """
 
 from __future__ import annotations
@@ -39,11 +39,6 @@ def main() -> None:
             sel = (labels == kind) | (labels == "clean")
             au.append(roc_auc_score(labels[sel] == kind, np.nan_to_num(score[sel])))
         print(f"  k={k or 'all':>3}: " + " ".join(f"{a:.2f}" for a in au) + f" | {np.mean(au):.3f}")
-    print("share above a suspicion threshold: clean", " ".join(kinds))
-    s = t["suspicion"].to_numpy()
-    for th in (4, 6, 8, 10):
-        print(f"  {th:>2}: {np.mean(s[labels == 'clean'] > th):.3f} "
-              + " ".join(f"{np.mean(s[labels == k] > th):.2f}" for k in kinds))
 
 
 if __name__ == "__main__":
