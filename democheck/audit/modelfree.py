@@ -8,6 +8,10 @@ Every scale is the audited demos' own: a step's change of action is measured per
 that dimension's median change over all the demos (a dimension that hardly moves in a typical demo, a gripper
 held shut, counts in units of 1% of the busiest dimension's, so it cannot make a tiny twitch look huge).
 
+- ``motion``: how unusually much or little the actions move for the task -- per dimension the mean |action|
+  and the mean |change of action| in units of the demos' median, on a log scale, the larger robust |z|.
+- ``view``: how much more of the camera's view is featureless than is usual for the task (a covered or
+  blocked camera).
 - ``idle``: the share of a demo's steps at which its actions hardly change (every dimension's change under
   ``STILL`` of its median change, on average over the dimensions): an arm that never moves, or stops half-way.
   Scripted and teleoperated demos often rest after the task is done; that rest is what the task's other demos
@@ -30,6 +34,7 @@ import hashlib
 import cv2
 import numpy as np
 
+from democheck.audit.scores import calibrated
 from democheck.data.demo import Demo
 
 STILL = 0.05  # a step is still when its change of action is under 5% of the median change
@@ -217,3 +222,84 @@ def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
         reasons.append(f"the frame repeats while the arm moves at {100 * out[i]:.0f}% of steps; longest "
                        + _steps_text(start, start + length, n + 1) if length else "frames change while the arm moves")
     return out, reasons
+
+
+class MotionStats(PerDemo):
+    """Consumer of decoded demos: how much each demo's actions move, model-free -- per action dimension the mean
+    |action| and the mean |change of action| between steps."""
+
+    fields = ("level", "change")
+    level: list[np.ndarray]
+    change: list[np.ndarray]
+
+    def add(self, demo: Demo) -> None:
+        a = np.asarray(demo.actions, np.float64)
+        self.level.append(np.abs(a).mean(0))
+        self.change.append(np.abs(np.diff(a, axis=0)).mean(0) if len(a) > 1 else np.zeros(a.shape[1]))
+
+    def finish(self) -> np.ndarray:
+        """[N, 2]: mean |action| and mean |change|, each dimension in units of its median over these demos --
+        or of 1% of the busiest dimension's, for a dimension that hardly moves in a typical demo (a gripper
+        held shut), so that it cannot make a small motion look a million times too large."""
+        out = []
+        for rows in (np.stack(self.level), np.stack(self.change)):
+            median = np.median(rows, axis=0)
+            scale = np.maximum(median, max(0.01 * float(median.max()), 1e-9))
+            out.append((rows / scale).mean(1))
+        return np.column_stack(out)
+
+
+# On a log scale: an arm that never moves is as many times too still as a flailing one is too busy, and a
+# long, busy expert demo is not mistaken for either (at 0.001 of the median, "still" stops counting).  A robust
+# standard deviation stands for at least 10% more or less motion: scripted demos repeat their motion almost
+# exactly, and their MAD alone would make 7% less motion a flag.
+MOTION_FLOOR = 1e-3
+MOTION_MIN_SCALE = 0.1  # in log units
+
+
+MOTION_FEATURES = ("mean |action|", "mean |change of action|")
+
+
+def motion(features: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """The larger robust |z| within its task of a demo's two ``MotionStats`` features on a log scale, and which."""
+    logs = np.log(np.maximum(features, MOTION_FLOOR))
+    z = np.column_stack([np.abs(calibrated(logs[:, i], tasks, min_scale=MOTION_MIN_SCALE))
+                         for i in range(logs.shape[1])])
+    pick = np.argmax(z, axis=1)
+    reasons = [f"{MOTION_FEATURES[j]} {features[i, j]:.2g} x its median"
+               + (" (the arm hardly moves)" if features[i, j] < 1 else "") for i, j in enumerate(pick)]
+    return z.max(axis=1), reasons
+
+
+class ViewStats(PerDemo):
+    """Consumer of decoded demos: the share of the camera's view that is featureless -- pixels whose 3x3
+    neighbourhood spans fewer than ``FLAT_LEVELS`` grey levels -- over every ``VIEW_EVERY``-th frame."""
+
+    fields = ("flat",)
+    flat: list[float]
+
+    def add(self, demo: Demo) -> None:
+        kernel = np.ones((3, 3), np.uint8)
+        shares = []
+        for frame in demo.frames[::VIEW_EVERY]:
+            grey = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
+            spread = cv2.dilate(grey, kernel).astype(np.int16) - cv2.erode(grey, kernel)
+            shares.append(float((spread < FLAT_LEVELS).mean()))
+        self.flat.append(float(np.mean(shares)) if shares else 0.0)
+
+    def finish(self) -> np.ndarray:
+        return np.asarray(self.flat)
+
+
+FLAT_LEVELS = 3
+VIEW_EVERY = 10
+# A robust standard deviation stands for at least 0.25 on the logit scale (40% -> 46% featureless): a fixed
+# camera on a static scene sees the same share in every demo, and its MAD alone would flag a shadow.
+VIEW_MIN_SCALE = 0.25
+
+
+def view(flat_share: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Robust z within its task of the featureless share of a demo's view (``ViewStats``), on the logit scale."""
+    flat = np.clip(flat_share, 1e-3, 1 - 1e-3)
+    z = calibrated(np.log(flat / (1 - flat)), tasks, min_scale=VIEW_MIN_SCALE)  # logit scale; one-sided
+    return z, [f"{100 * f:.0f}% of the view featureless" for f in flat]

@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
-import cv2
 import numpy as np
 import pandas as pd
 import torch
@@ -247,86 +246,6 @@ def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors
     return ActionErrors(ev.model, ev.task_variables()[rows], device)
 
 
-class MotionStats(modelfree.PerDemo):
-    """Consumer of decoded demos: how much each demo's actions move, model-free -- per action dimension the mean
-    |action| and the mean |change of action| between steps."""
-
-    fields = ("level", "change")
-    level: list[np.ndarray]
-    change: list[np.ndarray]
-
-    def add(self, demo: Demo) -> None:
-        a = np.asarray(demo.actions, np.float64)
-        self.level.append(np.abs(a).mean(0))
-        self.change.append(np.abs(np.diff(a, axis=0)).mean(0) if len(a) > 1 else np.zeros(a.shape[1]))
-
-    def finish(self) -> np.ndarray:
-        """[N, 2]: mean |action| and mean |change|, each dimension in units of its median over these demos --
-        or of 1% of the busiest dimension's, for a dimension that hardly moves in a typical demo (a gripper
-        held shut), so that it cannot make a small motion look a million times too large."""
-        out = []
-        for rows in (np.stack(self.level), np.stack(self.change)):
-            median = np.median(rows, axis=0)
-            scale = np.maximum(median, max(0.01 * float(median.max()), 1e-9))
-            out.append((rows / scale).mean(1))
-        return np.column_stack(out)
-
-
-# On a log scale: an arm that never moves is as many times too still as a flailing one is too busy, and a
-# long, busy expert demo is not mistaken for either (at 0.001 of the median, "still" stops counting).  A robust
-# standard deviation stands for at least 10% more or less motion: scripted demos repeat their motion almost
-# exactly, and their MAD alone would make 7% less motion a flag.
-MOTION_FLOOR = 1e-3
-MOTION_MIN_SCALE = 0.1  # in log units
-
-
-MOTION_FEATURES = ("mean |action|", "mean |change of action|")
-
-
-def _motion(ev: Evidence) -> Scores:
-    features = ev.behaviour["motion"]
-    logs = np.log(np.maximum(features, MOTION_FLOOR))
-    z = np.column_stack([np.abs(calibrated(logs[:, i], ev.tasks, min_scale=MOTION_MIN_SCALE))
-                         for i in range(logs.shape[1])])
-    pick = np.argmax(z, axis=1)
-    reasons = [f"{MOTION_FEATURES[j]} {features[i, j]:.2g} x its median"
-               + (" (the arm hardly moves)" if features[i, j] < 1 else "") for i, j in enumerate(pick)]
-    return z.max(axis=1), reasons
-
-
-class ViewStats(modelfree.PerDemo):
-    """Consumer of decoded demos: the share of the camera's view that is featureless -- pixels whose 3x3
-    neighbourhood spans fewer than ``FLAT_LEVELS`` grey levels -- over every ``VIEW_EVERY``-th frame."""
-
-    fields = ("flat",)
-    flat: list[float]
-
-    def add(self, demo: Demo) -> None:
-        kernel = np.ones((3, 3), np.uint8)
-        shares = []
-        for frame in demo.frames[::VIEW_EVERY]:
-            grey = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
-            spread = cv2.dilate(grey, kernel).astype(np.int16) - cv2.erode(grey, kernel)
-            shares.append(float((spread < FLAT_LEVELS).mean()))
-        self.flat.append(float(np.mean(shares)) if shares else 0.0)
-
-    def finish(self) -> np.ndarray:
-        return np.asarray(self.flat)
-
-
-FLAT_LEVELS = 3
-VIEW_EVERY = 10
-# A robust standard deviation stands for at least 0.25 on the logit scale (40% -> 46% featureless): a fixed
-# camera on a static scene sees the same share in every demo, and its MAD alone would flag a shadow.
-VIEW_MIN_SCALE = 0.25
-
-
-def _view(ev: Evidence) -> Scores:
-    flat = np.clip(ev.behaviour["view"], 1e-3, 1 - 1e-3)
-    z = calibrated(np.log(flat / (1 - flat)), ev.tasks, min_scale=VIEW_MIN_SCALE)  # logit scale; one-sided
-    return z, [f"{100 * f:.0f}% of the view featureless" for f in flat]
-
-
 def ranking_z(ev: Evidence, names: list[str]) -> np.ndarray:
     """[N, K]: the ranking's scores ``names`` in robust standard deviations within their task (a score on a log
     scale first where its scorer says so; one that is a robust z already as it is)."""
@@ -373,6 +292,14 @@ def _suspicion(ev: Evidence) -> Scores:
 
 def _model_free(ev: Evidence) -> Scores:
     return _combination(ev, model_free=True)
+
+
+def _motion(ev: Evidence) -> Scores:
+    return modelfree.motion(ev.behaviour["motion"], ev.tasks)
+
+
+def _view(ev: Evidence) -> Scores:
+    return modelfree.view(ev.behaviour["view"], ev.tasks)
 
 
 def _idle(ev: Evidence) -> Scores:
@@ -455,7 +382,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            _action_error, in_suspicion=True, log_in_ranking=True, decode=_decode_action_error, short="act."),
     Scorer("motion", "model-free: how unusually much or little the demo's actions move (mean |action| and mean "
            "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True,
-           in_robust_sd=True, decode=lambda ev, rows, device: MotionStats(), short="mot."),
+           in_robust_sd=True, decode=lambda ev, rows, device: modelfree.MotionStats(), short="mot."),
     Scorer("idle", "model-free: share of steps at which the actions hardly change (under "
            f"{modelfree.STILL:g} x each dimension's median change), and the longest still stretch", ("demos",),
            _idle, in_suspicion=True, ranking_min_scale=modelfree.IDLE_MIN_SCALE, behaviour="actions",
@@ -472,7 +399,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            decode=lambda ev, rows, device: modelfree.FrameChanges(), short="frozen"),
     Scorer("view", "model-free: how much more of the camera's view is featureless than is usual for the task (a "
            "covered or blocked camera), robust z within its task", ("demos",), _view, in_robust_sd=True,
-           decode=lambda ev, rows, device: ViewStats(), short="view"),
+           decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty, "
            "consistency, action error (log), motion and idle, each in robust standard deviations within its "
            "task (2 = as unusual as 1 clean demo in 100)", ("scores",), _suspicion, short="susp."),
