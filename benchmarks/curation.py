@@ -40,7 +40,7 @@ from privileged_bc import COLUMNS, load_frames, rollouts, train_policy  # noqa: 
 
 from democheck.audit.run import gather_evidence, score_table  # noqa: E402
 from democheck.audit.scorers import select  # noqa: E402
-from democheck.audit.scores import flags  # noqa: E402
+from democheck.audit.scores import exact_copies, flags  # noqa: E402
 from democheck.data import open_dataset  # noqa: E402
 from democheck.data.subset import write_subset  # noqa: E402
 from democheck.evaluate.meta_test import wilson  # noqa: E402
@@ -93,7 +93,7 @@ def main() -> None:
         pool = pd.concat(frames.values(), ignore_index=True)
     audit_s = time.perf_counter() - t0
     labels = table["label"].to_numpy()
-    copies = np.isinf(table["duplicate"].to_numpy(np.float64))
+    copies = exact_copies(table)
     flagged_at = {f: flags(table["p_value"].to_numpy(), f, copies) for f in fprs}
     flagged = flagged_at[fprs[0]]
     linter_drop = table["heuristic"].to_numpy() > LINTER_Z
@@ -105,8 +105,8 @@ def main() -> None:
              "(iii) ground-truth clean": labels == "clean", f"(iv) linter (robust |z| <= {LINTER_Z:g})": ~linter_drop,
              f"(v) random removal of {n_drop}": ~random_drop}
 
-    tasks_all = sorted(set(zip(*[[json.loads(s)["target"] for s in _sims(args.suite)],
-                                 [json.loads(s)["distractor"] for s in _sims(args.suite)]])))
+    sims = [json.loads(s) for s in pd.read_parquet(args.suite / "meta/democheck/episodes.parquet")["sim"].dropna()]
+    tasks_all = sorted({(sim["target"], sim["distractor"]) for sim in sims})
     picks = rng.integers(0, len(tasks_all), args.rollouts)
     tasks = [tasks_all[int(k)] for k in picks]
     results = {}
@@ -144,11 +144,6 @@ def main() -> None:
               f"[{r['ci95'][0]:.1%}, {r['ci95'][1]:.1%}] |")
     print("\nshare of the gap between (i) and (iii) democheck's cleaning recovers: "
           + ", ".join(f"fpr {f:g} {r:.0%}" for f, r in recovered.items()))
-
-
-def _sims(suite: Path) -> list[str]:
-    side = pd.read_parquet(suite / "meta/democheck/episodes.parquet")
-    return side["sim"].dropna().tolist()
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ from democheck import __version__
 from democheck.audit.bench import bench, markdown as bench_markdown
 from democheck.audit.metrics import by_label
 from democheck.audit.run import audit, finish_summary, for_model, suspects, write_tables
-from democheck.audit.scores import DEFAULT_FPR, flags, reference
+from democheck.audit.scores import DEFAULT_FPR, exact_copies, flags, reference
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache, dataset_fingerprint
 from democheck.data.subset import write_subset
@@ -215,8 +215,8 @@ def episodes_to_drop(report: Path, drop: str) -> list[int]:
             level = -1.0
         if not 0 < level < 1:
             raise DemocheckError(f"--drop {drop}: the level must lie between 0 and 1")
-        copies = np.isinf(table["duplicate"].to_numpy(np.float64)) if "duplicate" in table else None
-        return table.loc[flags(table["p_value"].to_numpy(), level, copies), "episode_index"].astype(int).tolist()
+        return table.loc[flags(table["p_value"].to_numpy(), level, exact_copies(table)),
+                         "episode_index"].astype(int).tolist()
     if kind == "top" and arg.isdigit():
         return table.sort_values("rank").head(int(arg))["episode_index"].astype(int).tolist()
     if kind == "list" and arg:

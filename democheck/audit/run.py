@@ -18,7 +18,7 @@ import pandas as pd
 
 from democheck.audit import modelfree, scorers as registry
 from democheck.audit.scorers import Evidence, Scorer
-from democheck.audit.scores import DEFAULT_FPR, flags, ocsvm_margin, rank_order
+from democheck.audit.scores import DEFAULT_FPR, exact_copies, flags, ocsvm_margin, rank_order
 from democheck.data.cache import dataset_fingerprint
 from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
@@ -114,7 +114,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
                 for key, got in parallel_decoding(ds, ev, rows, decoding, device, workers, progress).items():
                     parts[key].append(got)
             else:
-                consumers = {key: s.decode(ev, rows, device) for key, s in decoding.items()}
+                consumers = _consumers(decoding.values(), ev, rows, device)
                 decoding_pass(ds, list(consumers.values()), progress)
                 for key, consumer in consumers.items():
                     parts[key].append(consumer.finish())
@@ -158,6 +158,15 @@ def parallel_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str
     return out
 
 
+def _consumers(scorers, ev: Evidence, rows: slice, device: Any) -> dict[str, Any]:
+    """One consumer per behaviour key of ``scorers`` (scorers that share a key share it), for ``rows``."""
+    out: dict[str, Any] = {}
+    for s in scorers:
+        if s.source not in out:
+            out[s.source] = s.decode(ev, rows, device)
+    return out
+
+
 def _decode_init(model: str | None, device: str) -> None:
     import torch
 
@@ -180,10 +189,7 @@ def _decode_shard(job: tuple) -> list[dict[str, Any]]:
     ds = sets[key]
     ev = Evidence(episodes=pd.DataFrame({"episode_index": eps, "task": spec["tasks"]}), model=pool.state["ckpt"])
     ev._z = spec["z"]
-    consumers = {}
-    for name in spec["names"]:
-        s = registry.SCORERS[name]
-        consumers.setdefault(s.source, s.decode(ev, slice(0, len(eps)), pool.state["device"]))
+    consumers = _consumers([registry.SCORERS[n] for n in spec["names"]], ev, slice(0, len(eps)), pool.state["device"])
     for e in eps:
         demo = ds[e]
         for c in consumers.values():
@@ -195,7 +201,7 @@ def _decode_shard(job: tuple) -> list[dict[str, Any]]:
 
 def _concat(parts: list) -> Any:
     """Per-dataset results of one consumer, pooled: arrays, (values, reasons) pairs, or consumers that merge."""
-    if hasattr(parts[0], "merged"):
+    if isinstance(parts[0], modelfree.PerDemo):
         return type(parts[0]).merged(parts)
     if isinstance(parts[0], tuple):
         return np.concatenate([p[0] for p in parts]), [r for p in parts for r in p[1]]
@@ -225,7 +231,7 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
         table["suspicion"] = np.nan
     table["p_value"] = 10.0 ** -table["suspicion"].to_numpy(np.float64)
     table["reason"] = ev.reasons.get("suspicion", [""] * len(table))
-    copies = np.isinf(table["duplicate"].to_numpy(np.float64)) if "duplicate" in table else None
+    copies = exact_copies(table)
     table["is_anomaly"] = flags(table["p_value"].to_numpy(), fpr, copies)
     if copies is not None and copies.any():
         dup = ev.reasons["duplicate"]
@@ -322,13 +328,13 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
     """How the flags were set and what they should cost: the level, the number of false flags to expect were the
     unflagged demos clean, and, with labels, the observed recall per kind and share of clean demos flagged."""
     flagged = table["is_anomaly"].to_numpy(bool)
-    copies = int(np.isinf(table["duplicate"].to_numpy(np.float64)).sum()) if "duplicate" in table else 0
+    copies = exact_copies(table)
     out: dict[str, Any] = {
         "fpr": fpr, "rule": f"combined tail probability (p_value) at most {fpr:g}, or an exact copy of another demo",
         # fpr of the clean demos, of whom there are about the unflagged ones plus the false flags themselves:
         # E = fpr (n - flagged + E).
         "expected_false_flags": round(fpr * (len(table) - int(flagged.sum())) / (1 - fpr), 2),
-        "exact_copies": copies,
+        "exact_copies": 0 if copies is None else int(copies.sum()),
         "reference": "the audited demos themselves: each score's tail is fitted on its middle half, which holds "
                      "if fewer than about a quarter of the demos are bad",
     }

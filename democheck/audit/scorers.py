@@ -228,7 +228,7 @@ def _peak(per_t: np.ndarray, t: np.ndarray) -> str:
 
 
 def action_errors(demos, ckpt: Checkpoint, z: np.ndarray, device: Any, steps: int = ACTION_STEPS,
-                  batch: int = 32) -> np.ndarray:
+                  batch: int = ACTION_BATCH) -> np.ndarray:
     """``ActionErrors`` over an iterable of demos, in ``z``'s order."""
     consumer = ActionErrors(ckpt, z, device, steps, batch)
     for demo in demos:
@@ -273,7 +273,7 @@ def _combination(ev: Evidence, model_free: bool = False) -> Scores:
         for j in order:
             own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
             parts.append(f"{names[j]}: {_odds(float(np.exp(row[j])))}" + (f"; {own}" if own else ""))
-        reasons.append(" | ".join(parts) if len(parts) < 2 else f"{parts[0]}; also {parts[1]}")
+        reasons.append("; also ".join(parts))
     return value, reasons
 
 

@@ -184,6 +184,12 @@ def combined_log10(log_p: np.ndarray) -> np.ndarray:
     return np.where(m < -30, np.log(k) + m, exact) / np.log(10)
 
 
+def exact_copies(table: pd.DataFrame) -> np.ndarray | None:
+    """Which rows of a score table are bit-exact copies of another demo (``duplicate`` is +inf); None when the
+    table has no duplicate check."""
+    return np.isinf(table["duplicate"].to_numpy(np.float64)) if "duplicate" in table else None
+
+
 def flags(p_value: np.ndarray, fpr: float = DEFAULT_FPR, exact_copy: np.ndarray | None = None) -> np.ndarray:
     """``is_anomaly``: a combined tail probability at most ``fpr``, or an exact copy of another demo."""
     out = np.nan_to_num(p_value, nan=1.0) <= fpr
