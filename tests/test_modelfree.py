@@ -141,8 +141,8 @@ def test_a_minority_of_bad_demos_makes_the_tail_probabilities_conservative_and_m
 
 def test_audit_without_a_model_on_data_the_shipped_model_cannot_read(tmp_path):
     """A Meta-World dataset LeRobot's writer made (4-d actions, 39-d state): the audit falls back to the model-free
-    checks, says why, and still flags the planted still, random and stopped arms; --no-model does the same on
-    purpose; --drop-list holds what suspects.txt holds."""
+    checks, says why, and still flags every planted demo (a still, random and stopped arm, a covered camera,
+    another task's recording); --no-model does the same on purpose; --drop-list holds what suspects.txt holds."""
     import json
     from pathlib import Path
 
@@ -163,7 +163,7 @@ def test_audit_without_a_model_on_data_the_shipped_model_cannot_read(tmp_path):
         table = pd.read_parquet(out / "scores.parquet")
         assert "task_uncertainty" not in table and {"motion", "idle", "duplicate", "suspicion"} <= set(table)
         flagged = table.loc[table["is_anomaly"], "episode_index"].tolist()
-        assert {"idle", "random", "gave-up"} <= set(labels[flagged])
+        assert set(labels[flagged]) - {"clean"} == {"idle", "random", "gave-up", "occluded", "wrong-task"}
         assert (labels[flagged] == "clean").sum() <= 1
         assert json.loads(Path(str(out) + ".json").read_text()) == sorted(flagged)
         assert (out / "report.rrd").stat().st_size > 0
@@ -188,3 +188,34 @@ def test_the_decoding_pass_in_two_worker_processes_gives_the_same_scores(tmp_pat
     two, _ = audit(ds, None, workers=2)
     for col in one.columns:
         assert one[col].equals(two[col]), col
+
+
+def _scene(rng: np.random.Generator, card: bool = False) -> np.ndarray:
+    """A fixed camera on a textured table, an arm (a bright square) sweeping across it, sensor noise; ``card``
+    covers the top left 45% of the view with a grey card all episode."""
+    h = w = 48
+    yy, xx = np.mgrid[:h, :w]
+    table = np.stack([80 + 60 * np.sin(xx / 5.0), 90 + 50 * np.cos(yy / 7.0), 70 + 0.8 * xx], -1)
+    frames = np.repeat(table[None], T, 0) + rng.normal(0, 3, (T, h, w, 3))
+    start = rng.integers(0, w - 8)
+    for t in range(T):
+        c = int(start + 8 * np.sin(t / 15.0)) % (w - 8)
+        frames[t, 20:28, c:c + 8] = 230
+    if card:
+        frames[:, :32, :32] = 128
+    return np.clip(frames, 0, 255).astype(np.uint8)
+
+
+def test_view_ranks_the_covered_camera_first_and_says_where():
+    rng = np.random.default_rng(3)
+    demos = [_demo(i, rng, frames=_scene(rng, card=i == 17)) for i in range(30)]
+    ev = _evidence(demos, ["view"])
+    z = ev.scores["view"]
+    assert z[17] > 10 and np.abs(np.delete(z, 17)).max() < 3, np.sort(z)[-3:]
+    assert "unlike its task's other demos'" in ev.reasons["view"][17] and "top left" in ev.reasons["view"][17]
+    # Tasks are compared with themselves: another task's own scene is not unusual for it.
+    for d in demos[:10]:
+        d.task = "other"
+        d.frames = 255 - d.frames
+    ev = _evidence(demos, ["view"])
+    assert int(np.argmax(ev.scores["view"])) == 17 and np.abs(np.delete(ev.scores["view"], 17)).max() < 3

@@ -21,8 +21,9 @@ truth and is not part of the dataset.  Every planted kind replaces a demo of a t
 Clean demos are the scripted policy on a variation of the task (Meta-World's goal and object positions) that
 no other episode of the task's scene uses while the 50 last, kept only when the policy succeeds.  (Before,
 variations were drawn with replacement: a reset of the same variation replays the same episode, so the datasets
-made then hold exact copies -- ``democheck audit`` names them.)  Episodes run in spawned worker processes (each with its own
-GL context); the same seed gives the same episodes.
+made then hold exact copies -- ``democheck audit`` names them.)  Episodes run in spawned worker processes, each
+with one live env at a time (see ``_env``: datasets made before that hold clean demos rendered from another
+camera with the scene's textures gone, about a third of them); the same seed gives the same episodes.
 """
 
 from __future__ import annotations
@@ -62,20 +63,24 @@ def _init(size: int) -> None:
 
     warnings.filterwarnings("ignore")
     _W["mt"] = metaworld.MT50(seed=0)
-    _W["envs"] = {}
     _W["size"] = size
 
 
 def _env(name: str):
-    if name not in _W["envs"]:
+    """The worker's environment for ``name``.  One at a time: MuJoCo renderers of several live Meta-World envs in
+    one process clobber each other's GL state -- after a third env is made, an older one renders another camera
+    with the scene's textures and meshes gone -- so the last env is closed before the next one is made."""
+    if _W.get("name") != name:
+        if "env" in _W:
+            _W["env"].close()
         env = _W["mt"].train_classes[name](render_mode="rgb_array", camera_name=CAMERA, width=_W["size"],
                                            height=_W["size"])
         # Shadows, multisampling and reflections off: ~7x faster on a software renderer, the scene the same.
         env.model.vis.quality.shadowsize = 0
         env.model.vis.quality.offsamples = 0
         env.model.mat_reflectance[:] = 0
-        _W["envs"][name] = (env, [t for t in _W["mt"].train_tasks if t.env_name == name])
-    return _W["envs"][name]
+        _W.update(name=name, env=env, variations=[t for t in _W["mt"].train_tasks if t.env_name == name])
+    return _W["env"], _W["variations"]
 
 
 def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout: tuple[int, int] | None = None,
@@ -209,10 +214,13 @@ def main() -> None:
     t0 = time.perf_counter()
     with mp.get_context("spawn").Pool(args.workers, initializer=_init, initargs=(args.size,)) as pool:
         episodes = []
-        for ep in pool.imap(_episode, jobs, chunksize=4):
+        # Dealt out grouped by the env they run in, so that a worker seldom switches envs (see ``_env``).
+        by_env = sorted(jobs, key=lambda j: (j[3] if j[2] == "wrong-task" else j[1], j[0]))
+        for ep in pool.imap_unordered(_episode, by_env, chunksize=4):
             episodes.append(ep)
             if len(episodes) % 25 == 0 or len(episodes) == len(jobs):
                 print(f"simulated {len(episodes)}/{len(jobs)} episodes ({time.perf_counter() - t0:.0f} s)", flush=True)
+    episodes.sort(key=lambda ep: ep["index"])
     write(args.out, episodes, args.size)
     labels = args.out.with_name(args.out.name + ".labels.csv")
     with labels.open("w", newline="") as f:

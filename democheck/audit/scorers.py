@@ -397,13 +397,14 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("frozen_video", "model-free: share of steps at which the camera frame repeats while the actions "
            "change (a camera that stopped delivering)", ("demos",), _frozen_video,
            decode=lambda ev, rows, device: modelfree.FrameChanges(), short="frozen"),
-    Scorer("view", "model-free: how much more of the camera's view is featureless than is usual for the task (a "
-           "covered or blocked camera), robust z within its task", ("demos",), _view, in_robust_sd=True,
+    Scorer("view", "model-free: share of the demo's average picture (16x16) unlike its task's other demos' there "
+           f"(over {modelfree.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
+           "robust z within its task", ("demos",), _view, in_suspicion=True, in_robust_sd=True,
            decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty, "
-           "consistency, action error (log), motion and idle, each in robust standard deviations within its "
+           "consistency, action error (log), motion, idle and view, each in robust standard deviations within its "
            "task (2 = as unusual as 1 clean demo in 100)", ("scores",), _suspicion, short="susp."),
-    Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle): what "
+    Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, view): what "
            "democheck says with no model", ("scores",), _model_free, in_audit=False, short="no-model"),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),

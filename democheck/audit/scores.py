@@ -98,8 +98,10 @@ def standardise(x: np.ndarray, stats: dict[str, float]) -> np.ndarray:
 # Chosen on two development sets (Meta-World mw-dev, 10 tasks x ~24 demos, a your-data model; push-v1-dev +
 # probes, the shipped model; ``benchmarks/suspicion_choices.py``), mean AUROC of the ranking over their 13 kinds:
 # all 0.917; each task's own median and MAD 0.947; "task" 0.958 (with the motion check and the action error on a
-# log scale: mw-dev 0.949, push-v1-dev 0.961).  The model-free ``view`` check and a trimmed novelty density were
-# measured in the ranking too and left out: on mw-dev they flagged 6-13% of clean demos at the threshold below.
+# log scale: mw-dev 0.949, push-v1-dev 0.961).  A trimmed novelty density was measured in the ranking too and left
+# out: on mw-dev it flagged 6-13% of clean demos at the threshold below.  (mw-dev was made by a Meta-World
+# generator that rendered about a third of its clean demos from a broken GL state; ``modelfree.view`` was chosen
+# on its regenerated successor, mw2-dev.)
 CALIBRATION = "task"
 CALIBRATIONS = ("all", "task")
 
