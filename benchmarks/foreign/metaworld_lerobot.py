@@ -155,22 +155,26 @@ VARIATIONS = 50  # Meta-World's training variations (goal and object positions) 
 def plan(names: list[str], demos: int, plant: int, steps: int, seed: int) -> list[tuple]:
     """(episode index, env, kind, other env, steps, seed, variation) of every episode: ``demos`` per task,
     ``plant`` of each kind in all, on tasks drawn by the seed.  Every episode of an env gets a variation of its
-    own (a reset of the same variation replays the same episode, bit for bit), until the env's
-    ``VARIATIONS`` are used up."""
+    own (a reset of the same variation replays the same episode, bit for bit), clean demos first, until the
+    env's ``VARIATIONS`` are used up; a planted demo may then share one with a clean demo (it is not a copy:
+    its actions or frames differ)."""
     rng = np.random.default_rng([seed, 1])
     kinds = ["clean"] * (demos * len(names)) + [k for k in KINDS for _ in range(plant)]
     tasks = [n for n in names for _ in range(demos)] + list(rng.choice(names, size=plant * len(KINDS)))
     order = rng.permutation(len(kinds))
+    # Clean demos take their variations first: two clean demos on one variation would be exact copies.
+    draw = sorted(range(len(order)), key=lambda i: kinds[order[i]] != "clean")
     shuffled: dict[str, list[int]] = {}
-    jobs = []
-    for i, j in enumerate(order):
+    jobs: list[tuple] = [()] * len(order)
+    for i in draw:
+        j = order[i]
         name, kind = tasks[j], kinds[j]
         # Another task of the dataset; a dataset of one task borrows another Meta-World task's recording.
         other = str(rng.choice([n for n in names if n != name] or [n for n in TASKS if n != name]))
         env = other if kind == "wrong-task" else str(name)
         if not shuffled.get(env):
             shuffled[env] = list(rng.permutation(VARIATIONS))
-        jobs.append((i, str(name), kind, other, steps, seed, int(shuffled[env].pop())))
+        jobs[i] = (i, str(name), kind, other, steps, seed, int(shuffled[env].pop()))
     return jobs
 
 
