@@ -68,3 +68,72 @@ def test_expert_succeeds(seed):
     for _ in range(EPISODE_STEPS):
         _, _, _, truncated, info = env.step(expert.act())
     assert truncated and info["success"], info
+
+
+def _copy_of(env: PushEnv) -> PushEnv:
+    import mujoco
+
+    twin = PushEnv((env.target, env.distractor), image_size=16, render_images=False)
+    twin.reset(seed=0)
+    mujoco.mj_copyData(twin.data, env.model, env.data)
+    return twin
+
+
+def test_the_markovian_experts_action_is_a_function_of_the_state_alone():
+    """Handed a copy of the simulator's state mid-episode, a new MarkovianExpert acts exactly as the one that
+    drove the episode there; the hysteresis expert, which remembers its phase, does not always."""
+    from democheck.sim.expert import MarkovianExpert
+
+    for kind, same_everywhere in ((MarkovianExpert, True), (ScriptedExpert, False)):
+        env = PushEnv(PAIR, image_size=16, render_images=False)
+        env.reset(seed=3)
+        expert, differ = kind(env), 0
+        for t in range(EPISODE_STEPS):
+            a = expert.act()
+            if t % 5 == 0:
+                differ += int(np.abs(kind(_copy_of(env)).act() - a).max() > 1e-9)
+            env.step(a)
+        assert (differ == 0) == same_everywhere, (kind.__name__, differ)
+
+
+def test_the_markovian_expert_recovers_from_a_thrown_arm_and_a_moved_target():
+    import mujoco
+
+    from democheck.sim.expert import MarkovianExpert
+
+    tasks = make_tasks(4, 0, 0, seed=0)
+    rng = np.random.default_rng(5)
+    for k, task in enumerate(tasks):
+        env = PushEnv(task, image_size=16, render_images=False)
+        env.reset(seed=k)
+        expert = MarkovianExpert(env)
+        for _ in range(30):
+            env.step(expert.act())
+        env.data.qpos[env._arm_qadr] = scene.ARM_HOME + np.array([0.4, 0.3, -0.3, -0.4, 0.3, -0.3, 0.2]) * (-1) ** k
+        env.data.qvel[:] = 0.0
+        env.data.qpos[env._obj_qadr["target"][:2]] += rng.uniform(-0.03, 0.03, 2)
+        mujoco.mj_forward(env.model, env.data)
+        env.steps_in_goal = 0
+        for _ in range(EPISODE_STEPS):
+            _, _, _, _, info = env.step(expert.act())
+        assert info["success"], (k, info)
+
+
+def test_dart_noise_moves_the_arm_off_the_experts_path_and_records_the_experts_action():
+    from democheck.sim.expert import MarkovianExpert
+    from democheck.sim.variants import record_demo
+
+    env = PushEnv(PAIR, image_size=16, render_images=False)
+    clean = record_demo(env, MarkovianExpert(env).act, 40, seed=2)
+    labels = []
+
+    def expert_then_check():
+        labels.append(expert.act())
+        return labels[-1]
+
+    expert = MarkovianExpert(env)
+    noisy = record_demo(env, expert_then_check, 40, seed=2, action_noise=0.1)
+    np.testing.assert_array_equal(noisy["actions"], np.stack(labels))  # the label is the expert's own action
+    assert np.abs(noisy["state"][-1] - clean["state"][-1]).max() > 1e-3  # the noise moved the arm
+    again = record_demo(env, MarkovianExpert(env).act, 40, seed=2, action_noise=0.1)
+    np.testing.assert_array_equal(again["state"], noisy["state"])  # the same seed, the same noise

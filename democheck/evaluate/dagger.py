@@ -13,7 +13,8 @@ here (Ross et al. 2011, DAgger):
    probability ``beta`` (so rollouts stay near the task while visiting the
    controller's own states);
 2. labels *every* visited state with the action the scripted expert takes there
-   (the expert runs alongside, its state machine following the rollout);
+   (``MarkovianExpert``: its action is a function of the state alone, so a state
+   reached off the expert's own path gets the one label it would always get);
 3. adds those episodes to the recovery set and trains the controller for
    ``steps`` more steps, each on a batch of demo timesteps plus a batch of
    recovery timesteps.
@@ -53,7 +54,7 @@ from democheck.petnet.model import encode
 from democheck.petnet.run_state import load_state, save_state, work_dir
 from democheck.petnet.train import resolve_device
 from democheck.sim.catalog import OBJECTS
-from democheck.sim.expert import ScriptedExpert
+from democheck.sim.expert import MarkovianExpert
 from democheck.sim.variants import record_demo
 
 
@@ -80,7 +81,7 @@ class MixedPolicy:
         self.labels: list[np.ndarray] = []
 
     def act(self) -> np.ndarray:
-        label = self.expert.act()  # also advances the expert's state machine along the rollout
+        label = self.expert.act()  # a function of the current state alone (MarkovianExpert)
         self.labels.append(label)
         return label if self.rng.random() < self.beta else self.learner()
 
@@ -92,7 +93,7 @@ def _rollout_shard(job: tuple[int, int, list[dict[str, Any]]]) -> list[dict[str,
     for s in specs:
         env = pool.state["envs"].get(OBJECTS[s["target"]], OBJECTS[s["distractor"]])
         learner = ControllerPolicy(env, ckpt.model, ckpt.norm, np.asarray(s["z"], np.float32))
-        policy = MixedPolicy(learner.act, ScriptedExpert(env), s["beta"], s["seed"])
+        policy = MixedPolicy(learner.act, MarkovianExpert(env), s["beta"], s["seed"])
         rec = record_demo(env, policy.act, steps, seed=s["seed"])
         out.append({"row": s["row"], "frames": rec["frames"], "state": rec["state"],
                     "labels": np.stack(policy.labels).astype(np.float32), "success": rec["success"]})

@@ -13,6 +13,11 @@ a small state machine:
    target is pushed through its centre towards the goal; if the target slips
    off the line, go back to *approach*;
 4. *retreat*: once the target is at the goal, back away and hold still.
+
+``ScriptedExpert`` keeps its phase from step to step (with hysteresis), so the same simulator state can get
+different actions -- labels a learner cannot fit from what it sees.  ``MarkovianExpert`` decides the phase
+from the geometry of the current state alone, every step, and so also recovers from any state the arm can
+reach (``benchmarks/expert_recovery.py`` measures it from random arm poses and object offsets mid-episode).
 """
 
 from __future__ import annotations
@@ -116,3 +121,55 @@ class ScriptedExpert:
         posture = KQ * (scene.ARM_HOME - d.qpos[env._arm_qadr]) - KDQ * qvel
         torque = J.T @ force + posture - J.T @ (lam @ (JMinv @ posture))
         return np.clip(torque / scene.TORQUE_LIMIT, -1.0, 1.0).astype(np.float32)
+
+
+# MarkovianExpert's geometry (metres): where each phase holds, decided afresh every step.
+AT_GOAL = 0.5 * scene.GOAL_RADIUS  # the target this near the goal's centre: done, stay clear
+PUSH_CONE = np.cos(np.radians(55))  # the fingertip within this cone behind the target pushes it
+PUSH_REACH = 0.07  # ... and at most this far beyond touching it
+NEAR_BEHIND, FAR_BEHIND = 0.02, 0.045  # the pre-push point: descend fully inside, stay high outside
+LOW = Z_SAFE - 0.035  # below this, a fingertip that is not pushing goes straight up before it travels
+CLEAR = 0.07  # how far from the target's centre the fingertip waits once the target is in
+
+
+class MarkovianExpert(ScriptedExpert):
+    """The same pushing expert with no memory: its action is a function of the simulator's current state."""
+
+    def reset(self) -> None:
+        self.phase = "approach"
+
+    def waypoint(self) -> np.ndarray:
+        tip = self.env.tip_pos
+        obj = self._object_xy()
+        r = self._object_radius()
+        to_goal = scene.GOAL_XY - obj
+        dist = math.hypot(*to_goal)
+        if dist < AT_GOAL:
+            self.phase = "retreat"
+            away = tip[:2] - obj
+            n = float(np.linalg.norm(away))
+            away = away / n if n > 1e-3 else -to_goal / max(dist, 1e-9) if dist > 1e-3 else np.array([-1.0, 0.0])
+            if n >= r + CLEAR - 0.01 or tip[2] > LOW:  # clear of the target (or above it): wait up there
+                return np.array([*(obj + away * (r + CLEAR)), Z_SAFE])
+            return np.array([*(tip[:2] + away * 0.03), Z_SAFE])  # back off and up, never across the target
+        u = to_goal / dist
+        behind = obj - u * (r + scene.TIP_RADIUS + 0.02)
+        rel = obj - tip[:2]
+        along = float(np.dot(-rel, u))  # the fingertip's position along the push line (negative: behind)
+        cos = float(np.dot(rel, u)) / max(float(np.linalg.norm(rel)), 1e-9)
+        gap = float(np.linalg.norm(rel)) - r - scene.TIP_RADIUS
+        low = tip[2] < Z_PUSH + 0.015
+        if low and along <= -0.3 * r and cos >= PUSH_CONE and gap < PUSH_REACH:
+            self.phase = "push"
+            lead = float(np.clip(dist, 0.02, PUSH_LEAD))
+            return np.array([*(obj + u * (along + lead)), Z_PUSH])
+        off = float(np.linalg.norm(tip[:2] - behind))
+        if off < FAR_BEHIND:
+            # Over the pre-push point: descend, fully once within NEAR_BEHIND, in proportion between.
+            self.phase = "descend"
+            w = float(np.clip((FAR_BEHIND - off) / (FAR_BEHIND - NEAR_BEHIND), 0.0, 1.0))
+            return np.array([*behind, Z_SAFE + w * (Z_PUSH - Z_SAFE)])
+        self.phase = "approach"
+        if tip[2] < LOW:  # low and not pushing: straight up first, so the fingertip never sweeps through objects
+            return np.array([*tip[:2], Z_SAFE])
+        return np.array([*behind, Z_SAFE])

@@ -25,7 +25,8 @@ from democheck.fsutil import atomic_output_dir
 from democheck.sim.catalog import CATALOG_VERSION, make_tasks
 from democheck.sim.env import ACTION_NAMES, ENV_STATE_NAMES, EPISODE_STEPS, STATE_NAMES
 from democheck.sim.scene import FPS, SCENE_VERSION
-from democheck.sim.variants import DEFECTS, PLANT_KINDS, EnvCache, make_policy, record_demo, sim_record
+from democheck.sim.variants import (DEFECTS, EXPERTS, PLANT_KINDS, PUSHING_KINDS, EnvCache, make_policy, record_demo,
+                                    sim_record)
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,12 @@ class Recipe:
     defect_rate: float = 0.0
     pix_fmt: str = "yuv444p"
     crf: int = 20
+    # The scripted expert (``democheck.sim.variants.EXPERTS``): "hysteresis" keeps its phase from step to step
+    # (push-v1); "markovian" decides it from the current state alone, so the same state always gets one label.
+    expert: str = "hysteresis"
+    # DART: Gaussian noise (normalised torque SD) on the executed action of the kinds the expert drives; the
+    # expert's own action is recorded.
+    action_noise: float = 0.0
 
     @property
     def n_tasks(self) -> int:
@@ -121,6 +128,10 @@ class Recipe:
             problems.append("between 0 and as many defective demos as there are episodes")
         if self.episodes_per_file < 1:
             problems.append("at least one episode per file")
+        if self.expert not in EXPERTS:
+            problems.append(f"an expert among {', '.join(EXPERTS)} (not {self.expert!r})")
+        if not 0.0 <= self.action_noise <= 1.0:
+            problems.append("an action noise between 0 and 1 (normalised torque)")
         if self.pix_fmt not in ("yuv444p", "yuv420p"):
             problems.append("pix_fmt yuv444p or yuv420p")
         if self.pix_fmt == "yuv420p" and self.image_size % 2:
@@ -170,7 +181,7 @@ def load_recipe(name_or_path: str) -> Recipe:
     sections = {"tasks": {"train": "train_tasks", "val": "val_tasks", "test": "test_tasks",
                           "test_object_fraction": "test_object_fraction", "split_seed": "split_seed"},
                 "episodes": {"demos_per_task": "demos_per_task", "steps": "steps", "image_size": "image_size",
-                             "max_attempts": "max_attempts"},
+                             "max_attempts": "max_attempts", "expert": "expert", "action_noise": "action_noise"},
                 "video": {"pix_fmt": "pix_fmt", "crf": "crf", "episodes_per_file": "episodes_per_file"}}
     defects = dict(doc.get("defects", {}))
     if "rate" in defects:
@@ -226,11 +237,14 @@ def _suite_shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, 
         tries = r.max_attempts if kind in ("expert", "occluded") and r.steps >= EPISODE_STEPS else 1
         for attempt in range(tries):
             seed = episode_seed(r.seed, episode_index, attempt)
-            rec = record_demo(env, make_policy(kind, env, seed).act, r.steps, seed=seed)
+            noise = r.action_noise if kind in PUSHING_KINDS else 0.0
+            rec = record_demo(env, make_policy(kind, env, seed, expert=r.expert).act, r.steps, seed=seed,
+                              action_noise=noise)
             if rec["success"]:
                 break
         attempts_log.append(attempt + 1)
-        sim = sim_record(r.name, task, kind, seed, rec["layout"], r.image_size, r.steps, attempt=attempt)
+        sim = sim_record(r.name, task, kind, seed, rec["layout"], r.image_size, r.steps, attempt=attempt,
+                         expert=r.expert, action_noise=noise)
         label = "clean" if kind == "expert" else kind
         demos.append(Demo(episode_index=episode_index, task=task.name, frames=rec["frames"], state=rec["state"],
                           actions=rec["actions"], success=rec["success"], label=label, split=task.split,

@@ -26,14 +26,25 @@ from democheck.errors import DatasetError
 from democheck.sim import scene
 from democheck.sim.catalog import CATALOG_VERSION, OBJECTS
 from democheck.sim.env import ENV_STATE_DIM, PushEnv
-from democheck.sim.expert import ScriptedExpert
+from democheck.sim.expert import MarkovianExpert, ScriptedExpert
 
 BAD_OPERATORS = ("idle", "random")
+# The kinds a scripted expert drives (a recipe's ``action_noise`` perturbs these alone).
+PUSHING_KINDS = ("expert", "occluded", "wrong-object", "gave-up", "both-objects")
 DEFECTS = ("wrong-object", "both-objects", "occluded", "gave-up")
 PLANT_KINDS = BAD_OPERATORS + DEFECTS
 PROBES = ("no-action", "random", "no-objects", "hidden")
 # Kinds made from the frames alone, so they work on datasets without a sim record.
 IMAGE_PROBES = ("no-action", "hidden")
+# The scripted experts a recipe can record with (``democheck.sim.expert``); push-v1 was made by "hysteresis".
+EXPERTS = {"hysteresis": ScriptedExpert, "markovian": MarkovianExpert}
+
+
+def make_expert(env, role: str = "target", expert: str = "hysteresis") -> ScriptedExpert:
+    try:
+        return EXPERTS[expert](env, role=role)
+    except KeyError:
+        raise ValueError(f"unknown expert {expert!r}; experts: {', '.join(EXPERTS)}") from None
 
 
 class IdlePolicy:
@@ -80,8 +91,8 @@ def _to_goal(env, role: str) -> float:
 class GaveUpPolicy:
     """The expert, until the target has covered half its way to the goal; then hands off the controls."""
 
-    def __init__(self, env, seed: int = 0):
-        self.env, self.expert = env, ScriptedExpert(env)
+    def __init__(self, env, seed: int = 0, expert: str = "hysteresis"):
+        self.env, self.expert = env, make_expert(env, expert=expert)
         self.start: float | None = None
         self.stopped = False
 
@@ -96,9 +107,9 @@ class GaveUpPolicy:
 class BothObjectsPolicy:
     """Pushes the distractor towards the goal first, then the target (both objects end up moved)."""
 
-    def __init__(self, env, seed: int = 0, switch_step: int = 50):
+    def __init__(self, env, seed: int = 0, switch_step: int = 50, expert: str = "hysteresis"):
         self.env, self.switch_step = env, switch_step
-        self.first, self.second = ScriptedExpert(env, role="distractor"), ScriptedExpert(env, role="target")
+        self.first, self.second = make_expert(env, "distractor", expert), make_expert(env, "target", expert)
         self.t, self.switched = 0, False
 
     def act(self) -> np.ndarray:
@@ -114,20 +125,21 @@ def scene_options(kind: str) -> dict[str, bool]:
     return {"with_objects": kind != "no-objects", "occluder": kind == "occluded"}
 
 
-def make_policy(kind: str, env, seed: int, actions: np.ndarray | None = None) -> Any:
-    """The policy that records ``kind`` in ``env`` (freshly reset); ``actions`` are replayed by ``no-objects``."""
+def make_policy(kind: str, env, seed: int, actions: np.ndarray | None = None, expert: str = "hysteresis") -> Any:
+    """The policy that records ``kind`` in ``env`` (freshly reset); ``actions`` are replayed by ``no-objects``;
+    ``expert`` names the scripted expert (``EXPERTS``) of the kinds that push."""
     if kind in ("expert", "occluded"):
-        return ScriptedExpert(env)
+        return make_expert(env, expert=expert)
     if kind == "wrong-object":
-        return ScriptedExpert(env, role="distractor")
+        return make_expert(env, "distractor", expert)
     if kind in ("idle", "no-action"):
         return IdlePolicy(env, seed)
     if kind == "random":
         return RandomPolicy(env, seed)
     if kind == "gave-up":
-        return GaveUpPolicy(env, seed)
+        return GaveUpPolicy(env, seed, expert=expert)
     if kind == "both-objects":
-        return BothObjectsPolicy(env, seed)
+        return BothObjectsPolicy(env, seed, expert=expert)
     if kind == "no-objects":
         if actions is None:
             raise ValueError("no-objects replays a demo's actions; none given")
@@ -164,10 +176,15 @@ class EnvCache:
 
 
 def record_demo(env, policy: Callable[[], np.ndarray], steps: int, seed: int | None = None,
-                layout: Any = None) -> dict[str, Any]:
-    """Roll one episode out: observation t, then action t, for ``steps`` steps."""
+                layout: Any = None, action_noise: float = 0.0) -> dict[str, Any]:
+    """Roll one episode out: observation t, then action t, for ``steps`` steps.
+
+    ``action_noise`` (DART, Laskey et al. 2017): the arm executes the policy's action plus Gaussian noise of
+    this standard deviation (normalised torque units, drawn from ``seed``) while the policy's own action is
+    recorded, so the demo shows the way back from where the noise pushed it."""
 
     obs, info = env.reset(seed=seed, options={"layout": layout} if layout is not None else None)
+    noise = np.random.default_rng([0 if seed is None else seed, 0xDA27]) if action_noise > 0 else None
     frames = np.empty((steps, env.image_size, env.image_size, 3), np.uint8)
     state = np.empty((steps, obs["state"].shape[0]), np.float32)
     env_state = np.empty((steps, ENV_STATE_DIM), np.float32)
@@ -175,18 +192,21 @@ def record_demo(env, policy: Callable[[], np.ndarray], steps: int, seed: int | N
     for t in range(steps):
         frames[t], state[t], env_state[t] = obs["image"], obs["state"], env.object_state()
         actions[t] = policy()
-        obs, _, _, _, info = env.step(actions[t])
+        executed = actions[t] if noise is None else actions[t] + noise.normal(0.0, action_noise, actions.shape[1])
+        obs, _, _, _, info = env.step(executed)
     return {"frames": frames, "state": state, "env_state": env_state, "actions": actions,
             "success": bool(info["success"]), "layout": env.layout}
 
 
 def sim_record(suite: str, task, kind: str, seed: int, layout, image_size: int, steps: int,
-               attempt: int = 0) -> dict[str, Any]:
-    """What an episode's ``sim`` column holds: enough to re-simulate it (``resimulate``)."""
+               attempt: int = 0, expert: str = "hysteresis", action_noise: float = 0.0) -> dict[str, Any]:
+    """What an episode's ``sim`` column holds: enough to re-simulate it (``resimulate``).  Records made before
+    ``expert`` and ``action_noise`` were kept mean the hysteresis expert without noise."""
 
     return {"suite": suite, "catalog_version": CATALOG_VERSION, "scene_version": scene.SCENE_VERSION,
             "target": task.target.key, "distractor": task.distractor.key, "seed": int(seed), "attempt": attempt,
-            "image_size": int(image_size), "steps": int(steps), "policy": kind, "layout": layout.to_dict()}
+            "image_size": int(image_size), "steps": int(steps), "policy": kind, "layout": layout.to_dict(),
+            "expert": expert, "action_noise": float(action_noise)}
 
 
 def resimulate(envs: EnvCache, sim: dict[str, Any], kind: str | None = None, actions: np.ndarray | None = None,
@@ -198,5 +218,8 @@ def resimulate(envs: EnvCache, sim: dict[str, Any], kind: str | None = None, act
     kind = kind or sim.get("policy", "expert")
     env = envs.for_record(sim, kind)
     seed = int(sim["seed"]) if seed is None else seed
-    policy = ReplayPolicy(actions) if actions is not None else make_policy(kind, env, seed)
-    return record_demo(env, policy.act, int(sim["steps"]), seed=seed, layout=sim["layout"])
+    expert = sim.get("expert", "hysteresis")
+    policy = ReplayPolicy(actions) if actions is not None else make_policy(kind, env, seed, expert=expert)
+    # Noise only where the expert drives: a probe's still or random arm, or a replay, is what it is.
+    noise = float(sim.get("action_noise", 0.0)) if actions is None and kind in PUSHING_KINDS else 0.0
+    return record_demo(env, policy.act, int(sim["steps"]), seed=seed, layout=sim["layout"], action_noise=noise)
