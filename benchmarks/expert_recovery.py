@@ -1,6 +1,6 @@
 """How well each scripted expert pushes, and recovers: from its own start, and from states it never chose.
 
-    python benchmarks/expert_recovery.py [--episodes 200] [--seed 0] [--out runs/expert_recovery.json]
+    python benchmarks/expert_recovery.py [--episodes 200] [--seed 0] [--action-noise 0.1] [--out FILE.json]
 
 For every expert (``ScriptedExpert``, which keeps its phase with hysteresis, and ``MarkovianExpert``, which
 decides it from the current state alone) and every condition, on the same tasks and layouts:
@@ -16,7 +16,8 @@ After a perturbation the expert gets a fresh ``EPISODE_STEPS`` and success is co
 the goal for ``SUCCESS_STEPS`` steps, as the suite counts it).  Printed: success with its 95% Wilson interval,
 and for ``plain`` how often the expert's labels depend on more than the state: the share of steps at which a
 fresh expert, handed a copy of the simulator's state, would act differently (by more than 1e-6).
-Tasks are the suite's training tasks (``make_tasks`` with push-v1's seed); no images are rendered.
+``--action-noise`` adds a recipe's DART noise to every executed action (the expert's own action is what it would
+record).  Tasks are the suite's training tasks (``make_tasks`` with push-v1's seed); no images are rendered.
 """
 
 from __future__ import annotations
@@ -76,8 +77,9 @@ def fresh_action(twin: PushEnv, env: PushEnv, kind: type) -> np.ndarray:
 
 
 def episode(env: PushEnv, expert, layout_seed: int, condition: str, rng: np.random.Generator,
-            twin: PushEnv | None = None) -> tuple[bool, int, int]:
+            twin: PushEnv | None = None, action_noise: float = 0.0) -> tuple[bool, int, int]:
     """(success, steps at which a fresh expert on the same state acts differently, steps checked)."""
+    noise = np.random.default_rng([layout_seed, 0xDA27])
     env.reset(seed=layout_seed)
     expert.reset()
     if condition != "plain":
@@ -90,7 +92,7 @@ def episode(env: PushEnv, expert, layout_seed: int, condition: str, rng: np.rand
         if twin is not None:
             differ += int(np.abs(fresh_action(twin, env, type(expert)) - a).max() > 1e-6)
             checked += 1
-        _, _, _, _, info = env.step(a)
+        _, _, _, _, info = env.step(a + noise.normal(0.0, action_noise, a.shape) if action_noise else a)
         if info["success"]:
             return True, differ, checked
     return bool(info["success"]), differ, checked
@@ -102,6 +104,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--experts", default=",".join(EXPERTS))
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
+    ap.add_argument("--action-noise", type=float, default=0.0, help="DART noise on every executed action")
     ap.add_argument("--out", type=Path, default=None, help="also write the numbers as JSON")
     args = ap.parse_args()
     tasks = [t for t in make_tasks(400, 40, 64, seed=0) if t.split == "train"]
@@ -120,7 +123,7 @@ def main() -> None:
                     env.set_task(task)
                     twin.set_task(task)
                 won, d, c = episode(env, EXPERTS[name](env), int(rng.integers(1 << 31)), condition, rng,
-                                    twin if condition == "plain" else None)
+                                    twin if condition == "plain" else None, args.action_noise)
                 wins.append(won)
                 differ, checked = differ + d, checked + c
             lo, hi = wilson(sum(wins), len(wins))
