@@ -140,7 +140,8 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
                   camera: str | None = None, task: str | None = None, device: str = "auto", force: bool = False,
                   on_progress: Callable[[str, int, int], None] | None = None, actions: bool = True,
                   fpr: float = DEFAULT_FPR, no_model: bool = False, keep_list: str | Path | None = None,
-                  drop_list: str | Path | None = None, workers: int = 1) -> dict[str, Any]:
+                  drop_list: str | Path | None = None, workers: int = 1, engine: str = "local",
+                  ray_address: str | None = None) -> dict[str, Any]:
     """Open ``dataset``, load the model (default: the shipped one), audit, and write the report folder ``out``
     atomically (scores.parquet/.csv, summary.json, suspects.txt, report.rrd); returns the summary.
 
@@ -170,7 +171,8 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
                 ckpt = None
     t = {"model_load_s": time.perf_counter() - t0}
     table, summary = audit(ds, ckpt, top=top, device=dev, actions=actions, fpr=fpr, timings=t,
-                           on_progress=on_progress, why_no_model=why, workers=workers)
+                           on_progress=on_progress, why_no_model=why, workers=workers, engine=engine,
+                           ray_address=ray_address)
     if why and not no_model:
         summary["warnings"].insert(0, why)
     t.update(summary.pop("timing"))

@@ -219,3 +219,40 @@ def test_view_ranks_the_covered_camera_first_and_says_where():
         d.frames = 255 - d.frames
     ev = _evidence(demos, ["view"])
     assert int(np.argmax(ev.scores["view"])) == 17 and np.abs(np.delete(ev.scores["view"], 17)).max() < 3
+
+
+def test_the_ray_engine_gives_the_local_engines_scores(tmp_path, monkeypatch):
+    """``--engine ray`` on a local 2-CPU Ray instance: the same shards decoded by Ray Data actors, every score as
+    the local engine's; without Ray the option says how to get it."""
+    import pytest
+
+    pytest.importorskip("ray.data")
+    from dataclasses import replace
+
+    from democheck.audit import run
+    from democheck.audit.run import audit
+    from democheck.data import open_dataset
+    from democheck.sim.suite import generate
+    from tests.conftest import TINY
+
+    root = tmp_path / "d"
+    generate(replace(TINY, seed=6, demos_per_task=6, steps=16, defects=(("idle", 1),)), root, workers=1)
+    ds = open_dataset(root)
+    monkeypatch.setattr(run, "SHARD", 8)  # 24 demos: three shards
+    local, _ = audit(ds, None, workers=1)
+    on_ray, _ = audit(ds, None, workers=2, engine="ray")
+    for col in local.columns:
+        assert local[col].equals(on_ray[col]), col
+
+
+def test_the_ray_engine_without_ray_says_how_to_get_it(monkeypatch):
+    import sys
+
+    import pytest
+
+    from democheck.audit import ray_engine
+    from democheck.errors import DemocheckError
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray now fails, as where it is not installed
+    with pytest.raises(DemocheckError, match=r"pip install 'democheck\[ray\]'"):
+        ray_engine.run_shards([], None, "cpu", 2, None)

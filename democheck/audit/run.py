@@ -72,15 +72,18 @@ def decoding_pass(ds: DemoSet, consumers: list, on_progress: Callable[[int, int]
 def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[Scorer], device: Any,
                     tecnet: Checkpoint | None = None, episodes: pd.DataFrame | None = None, seed: int = 0,
                     on_progress: Progress | None = None, timings: dict[str, float] | None = None,
-                    workers: int = 1) -> Evidence:
+                    workers: int = 1, engine: str = "local", ray_address: str | None = None) -> Evidence:
     """Score the demos of ``sets``, pooled in order, with ``scorers``: the cue pass (PETNet, when ``ckpt`` is
     given, and TecNets when given), one decoding pass per dataset for the scorers that need every frame, then
     each scorer.
 
     ``episodes``: the pooled demos' table (default: the datasets' episode tables one after the other).
     ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).  ``workers`` > 1 decodes in that
-    many spawned processes (``parallel_decoding``), with the same results.
+    many spawned processes (``parallel_decoding``), with the same results; ``engine`` "ray" decodes in that many
+    Ray actors (``ray_engine``) on the cluster at ``ray_address`` (default: a local instance), the same again.
     """
+    if engine not in ENGINES:
+        raise DemocheckError(f"--engine {engine!r}: one of {', '.join(ENGINES)}")
     t = timings if timings is not None else {}
 
     def stage(name: str, ds: DemoSet) -> Callable[[int, int], None] | None:
@@ -110,8 +113,9 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
         for ds in sets:
             rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
             progress = stage("decoding" if ckpt is None else "actions", ds)
-            if workers > 1 and len(ds) >= PARALLEL_MIN_SHARDS * SHARD * workers:
-                for key, got in parallel_decoding(ds, ev, rows, decoding, device, workers, progress).items():
+            if engine == "ray" or workers > 1 and len(ds) >= PARALLEL_MIN_SHARDS * SHARD * workers:
+                for key, got in parallel_decoding(ds, ev, rows, decoding, device, workers, progress, engine,
+                                                  ray_address).items():
                     parts[key].append(got)
             else:
                 consumers = _consumers(decoding.values(), ev, rows, device)
@@ -132,10 +136,12 @@ SHARD = 4 * registry.ACTION_BATCH
 # more than it saves: on push-v1, 168 demos took 2.1 s in one process and 3.4 s in two, 768 demos 10.1 s and
 # 7.5 s, 6,048 demos 78.6 s and 47.8 s (identical scores each time; benchmarks/parallel_audit.py).
 PARALLEL_MIN_SHARDS = 2
+ENGINES = ("local", "ray")
 
 
 def parallel_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str, Scorer], device: Any, workers: int,
-                      on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                      on_progress: Callable[[int, int], None] | None = None, engine: str = "local",
+                      ray_address: str | None = None) -> dict[str, Any]:
     """The decoding pass of ``ds`` (its rows ``rows`` of the evidence) in ``workers`` spawned processes: each
     decodes shards of ``SHARD`` consecutive demos with its own copy of the model; what a consumer keeps per demo
     (``modelfree.PerDemo``) is merged before it finishes, what it finishes per demo is pooled after."""
@@ -148,7 +154,12 @@ def parallel_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str
                  "z": None if z is None else z[s:s + SHARD]}, eps[s:s + SHARD])
             for i, s in enumerate(range(0, len(eps), SHARD))]
     model = str(ev.model.path) if ev.model is not None else None
-    got = pool.run_shards(jobs, _decode_shard, _decode_init, (model, str(device)), workers, len(eps), on_progress)
+    if engine == "ray":
+        from democheck.audit import ray_engine
+
+        got = ray_engine.run_shards(jobs, model, str(device), workers, ray_address, on_progress)
+    else:
+        got = pool.run_shards(jobs, _decode_shard, _decode_init, (model, str(device)), workers, len(eps), on_progress)
     got = sorted(got, key=lambda r: r["shard"])
     out = {}
     for key, s in decoding.items():
@@ -263,7 +274,8 @@ def write_tables(folder: Path, table: pd.DataFrame, suspects: list[int]) -> None
 
 def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cpu", actions: bool = True,
           fpr: float = DEFAULT_FPR, on_progress: Progress | None = None, timings: dict[str, float] | None = None,
-          why_no_model: str | None = None, workers: int = 1) -> tuple[pd.DataFrame, dict[str, Any]]:
+          why_no_model: str | None = None, workers: int = 1, engine: str = "local",
+          ray_address: str | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Score every demo of ``ds`` with ``ckpt`` -- or, with ``ckpt`` None, with the model-free checks alone --
     and flag those whose combined tail probability is at most ``fpr``: the ScoreTable (with the old column
     ``score`` kept for one release) and the summary.  ``actions`` adds the scores that decode every demo (the
@@ -277,7 +289,8 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         raise DemocheckError("without a model every score decodes the demos: --no-actions leaves nothing to score")
     t = dict(timings or {})
     chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
-    ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers)
+    ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers,
+                         engine=engine, ray_address=ray_address)
     table = score_table(ev, fpr)
     for old, new in registry.RENAMED.items():
         if new in table:

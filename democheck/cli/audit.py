@@ -37,6 +37,8 @@ def audit(
     keep_list: Annotated[Optional[Path], typer.Option(help="Also write the unflagged episode indices to this file as [0, 2, 5] (what a dataset-editing tool takes).")] = None,
     drop_list: Annotated[Optional[Path], typer.Option(help="Also write the flagged episode indices to this file as [0, 2, 5], e.g. for lerobot-edit-dataset --operation.type delete_episodes --operation.episode_indices \"$(cat FILE)\".")] = None,
     workers: Annotated[Optional[int], typer.Option(help="Processes for the pass that decodes every demo (default: the machine's cores; small datasets stay in one). The scores are the same for any number.")] = None,
+    engine: Annotated[str, typer.Option(help="Who decodes the demos: local (worker processes on this machine) or ray (Ray Data actors, one CPU each, --workers of them: a local Ray instance, or the cluster at --ray-address; every node needs democheck and the dataset at the same path). Needs pip install 'democheck[ray]'. The scores are the same.")] = "local",
+    ray_address: Annotated[Optional[str], typer.Option(help="With --engine ray: the Ray cluster's address (e.g. ray://head:10001 or auto); default: start a local instance.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:
     """Score every demonstration -- task uncertainty, consistency, action error and model-free checks -- combine
@@ -46,13 +48,16 @@ def audit(
             raise DemocheckError("--top must be at least 1")
         if no_model and model is not None:
             raise DemocheckError("--no-model and --model together: choose one")
+        if ray_address and engine != "ray":
+            raise DemocheckError("--ray-address needs --engine ray")
         from democheck.workflows import audit_dataset
 
         with Bar("audit", "demos") as bar:
             summary = audit_dataset(dataset, out, model=model, top=top, camera=camera, task=task, device=device,
                                     force=force, on_progress=lambda stage, d, n: bar.update(d, n, stage),
                                     actions=actions, fpr=fpr, no_model=no_model, keep_list=keep_list,
-                                    drop_list=drop_list, workers=workers or os.cpu_count() or 1)
+                                    drop_list=drop_list, workers=workers or os.cpu_count() or 1, engine=engine,
+                                    ray_address=ray_address)
     if json_out:
         console.print_json(json.dumps(summary))
     else:
