@@ -10,7 +10,6 @@ demo.  Every node must have democheck installed and read the dataset at the same
 
 from __future__ import annotations
 
-import pickle
 from typing import Any, Callable
 
 import numpy as np
@@ -29,6 +28,14 @@ def _ray():
     return ray
 
 
+class _Held:
+    """One shard's job or result in a Ray dataset's row: an opaque object, which Ray serialises as it serialises
+    any task argument (so nothing is converted to Arrow on the way)."""
+
+    def __init__(self, value: Any):
+        self.value = value
+
+
 class _Decoder:
     """A Ray actor: the model loaded once, then shards decoded one at a time (``run._decode_shard``)."""
 
@@ -40,9 +47,9 @@ class _Decoder:
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         from democheck.audit import run
 
-        results = [run._decode_shard(pickle.loads(blob))[0] for blob in batch["job"]]
+        results = [run._decode_shard(held.value)[0] for held in batch["job"]]
         return {"shard": np.array([r["shard"] for r in results]),
-                "result": np.array([pickle.dumps(r) for r in results], dtype=object)}
+                "result": np.array([_Held(r) for r in results], dtype=object)}
 
 
 def run_shards(jobs: list[tuple], model: str | None, device: str, workers: int, address: str | None,
@@ -65,13 +72,13 @@ def run_shards(jobs: list[tuple], model: str | None, device: str, workers: int, 
         ray.data.DataContext.get_current().enable_progress_bars = False
         sizes = {job[0]: len(job[2]) for job in jobs}
         total, done, out = sum(sizes.values()), 0, []
-        items = [{"job": pickle.dumps(job)} for job in jobs]
+        items = [{"job": _Held(job)} for job in jobs]
         shards = ray.data.from_items(items, override_num_blocks=max(len(items), 1))
         decoded = shards.map_batches(_Decoder, fn_constructor_args=(model, device), batch_size=1,
                                      compute=ray.data.ActorPoolStrategy(size=max(workers, 1)), num_cpus=1)
         for batch in decoded.iter_batches(batch_size=1, batch_format="numpy"):
-            for shard, blob in zip(batch["shard"], batch["result"]):
-                out.append(pickle.loads(blob))
+            for shard, held in zip(batch["shard"], batch["result"]):
+                out.append(held.value)
                 done += sizes[int(shard)]
                 if on_progress:
                     on_progress(done, total)
