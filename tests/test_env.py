@@ -137,3 +137,14 @@ def test_dart_noise_moves_the_arm_off_the_experts_path_and_records_the_experts_a
     assert np.abs(noisy["state"][-1] - clean["state"][-1]).max() > 1e-3  # the noise moved the arm
     again = record_demo(env, MarkovianExpert(env).act, 40, seed=2, action_noise=0.1)
     np.testing.assert_array_equal(again["state"], noisy["state"])  # the same seed, the same noise
+
+
+def test_dart_noise_leaves_a_stopped_arm_still():
+    from democheck.sim.variants import GaveUpPolicy, record_demo
+
+    env = PushEnv(PAIR, image_size=16, render_images=False)
+    policy = GaveUpPolicy(env, expert="markovian")
+    rec = record_demo(env, policy.act, EPISODE_STEPS, seed=1, action_noise=0.2)
+    stopped = np.flatnonzero(~rec["actions"].any(axis=1))
+    assert len(stopped) > 10 and (np.diff(stopped) == 1).all()  # it gave up, and stayed given up
+    assert np.abs(env.data.ctrl).max() == 0.0  # what the arm executed at the end: nothing, no noise

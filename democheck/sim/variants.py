@@ -181,7 +181,8 @@ def record_demo(env, policy: Callable[[], np.ndarray], steps: int, seed: int | N
 
     ``action_noise`` (DART, Laskey et al. 2017): the arm executes the policy's action plus Gaussian noise of
     this standard deviation (normalised torque units, drawn from ``seed``) while the policy's own action is
-    recorded, so the demo shows the way back from where the noise pushed it."""
+    recorded, so the demo shows the way back from where the noise pushed it.  A zero action (nobody driving:
+    a gave-up demo after it stops) is executed as it is."""
 
     obs, info = env.reset(seed=seed, options={"layout": layout} if layout is not None else None)
     noise = np.random.default_rng([0 if seed is None else seed, 0xDA27]) if action_noise > 0 else None
@@ -192,7 +193,10 @@ def record_demo(env, policy: Callable[[], np.ndarray], steps: int, seed: int | N
     for t in range(steps):
         frames[t], state[t], env_state[t] = obs["image"], obs["state"], env.object_state()
         actions[t] = policy()
-        executed = actions[t] if noise is None else actions[t] + noise.normal(0.0, action_noise, actions.shape[1])
+        executed = actions[t]
+        if noise is not None:
+            jitter = noise.normal(0.0, action_noise, actions.shape[1])  # drawn every step: the same stream
+            executed = executed + jitter if executed.any() else executed
         obs, _, _, _, info = env.step(executed)
     return {"frames": frames, "state": state, "env_state": env_state, "actions": actions,
             "success": bool(info["success"]), "layout": env.layout}
