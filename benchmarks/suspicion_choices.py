@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit import scores
+from democheck.audit import scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence, ranking_z
 
 FPRS = (0.001, 0.005, 0.01, 0.02, 0.05)
@@ -80,7 +80,7 @@ def main() -> None:
         labels = table["label"].fillna("clean").to_numpy()
         ev = Evidence(episodes=table[["episode_index", "task"]], scores={c: table[c].to_numpy() for c in table
                                                                          if c in SCORERS})
-        ranked = [n for n, s in SCORERS.items() if s.in_suspicion and n in table]
+        ranked = scorers.ranked(table, table["task"].to_numpy())
         kinds = sorted(set(labels) - {"clean"})
         print(f"\n{path}{' (' + args.only + ')' if args.only else ''}: {len(table)} demos, "
               f"{table['task'].nunique()} tasks, {np.mean(labels != 'clean'):.0%} bad")

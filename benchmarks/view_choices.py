@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit import modelfree, scores
+from democheck.audit import modelfree, scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence, ranking_z
 from democheck.data import open_dataset
 
@@ -52,7 +52,7 @@ def judged(table: pd.DataFrame, view: np.ndarray | None) -> str:
     else:
         cols["view"] = view
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=cols)
-    ranked = [n for n, s in SCORERS.items() if s.in_suspicion and n in cols]
+    ranked = scorers.ranked(cols, table["task"].to_numpy())
     p = 10.0 ** scores.combined_log10(scores.tail_probabilities(ranking_z(ev, ranked)))
     kinds = sorted(set(labels) - {"clean"})
     au = [roc_auc_score(labels[(labels == k) | (labels == "clean")] == k, -p[(labels == k) | (labels == "clean")])

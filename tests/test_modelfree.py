@@ -256,3 +256,25 @@ def test_the_ray_engine_without_ray_says_how_to_get_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray now fails, as where it is not installed
     with pytest.raises(DemocheckError, match=r"pip install 'democheck\[ray\]'"):
         ray_engine.run_shards([], None, "cpu", 2, None)
+
+
+def test_on_one_task_the_ranking_leaves_the_task_embeddings_scores_out():
+    """A dataset of one task: task uncertainty and consistency are scored and reported, not ranked -- a clean
+    demo far from its neighbours there is mostly one on an unusual layout; with two tasks they are ranked."""
+    from democheck.audit.scorers import ranked
+
+    available = ["task_uncertainty", "consistency", "action_error", "motion", "idle", "view"]
+    assert ranked(available, np.array(["push"] * 9)) == ["action_error", "motion", "idle", "view"]
+    assert ranked(available, np.array(["push", "pull"] * 5)) == available
+    rng = np.random.default_rng(2)
+    n = 60
+    scores = {name: rng.normal(0, 1, n) for name in ("motion", "idle", "view")}
+    scores.update(task_uncertainty=rng.exponential(1.0, n), consistency=rng.exponential(1.0, n))
+    scores["consistency"][7] = 1e6  # far from its neighbours, nothing else unusual
+    one = Evidence(episodes=pd.DataFrame({"episode_index": range(n), "task": ["push"] * n}), scores=dict(scores))
+    values, _ = SCORERS["suspicion"].score(one)
+    assert values[7] < 2  # not flagged at --fpr 0.01
+    two = Evidence(episodes=pd.DataFrame({"episode_index": range(n), "task": ["push", "pull"] * (n // 2)}),
+                   scores=dict(scores))
+    values, _ = SCORERS["suspicion"].score(two)
+    assert values[7] == values.max() and values[7] > 5

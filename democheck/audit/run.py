@@ -350,7 +350,11 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
         "exact_copies": 0 if copies is None else int(copies.sum()),
         "reference": "the audited demos themselves: each score's tail is fitted on its middle half, which holds "
                      "if fewer than about a quarter of the demos are bad",
+        "scores": registry.ranked(table, table["task"].to_numpy()),
     }
+    if table["task"].nunique() == 1 and "consistency" in table:
+        out["one_task"] = ("one task: task uncertainty and consistency are reported but not ranked (with no other "
+                           "task to tell apart, a demo far from its neighbours is mostly one on an unusual layout)")
     if "label" in table:
         labels = table["label"].fillna("clean").astype(str).to_numpy()
         clean = labels == "clean"

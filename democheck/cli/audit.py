@@ -88,6 +88,8 @@ def print_audit(summary: dict, out: Path) -> None:
     console.print(table)
     console.print(f"{summary['flagged']} flagged at --fpr {flag['fpr']:g} (about {flag['expected_false_flags']:.1f} "
                   "false flags expected among them)", highlight=False)
+    if flag.get("one_task"):
+        console.print(flag["one_task"], highlight=False)
     for w in summary.get("warnings", []):
         console.print(f"[yellow]warning:[/] {w}", highlight=False)
     for r in summary["top_suspects"][:3]:
