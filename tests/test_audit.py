@@ -294,7 +294,7 @@ class _ZeroController:
 def test_action_error_is_the_controllers_mse_and_ranks_a_planted_flailing_demo_first():
     from types import SimpleNamespace
 
-    from democheck.audit.scorers import action_errors, controller_z
+    from democheck.audit.action_error import action_errors, controller_z
     from democheck.petnet.checkpoint import Normalisation
 
     rng = np.random.default_rng(3)
@@ -315,7 +315,7 @@ def test_action_error_is_the_controllers_mse_and_ranks_a_planted_flailing_demo_f
 
 
 def test_controller_z_is_the_other_demos_posterior_or_the_demos_own():
-    from democheck.audit.scorers import controller_z
+    from democheck.audit.action_error import controller_z
 
     mu = np.array([[0.0], [2.0], [4.0], [9.0]])
     var = np.array([[1.0], [1.0], [1.0], [1.0]])

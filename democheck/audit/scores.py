@@ -22,8 +22,8 @@ Every score is one number per demo, higher = more suspect:
   product-of-Gaussians mean; the demo's own mu for a task's only demo),
   explains what the demo did: the mean squared error, in normalised action
   units, between the demo's actions and the controller's at
-  ``scorers.ACTION_STEPS`` evenly spaced timesteps (computed by
-  ``scorers.ActionErrors`` in the audit's decoding pass).  The cue sees two frames; this sees the
+  ``action_error.ACTION_STEPS`` evenly spaced timesteps (computed by
+  ``action_error.ActionErrors`` in the audit's decoding pass).  The cue sees two frames; this sees the
   behaviour, so it catches an arm that never moved or flailed, or stopped
   half-way, whatever its first and last frames look like.
 - ``suspicion`` (the ranking): how surprising the demo is, all evidence together, as -log10 of a
