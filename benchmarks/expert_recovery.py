@@ -34,9 +34,7 @@ from democheck.evaluate.meta_test import wilson
 from democheck.sim import scene
 from democheck.sim.catalog import make_tasks
 from democheck.sim.env import EPISODE_STEPS, PushEnv
-from democheck.sim.expert import MarkovianExpert, ScriptedExpert
-
-EXPERTS = {"hysteresis": ScriptedExpert, "markovian": MarkovianExpert}
+from democheck.sim.variants import EXPERTS
 CONDITIONS = ("plain", "arm", "object", "both")
 ARM_SD = 0.35
 SHIFT = (0.02, 0.06)

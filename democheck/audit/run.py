@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from democheck.audit import modelfree, scorers as registry
+from democheck.audit.action_error import ACTION_BATCH
 from democheck.audit.scorers import Evidence, Scorer
 from democheck.audit.scores import DEFAULT_FPR, exact_copies, flags, ocsvm_margin, rank_order
 from democheck.data.cache import dataset_fingerprint
@@ -131,7 +132,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
 
 # Demos per shard of a parallel decoding pass: a multiple of the action error's batch, so that every batch the
 # controller sees holds the same demos as in one process (and the numbers are the same).
-SHARD = 4 * registry.ACTION_BATCH
+SHARD = 4 * ACTION_BATCH
 # Below this many shards per worker, starting the workers (each imports torch and loads the model, ~2 s) costs
 # more than it saves: on push-v1, 168 demos took 2.1 s in one process and 3.4 s in two, 768 demos 10.1 s and
 # 7.5 s, 6,048 demos 78.6 s and 47.8 s (identical scores each time; benchmarks/parallel_audit.py).
@@ -352,9 +353,12 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
                      "if fewer than about a quarter of the demos are bad",
         "scores": registry.ranked(table, table["task"].to_numpy()),
     }
-    if table["task"].nunique() == 1 and "consistency" in table:
-        out["one_task"] = ("one task: task uncertainty and consistency are reported but not ranked (with no other "
-                           "task to tell apart, a demo far from its neighbours is mostly one on an unusual layout)")
+    left_out = [n for n, s in registry.SCORERS.items() if s.in_suspicion and not s.in_single_task_ranking
+                and n in table] if table["task"].nunique() == 1 else []
+    if left_out:
+        out["one_task"] = (f"one task: {' and '.join(n.replace('_', ' ') for n in left_out)} are reported but not "
+                           "ranked (with no other task to tell apart, a demo far from its neighbours is mostly one "
+                           "on an unusual layout)")
     if "label" in table:
         labels = table["label"].fillna("clean").astype(str).to_numpy()
         clean = labels == "clean"

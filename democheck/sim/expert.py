@@ -135,9 +135,6 @@ CLEAR = 0.07  # how far from the target's centre the fingertip waits once the ta
 class MarkovianExpert(ScriptedExpert):
     """The same pushing expert with no memory: its action is a function of the simulator's current state."""
 
-    def reset(self) -> None:
-        self.phase = "approach"
-
     def waypoint(self) -> np.ndarray:
         tip = self.env.tip_pos
         obj = self._object_xy()
@@ -146,9 +143,14 @@ class MarkovianExpert(ScriptedExpert):
         dist = math.hypot(*to_goal)
         if dist < AT_GOAL:
             self.phase = "retreat"
-            away = tip[:2] - obj
+            away = tip[:2] - obj  # away from the target, from where the fingertip is (else back along the push)
             n = float(np.linalg.norm(away))
-            away = away / n if n > 1e-3 else -to_goal / max(dist, 1e-9) if dist > 1e-3 else np.array([-1.0, 0.0])
+            if n > 1e-3:
+                away = away / n
+            elif dist > 1e-3:
+                away = -to_goal / dist
+            else:
+                away = np.array([-1.0, 0.0])
             if n >= r + CLEAR - 0.01 or tip[2] > LOW:  # clear of the target (or above it): wait up there
                 return np.array([*(obj + away * (r + CLEAR)), Z_SAFE])
             return np.array([*(tip[:2] + away * 0.03), Z_SAFE])  # back off and up, never across the target

@@ -25,8 +25,8 @@ from democheck.fsutil import atomic_output_dir
 from democheck.sim.catalog import CATALOG_VERSION, make_tasks
 from democheck.sim.env import ACTION_NAMES, ENV_STATE_NAMES, EPISODE_STEPS, STATE_NAMES
 from democheck.sim.scene import FPS, SCENE_VERSION
-from democheck.sim.variants import (DEFECTS, EXPERTS, PLANT_KINDS, PUSHING_KINDS, EnvCache, make_policy, record_demo,
-                                    sim_record)
+from democheck.sim.variants import (DEFECTS, EXPERTS, PLANT_KINDS, EnvCache, action_noise_for, make_policy,
+                                    record_demo, sim_record)
 
 
 @dataclass(frozen=True)
@@ -237,7 +237,7 @@ def _suite_shard(job: tuple[int, int, list[tuple[int, int]]]) -> list[dict[str, 
         tries = r.max_attempts if kind in ("expert", "occluded") and r.steps >= EPISODE_STEPS else 1
         for attempt in range(tries):
             seed = episode_seed(r.seed, episode_index, attempt)
-            noise = r.action_noise if kind in PUSHING_KINDS else 0.0
+            noise = action_noise_for(kind, r.action_noise)
             rec = record_demo(env, make_policy(kind, env, seed, expert=r.expert).act, r.steps, seed=seed,
                               action_noise=noise)
             if rec["success"]:

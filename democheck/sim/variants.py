@@ -31,6 +31,11 @@ from democheck.sim.expert import MarkovianExpert, ScriptedExpert
 BAD_OPERATORS = ("idle", "random")
 # The kinds a scripted expert drives (a recipe's ``action_noise`` perturbs these alone).
 PUSHING_KINDS = ("expert", "occluded", "wrong-object", "gave-up", "both-objects")
+
+
+def action_noise_for(kind: str, action_noise: float) -> float:
+    """The DART noise an episode of ``kind`` is recorded with: the recipe's where the expert drives, else none."""
+    return float(action_noise) if kind in PUSHING_KINDS else 0.0
 DEFECTS = ("wrong-object", "both-objects", "occluded", "gave-up")
 PLANT_KINDS = BAD_OPERATORS + DEFECTS
 PROBES = ("no-action", "random", "no-objects", "hidden")
@@ -225,5 +230,5 @@ def resimulate(envs: EnvCache, sim: dict[str, Any], kind: str | None = None, act
     expert = sim.get("expert", "hysteresis")
     policy = ReplayPolicy(actions) if actions is not None else make_policy(kind, env, seed, expert=expert)
     # Noise only where the expert drives: a probe's still or random arm, or a replay, is what it is.
-    noise = float(sim.get("action_noise", 0.0)) if actions is None and kind in PUSHING_KINDS else 0.0
+    noise = action_noise_for(kind, sim.get("action_noise", 0.0)) if actions is None else 0.0
     return record_demo(env, policy.act, int(sim["steps"]), seed=seed, layout=sim["layout"], action_noise=noise)
