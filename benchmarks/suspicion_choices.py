@@ -88,7 +88,7 @@ def main() -> None:
         sets = {"+".join(ranked): ranked}
         for drop in ranked:
             sets[f"without {drop}"] = [n for n in ranked if n != drop]
-        extra = [n for n in ("jerk", "novelty", "frozen_video", "saturation", "view") if n in table]
+        extra = [n for n in ("jerk", "novelty", "frozen_video", "saturation", "dynamics") if n in table and n not in ranked]
         for name in extra:
             sets[f"with {name}"] = ranked + [name]
         for name, cols in sets.items():

@@ -21,7 +21,8 @@ def _demo(i: int, rng: np.random.Generator, frames: np.ndarray | None = None) ->
     state = np.concatenate([np.cumsum(actions, 0) * 0.05, rng.normal(0, 0.01, (T, S - A))], 1).astype(np.float32)
     if frames is None:
         frames = rng.integers(0, 255, (T, 8, 8, 3), dtype=np.uint8)
-    return Demo(episode_index=i, task="push", frames=frames, state=state, actions=actions)
+    return Demo(episode_index=i, task="push", frames=frames, state=state, actions=actions,
+                extra={"timestamp": np.arange(T) / 20.0})
 
 
 def _planted(kind: str, n: int = 30, seed: int = 0) -> tuple[list[Demo], int]:
@@ -37,6 +38,10 @@ def _planted(kind: str, n: int = 30, seed: int = 0) -> tuple[list[Demo], int]:
         d.actions[::2, 0] = 5.0
     elif kind == "frozen_video":  # the camera stops delivering at frame 30 while the arm goes on
         d.frames[30:] = d.frames[30]
+    elif kind == "dynamics":  # actions recorded against another demo's state
+        d.actions[:] = demos[3].actions
+    elif kind == "timing":  # frames 60-69 dropped: the clock jumps from frame 59 to 60
+        d.extra["timestamp"][60:] += 0.5
     elif kind == "duplicate":  # a bit-exact copy of demo 3
         demos[bad] = Demo(episode_index=bad, task="push", frames=demos[3].frames.copy(),
                           state=demos[3].state.copy(), actions=demos[3].actions.copy())
@@ -78,6 +83,25 @@ def test_jerk_and_saturation_rank_first():
     _ranks_first("jerk")
     ev = _ranks_first("saturation")
     assert "dimension 0" in ev.reasons["saturation"][17]
+
+
+def test_dynamics_ranks_actions_recorded_against_another_demos_state_first():
+    ev = _ranks_first("dynamics")
+    assert "x worse than usual" in ev.reasons["dynamics"][17]
+    assert abs(np.median(ev.scores["dynamics"])) < 0.05  # the usual demo is the unit
+
+
+def test_timing_ranks_the_dropped_frames_first_and_names_the_frame():
+    ev = _ranks_first("timing")
+    assert "first at frame 60" in ev.reasons["timing"][17], ev.reasons["timing"][17]
+    assert np.nanmax(np.delete(ev.scores["timing"], 17)) == 0.0
+    demos, _ = _planted("timing")
+    demos[5].extra["timestamp"][[30, 31]] = demos[5].extra["timestamp"][[31, 30]]  # two frames swapped
+    ev = _evidence(demos, ["timing"])
+    assert "goes back at frame 31" in ev.reasons["timing"][5], ev.reasons["timing"][5]
+    for d in demos:
+        d.extra.clear()
+    assert np.isnan(_evidence(demos, ["timing"]).scores["timing"]).all()  # a format without timestamps
 
 
 def test_frozen_video_ranks_first_and_says_where():
@@ -162,6 +186,8 @@ def test_audit_without_a_model_on_data_the_shipped_model_cannot_read(tmp_path):
         assert any("cannot read this data" in w for w in summary["warnings"]) == (not extra)
         table = pd.read_parquet(out / "scores.parquet")
         assert "task_uncertainty" not in table and {"motion", "idle", "duplicate", "suspicion"} <= set(table)
+        assert (table["timing"] == 0).all()  # LeRobot's writer's timestamps, read through: every step regular
+        assert np.isfinite(table["dynamics"]).all()
         flagged = table.loc[table["is_anomaly"], "episode_index"].tolist()
         assert set(labels[flagged]) - {"clean"} == {"idle", "random", "gave-up", "occluded", "wrong-task"}
         assert (labels[flagged] == "clean").sum() <= 1

@@ -262,8 +262,8 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     assert kinds <= set(doc["kinds"])
     assert list(doc["scorers"]) == ["task_uncertainty", "task_uncertainty_head", "novelty", "consistency",
                                     "action_error", "motion", "idle", "jerk", "saturation", "duplicate",
-                                    "frozen_video", "view", "suspicion", "model_free", "ocsvm_flag", "tecnet_knn",
-                                    "heuristic", "random"]
+                                    "dynamics", "timing", "frozen_video", "view", "suspicion", "model_free",
+                                    "ocsvm_flag", "tecnet_knn", "heuristic", "random"]
     for name, per in doc["scorers"].items():
         for kind in kinds:
             assert set(per[kind]) == {"auroc", "auprc", "p_at_k", "n"}

@@ -258,6 +258,14 @@ def _duplicate(ev: Evidence) -> Scores:
     return modelfree.duplicate(ev.behaviour["actions"], ev.episodes["episode_index"].to_numpy())
 
 
+def _dynamics(ev: Evidence) -> Scores:
+    return modelfree.dynamics(ev.behaviour["actions"])
+
+
+def _timing(ev: Evidence) -> Scores:
+    return modelfree.timing(ev.behaviour["actions"])
+
+
 def _frozen_video(ev: Evidence) -> Scores:
     return modelfree.frozen_video(ev.behaviour["frozen_video"])
 
@@ -334,6 +342,12 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("duplicate", "model-free: how much nearer than usual the nearest other demo's actions are (log "
            "ratio; inf = an exact copy of another demo: actions, state and frames)", ("demos", "many"), _duplicate,
            behaviour="actions", decode=_traces, short="dup."),
+    Scorer("dynamics", "model-free: action-state disagreement -- log of how badly one linear model of all the demos "
+           "predicts the demo's change of state from its state and actions, over the median demo's", ("demos",),
+           _dynamics, behaviour="actions", decode=_traces, short="dyn."),
+    Scorer("timing", "model-free: share of time steps off the dataset's usual one (dropped, repeated or reordered "
+           "frames; NaN without timestamps)", ("demos",), _timing, behaviour="actions", decode=_traces,
+           short="time"),
     Scorer("frozen_video", "model-free: share of steps at which the camera frame repeats while the actions "
            "change (a camera that stopped delivering)", ("demos",), _frozen_video,
            decode=lambda ev, rows, device: modelfree.FrameChanges(), short="frozen"),

@@ -35,13 +35,15 @@ def bench(
         with Bar("bench", "demos") as bar:
             summary = bench_datasets(datasets, out, model=model, tecnet=tecnet, device=device, seed=seed, force=force,
                                      camera=camera, labels=labels, on_progress=lambda stage, d, n: bar.update(d, n, stage))
+    # A row per scorer and a column per kind: there are more scorers than kinds, and rows need not fit 80 columns.
     table = Table(title="AUROC, each kind versus clean (bench.md: AUPRC, precision at k, scorers explained)")
-    table.add_column("kind", no_wrap=True)
-    for name in summary["scorers"]:
-        table.add_column(SCORERS[name].short, justify="right")
+    table.add_column("scorer", no_wrap=True)
     for kind in summary["kinds"]:
-        table.add_row(kind, *[f"{per[kind]['auroc']:.2f}" if per.get(kind, {}).get("auroc") is not None else "n/a"
-                              for per in summary["scorers"].values()])
+        table.add_column(kind, justify="right")
+    for name, per in summary["scorers"].items():
+        table.add_row(SCORERS[name].short, *[f"{per[k]['auroc']:.2f}" if per.get(k, {}).get("auroc") is not None
+                                              else "n/a" for k in summary["kinds"]],
+                      style="bold" if name == "suspicion" else None)
     console.print(table)
     console.print(f"{out}/bench.md, bench.json, bench.rrd (Figures 5A and 5B), scores.parquet")
 

@@ -215,7 +215,7 @@ class _LeRobotBase:
         if path in self._cache:
             self._cache.move_to_end(path)
             return self._cache[path]
-        cols = [self.state_key, self.action_key, "episode_index", "frame_index"]
+        cols = [self.state_key, self.action_key, "episode_index", "frame_index", "timestamp"]
         if ENV_STATE_KEY in self.features:
             cols.append(ENV_STATE_KEY)
         if self.camera_dtype == "image":
@@ -235,6 +235,8 @@ class _LeRobotBase:
             "state": state,
             "actions": actions,
             "env_state": _column_matrix(table, ENV_STATE_KEY, path)[order] if ENV_STATE_KEY in table.column_names else None,
+            "timestamp": (table.column("timestamp").to_numpy().astype(np.float64)[order]
+                          if "timestamp" in table.column_names else None),
             "images": table.column(self.camera).to_pylist() if self.camera_dtype == "image" else None,
             "order": order,
             "ranges": {int(e): (int(s), int(s + c)) for e, s, c in zip(uniq, starts, counts)},
@@ -282,6 +284,7 @@ class _LeRobotBase:
             sim=_sim_record(sim, self.root, episode_index),
             env_state=None if entry["env_state"] is None else entry["env_state"][s:e],
             source_episode=None if src is None or pd.isna(src) or int(src) < 0 else int(src),
+            extra={} if entry["timestamp"] is None else {"timestamp": entry["timestamp"][s:e]},
         )
 
 
