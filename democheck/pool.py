@@ -23,10 +23,60 @@ def _start(progress: Any, init: Callable[..., None], args: tuple) -> None:
     init(*args)
 
 
-def tick() -> None:
-    """One episode done (reported to the parent's progress bar)."""
+def tick(n: int = 1) -> None:
+    """``n`` episodes done (reported to the parent's progress bar)."""
     if state.get("progress") is not None:
-        state["progress"].put(1)
+        state["progress"].put(n)
+
+
+class Workers:
+    """``workers`` spawned processes (each first calls ``init(*args)``), kept for several ``run`` calls -- an
+    audit's cue pass and decoding pass share them, and so the model each one loads.  One worker: this process.
+    Use as a context manager."""
+
+    def __init__(self, workers: int, init: Callable[..., None], args: tuple):
+        self.workers, self._init, self._args = max(int(workers), 1), init, args
+        self._pool: Any = None
+        self._progress: Any = None
+
+    def __enter__(self) -> "Workers":
+        if self.workers <= 1:
+            _start(None, self._init, self._args)
+        else:
+            ctx = mp.get_context("spawn")
+            self._progress = ctx.Queue()
+            self._pool = ctx.Pool(self.workers, initializer=_start, initargs=(self._progress, self._init, self._args))
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+            self._pool = None
+
+    def run(self, jobs: list, shard: Callable[[Any], list[dict[str, Any]]], total: int,
+            on_progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
+        """``shard(job)`` for every job: the rows of all shards, in job order (see ``run_shards``)."""
+        rows: list[dict[str, Any]] = []
+        done = 0
+        if self._pool is None:
+            for job in jobs:
+                rows += shard(job)
+                done += len(job[2])
+                if on_progress:
+                    on_progress(done, total)
+            return rows
+        pending = self._pool.map_async(shard, jobs, chunksize=1)
+        while not pending.ready() or not self._progress.empty():
+            try:
+                done += self._progress.get(timeout=0.2)
+                if on_progress:
+                    on_progress(done, total)
+            except queue_mod.Empty:
+                pass
+        for part in pending.get():
+            rows += part
+        return rows
 
 
 def run_shards(jobs: list, shard: Callable[[Any], list[dict[str, Any]]], init: Callable[..., None], args: tuple,
@@ -36,27 +86,5 @@ def run_shards(jobs: list, shard: Callable[[Any], list[dict[str, Any]]], init: C
     A job is a tuple whose third item lists its episodes.  Each shard writes its own files and returns its
     metadata rows; the rows of all shards are returned, in job order.  One worker runs in this process.
     """
-    rows: list[dict[str, Any]] = []
-    done = 0
-    if workers <= 1:
-        _start(None, init, args)
-        for job in jobs:
-            rows += shard(job)
-            done += len(job[2])
-            if on_progress:
-                on_progress(done, total)
-        return rows
-    ctx = mp.get_context("spawn")
-    progress_q = ctx.Queue()
-    with ctx.Pool(workers, initializer=_start, initargs=(progress_q, init, args)) as pool:
-        pending = pool.map_async(shard, jobs, chunksize=1)
-        while not pending.ready() or not progress_q.empty():
-            try:
-                done += progress_q.get(timeout=0.2)
-                if on_progress:
-                    on_progress(done, total)
-            except queue_mod.Empty:
-                pass
-        for part in pending.get():
-            rows += part
-    return rows
+    with Workers(workers, init, args) as pool:
+        return pool.run(jobs, shard, total, on_progress)

@@ -216,6 +216,35 @@ def test_the_decoding_pass_in_two_worker_processes_gives_the_same_scores(tmp_pat
         assert one[col].equals(two[col]), col
 
 
+def test_both_passes_in_two_worker_processes_give_the_same_scores_with_a_model(tmp_path, monkeypatch, tiny_model):
+    """With a model, the cue pass too runs in the workers (whole batches of cues per shard), and the decoding pass
+    in the same workers: every column -- task uncertainty, consistency, action error, mu, sigma -- as in one
+    process."""
+    from dataclasses import replace
+
+    from democheck.audit import run
+    from democheck.audit.run import audit
+    from democheck.data import open_dataset
+    from democheck.petnet.checkpoint import load_checkpoint
+    from democheck.sim.suite import generate
+    from tests.conftest import TINY
+
+    root = tmp_path / "d"
+    generate(replace(TINY, seed=7, demos_per_task=6, steps=12, defects=(("idle", 1),)), root, workers=1)
+    ds, ckpt = open_dataset(root), load_checkpoint(tiny_model)
+    monkeypatch.setattr(run, "SHARD", 4)  # 24 demos: six decoding shards
+    monkeypatch.setattr(run, "CUE_SHARD", 8)  # and three cue shards (the batch stays whole below them)
+    monkeypatch.setattr(run, "CUE_BATCH", 4)
+    calls = []
+    monkeypatch.setattr(run, "_cue_shard", lambda job, real=run._cue_shard: calls.append(job[0]) or real(job))
+    one, _ = audit(ds, ckpt, workers=1)
+    assert not calls  # one process: no shards
+    two, _ = audit(ds, ckpt, workers=2)
+    assert {"task_uncertainty", "consistency", "action_error", "mu", "sigma"} <= set(two)
+    for col in one.columns:
+        assert one[col].equals(two[col]), col
+
+
 def _scene(rng: np.random.Generator, card: bool = False) -> np.ndarray:
     """A fixed camera on a textured table, an arm (a bright square) sweeping across it, sensor noise; ``card``
     covers the top left 45% of the view with a grey card all episode."""
@@ -247,9 +276,9 @@ def test_view_ranks_the_covered_camera_first_and_says_where():
     assert int(np.argmax(ev.scores["view"])) == 17 and np.abs(np.delete(ev.scores["view"], 17)).max() < 3
 
 
-def test_the_ray_engine_gives_the_local_engines_scores(tmp_path, monkeypatch):
-    """``--engine ray`` on a local 2-CPU Ray instance: the same shards decoded by Ray Data actors, every score as
-    the local engine's; without Ray the option says how to get it."""
+def test_the_ray_engine_gives_the_local_engines_scores(tmp_path, monkeypatch, tiny_model):
+    """``--engine ray`` on a local 2-CPU Ray instance: the same cue and decoding shards run by Ray Data actors,
+    every score as the local engine's in one process."""
     import pytest
 
     pytest.importorskip("ray.data")
@@ -258,15 +287,19 @@ def test_the_ray_engine_gives_the_local_engines_scores(tmp_path, monkeypatch):
     from democheck.audit import run
     from democheck.audit.run import audit
     from democheck.data import open_dataset
+    from democheck.petnet.checkpoint import load_checkpoint
     from democheck.sim.suite import generate
     from tests.conftest import TINY
 
     root = tmp_path / "d"
     generate(replace(TINY, seed=6, demos_per_task=6, steps=16, defects=(("idle", 1),)), root, workers=1)
-    ds = open_dataset(root)
-    monkeypatch.setattr(run, "SHARD", 8)  # 24 demos: three shards
-    local, _ = audit(ds, None, workers=1)
-    on_ray, _ = audit(ds, None, workers=2, engine="ray")
+    ds, ckpt = open_dataset(root), load_checkpoint(tiny_model)
+    monkeypatch.setattr(run, "SHARD", 8)  # 24 demos: three decoding shards
+    monkeypatch.setattr(run, "CUE_SHARD", 8)  # three cue shards of two whole batches
+    monkeypatch.setattr(run, "CUE_BATCH", 4)
+    local, _ = audit(ds, ckpt, workers=1)
+    on_ray, _ = audit(ds, ckpt, workers=2, engine="ray")
+    assert {"task_uncertainty", "action_error", "idle"} <= set(on_ray)
     for col in local.columns:
         assert local[col].equals(on_ray[col]), col
 

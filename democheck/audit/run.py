@@ -10,8 +10,9 @@ into a report folder (tables, summary, Rerun recording).
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import pandas as pd
@@ -48,10 +49,20 @@ def for_model(ds: DemoSet, ckpt: Checkpoint) -> DemoSet:
     return ds.resized(cfg.image_size)
 
 
-def cue_posteriors(ds: DemoSet, model, device, batch: int = 256,
-                   on_progress: Callable[[int, int], None] | None = None) -> TaskPosterior:
-    """The task posterior of every demo's cue, in ``ds.episode_indices`` order."""
+CUE_BATCH = 256  # cues encoded at a time
+
+
+def cue_posteriors(ds: DemoSet, model, device, batch: int | None = None,
+                   on_progress: Callable[[int, int], None] | None = None, runner: Any = None) -> TaskPosterior:
+    """The task posterior of every demo's cue, in ``ds.episode_indices`` order; with ``runner`` (``_runner``:
+    worker processes or Ray actors holding the same model) in shards of ``CUE_SHARD`` demos, the same numbers."""
     eps = ds.episode_indices
+    if runner is not None and eps:
+        jobs = [(i, {"pass": "cues", **_where(ds)}, eps[s:s + CUE_SHARD])
+                for i, s in enumerate(range(0, len(eps), CUE_SHARD))]
+        got = sorted(runner.run(jobs, len(eps), on_progress), key=lambda r: r["shard"])
+        return TaskPosterior.concat([r["post"] for r in got])
+    batch = batch or CUE_BATCH
     parts = []
     for s in range(0, len(eps), batch):
         parts.append(encode(model, ds.cue_frames_many(eps[s:s + batch]), device))
@@ -79,9 +90,11 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
     each scorer.
 
     ``episodes``: the pooled demos' table (default: the datasets' episode tables one after the other).
-    ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).  ``workers`` > 1 decodes in that
-    many spawned processes (``parallel_decoding``), with the same results; ``engine`` "ray" decodes in that many
-    Ray actors (``ray_engine``) on the cluster at ``ray_address`` (default: a local instance), the same again.
+    ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).  ``workers`` > 1 runs both passes
+    of datasets large enough (``PARALLEL_MIN_SHARDS``) in that many spawned processes, started once for both
+    (``_runner``), with the same results; ``engine`` "ray" runs them in that many Ray actors (``ray_engine``) on
+    the cluster at ``ray_address`` (default: a local instance), the same again.  The TecNets baseline's cue pass
+    (bench only) stays in this process.
     """
     if engine not in ENGINES:
         raise DemocheckError(f"--engine {engine!r}: one of {', '.join(ENGINES)}")
@@ -90,49 +103,53 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
     def stage(name: str, ds: DemoSet) -> Callable[[int, int], None] | None:
         return (lambda d, n: on_progress(f"{name} {ds.root.name}", d, n)) if on_progress else None
 
-    t0 = time.perf_counter()
-    post = None
-    if ckpt is not None:
-        post = TaskPosterior.concat([cue_posteriors(ds, ckpt.model, device, on_progress=stage("PETNet", ds))
-                                     for ds in sets])
-    embedding = None
-    if tecnet is not None:
-        embedding = np.concatenate([cue_posteriors(ds, tecnet.model, device, on_progress=stage("TecNets", ds)).mu
-                                    for ds in sets])
-    t["score_s"] = time.perf_counter() - t0
-    if episodes is None:
-        episodes = pd.concat([ds.episodes.reset_index() for ds in sets], ignore_index=True)
-    ev = Evidence(episodes=episodes, posterior=post, model=ckpt, embedding=embedding, seed=seed)
-    decoding = {}
-    for s in scorers:  # scorers that share a behaviour key share its consumer
-        if s.can_decode(ev):
-            decoding.setdefault(s.source, s)
-    if decoding:
-        t1 = time.perf_counter()
-        parts: dict[str, list] = {key: [] for key in decoding}
-        start = 0
-        for ds in sets:
-            rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
-            progress = stage("decoding" if ckpt is None else "actions", ds)
-            if engine == "ray" or workers > 1 and len(ds) >= PARALLEL_MIN_SHARDS * SHARD * workers:
-                for key, got in parallel_decoding(ds, ev, rows, decoding, device, workers, progress, engine,
-                                                  ray_address).items():
-                    parts[key].append(got)
-            else:
-                consumers = _consumers(decoding.values(), ev, rows, device)
-                decoding_pass(ds, list(consumers.values()), progress)
-                for key, consumer in consumers.items():
-                    parts[key].append(consumer.finish())
-            start += len(ds)
-        for key, got in parts.items():
-            ev.behaviour[key] = _concat(got)
-        t["actions_s"] = time.perf_counter() - t1
+    model = str(ckpt.path) if ckpt is not None else None
+    parallel = engine == "ray" or workers > 1 and any(len(ds) >= PARALLEL_MIN_SHARDS * SHARD * workers for ds in sets)
+    with _runner(parallel, engine, workers, model, str(device), ray_address) as runner:
+        t0 = time.perf_counter()
+        post = None
+        if ckpt is not None:
+            post = TaskPosterior.concat([cue_posteriors(ds, ckpt.model, device, on_progress=stage("PETNet", ds),
+                                                        runner=runner) for ds in sets])
+        embedding = None
+        if tecnet is not None:
+            embedding = np.concatenate([cue_posteriors(ds, tecnet.model, device, on_progress=stage("TecNets", ds)).mu
+                                        for ds in sets])
+        t["score_s"] = time.perf_counter() - t0
+        if episodes is None:
+            episodes = pd.concat([ds.episodes.reset_index() for ds in sets], ignore_index=True)
+        ev = Evidence(episodes=episodes, posterior=post, model=ckpt, embedding=embedding, seed=seed)
+        decoding = {}
+        for s in scorers:  # scorers that share a behaviour key share its consumer
+            if s.can_decode(ev):
+                decoding.setdefault(s.source, s)
+        if decoding:
+            t1 = time.perf_counter()
+            parts: dict[str, list] = {key: [] for key in decoding}
+            start = 0
+            for ds in sets:
+                rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
+                progress = stage("decoding" if ckpt is None else "actions", ds)
+                if runner is not None:
+                    for key, got in parallel_decoding(ds, ev, rows, decoding, runner, progress).items():
+                        parts[key].append(got)
+                else:
+                    consumers = _consumers(decoding.values(), ev, rows, device)
+                    decoding_pass(ds, list(consumers.values()), progress)
+                    for key, consumer in consumers.items():
+                        parts[key].append(consumer.finish())
+                start += len(ds)
+            for key, got in parts.items():
+                ev.behaviour[key] = _concat(got)
+            t["actions_s"] = time.perf_counter() - t1
     return registry.compute(ev, scorers)
 
 
 # Demos per shard of a parallel decoding pass: a multiple of the action error's batch, so that every batch the
 # controller sees holds the same demos as in one process (and the numbers are the same).
 SHARD = 4 * ACTION_BATCH
+# Cues per shard of a parallel cue pass: whole batches of ``CUE_BATCH``, as one process encodes them.
+CUE_SHARD = 4 * CUE_BATCH
 # Below this many shards per worker, starting the workers (each imports torch and loads the model, ~2 s) costs
 # more than it saves: on push-v1, 168 demos took 2.1 s in one process and 3.4 s in two, 768 demos 10.1 s and
 # 7.5 s, 6,048 demos 78.6 s and 47.8 s (identical scores each time; benchmarks/parallel_audit.py).
@@ -140,28 +157,52 @@ PARALLEL_MIN_SHARDS = 2
 ENGINES = ("local", "ray")
 
 
-def parallel_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str, Scorer], device: Any, workers: int,
-                      on_progress: Callable[[int, int], None] | None = None, engine: str = "local",
-                      ray_address: str | None = None) -> dict[str, Any]:
-    """The decoding pass of ``ds`` (its rows ``rows`` of the evidence) in ``workers`` spawned processes: each
-    decodes shards of ``SHARD`` consecutive demos with its own copy of the model; what a consumer keeps per demo
-    (``modelfree.PerDemo``) is merged before it finishes, what it finishes per demo is pooled after."""
-    from democheck import pool
-
-    eps = ds.episode_indices
-    z = ev.task_variables()[rows] if ev.posterior is not None else None
-    jobs = [(i, {"root": str(ds.root), "camera": ds.camera, "image_size": ds.image_size,
-                 "tasks": ds.episodes.loc[eps[s:s + SHARD], "task"].tolist(), "names": [x.name for x in decoding.values()],
-                 "z": None if z is None else z[s:s + SHARD]}, eps[s:s + SHARD])
-            for i, s in enumerate(range(0, len(eps), SHARD))]
-    model = str(ev.model.path) if ev.model is not None else None
-    if engine == "ray":
+@contextmanager
+def _runner(parallel: bool, engine: str, workers: int, model: str | None, device: str, ray_address: str | None
+            ) -> Iterator[Any]:
+    """What runs an audit's shards, started once for its cue pass and its decoding pass: ``workers`` spawned
+    processes (``pool.Workers``), Ray actors (``ray_engine.Session``), or None (this process, shard-free)."""
+    if not parallel:
+        yield None
+    elif engine == "ray":
         from democheck.audit import ray_engine
 
-        got = ray_engine.run_shards(jobs, model, str(device), workers, ray_address, on_progress)
+        with ray_engine.Session(model, device, workers, ray_address) as session:
+            yield session
     else:
-        got = pool.run_shards(jobs, _decode_shard, _decode_init, (model, str(device)), workers, len(eps), on_progress)
-    got = sorted(got, key=lambda r: r["shard"])
+        from democheck import pool
+
+        with pool.Workers(workers, _decode_init, (model, device)) as local:
+            yield _Local(local)
+
+
+class _Local:
+    """``pool.Workers`` running the audit's shards (``_run_shard``), as ``ray_engine.Session`` runs them."""
+
+    def __init__(self, workers: Any):
+        self.workers = workers
+
+    def run(self, jobs: list, total: int, on_progress: Callable[[int, int], None] | None = None) -> list:
+        return self.workers.run(jobs, _run_shard, total, on_progress)
+
+
+def _where(ds: DemoSet) -> dict[str, Any]:
+    """How a worker opens ``ds`` as this process reads it."""
+    return {"root": str(ds.root), "camera": ds.camera, "image_size": ds.image_size}
+
+
+def parallel_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str, Scorer], runner: Any,
+                      on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """The decoding pass of ``ds`` (its rows ``rows`` of the evidence) by ``runner``'s workers: each decodes
+    shards of ``SHARD`` consecutive demos with its own copy of the model; what a consumer keeps per demo
+    (``modelfree.PerDemo``) is merged before it finishes, what it finishes per demo is pooled after."""
+    eps = ds.episode_indices
+    z = ev.task_variables()[rows] if ev.posterior is not None else None
+    jobs = [(i, {"pass": "decode", **_where(ds), "tasks": ds.episodes.loc[eps[s:s + SHARD], "task"].tolist(),
+                 "names": [x.name for x in decoding.values()], "z": None if z is None else z[s:s + SHARD]},
+             eps[s:s + SHARD])
+            for i, s in enumerate(range(0, len(eps), SHARD))]
+    got = sorted(runner.run(jobs, len(eps), on_progress), key=lambda r: r["shard"])
     out = {}
     for key, s in decoding.items():
         parts = [r["parts"][key] for r in got]
@@ -189,16 +230,40 @@ def _decode_init(model: str | None, device: str) -> None:
     pool.state.update(ckpt=load_checkpoint(model, device=device) if model else None, device=device, sets={})
 
 
-def _decode_shard(job: tuple) -> list[dict[str, Any]]:
+def _run_shard(job: tuple) -> list[dict[str, Any]]:
+    """One shard of either pass, in a worker (``_decode_init`` ran first)."""
+    return (_cue_shard if job[1]["pass"] == "cues" else _decode_shard)(job)
+
+
+def _opened(spec: dict[str, Any]) -> DemoSet:
+    """The dataset a shard's ``spec`` names (``_where``), opened once per worker."""
     from democheck import pool
     from democheck.data import open_dataset
 
-    index, spec, eps = job
     key = (spec["root"], spec["camera"], spec["image_size"])
     sets = pool.state["sets"]
     if key not in sets:
         sets[key] = open_dataset(spec["root"], camera=spec["camera"]).resized(spec["image_size"])
-    ds = sets[key]
+    return sets[key]
+
+
+def _cue_shard(job: tuple) -> list[dict[str, Any]]:
+    from democheck import pool
+
+    index, spec, eps = job
+    ds, ckpt = _opened(spec), pool.state["ckpt"]
+    parts = []
+    for s in range(0, len(eps), CUE_BATCH):
+        parts.append(encode(ckpt.model, ds.cue_frames_many(eps[s:s + CUE_BATCH]), pool.state["device"]))
+        pool.tick(len(parts[-1]))
+    return [{"shard": index, "post": TaskPosterior.concat(parts)}]
+
+
+def _decode_shard(job: tuple) -> list[dict[str, Any]]:
+    from democheck import pool
+
+    index, spec, eps = job
+    ds = _opened(spec)
     ev = Evidence(episodes=pd.DataFrame({"episode_index": eps, "task": spec["tasks"]}), model=pool.state["ckpt"])
     ev._z = spec["z"]
     consumers = _consumers([registry.SCORERS[n] for n in spec["names"]], ev, slice(0, len(eps)), pool.state["device"])
