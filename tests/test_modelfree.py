@@ -22,7 +22,7 @@ def _demo(i: int, rng: np.random.Generator, frames: np.ndarray | None = None) ->
     if frames is None:
         frames = rng.integers(0, 255, (T, 8, 8, 3), dtype=np.uint8)
     return Demo(episode_index=i, task="push", frames=frames, state=state, actions=actions,
-                extra={"timestamp": np.arange(T) / 20.0})
+                extra={"timestamp": np.arange(T) / 20.0, "fps": 20.0})
 
 
 def _planted(kind: str, n: int = 30, seed: int = 0) -> tuple[list[Demo], int]:

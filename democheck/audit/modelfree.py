@@ -22,14 +22,16 @@ held shut, counts in units of 1% of the busiest dimension's, so it cannot make a
   under ``FROZEN_LEVEL``) while the actions change: a camera that stopped delivering while the arm moved.
 - ``saturation``: the share of steps at which some action dimension sits at its smallest or largest value over
   all the demos (a command clipped at its limit).
-- ``dynamics``: how badly the demo's state follows its actions (action-state disagreement): one ridge
-  regression, fitted on all the demos' steps, predicts each step's change of state from the state and the
-  last two actions; the score is the log of the demo's mean squared prediction error over the demos' median.
-  A robot held, blocked or pushed by something it met, an arm that did not answer its commands, or actions
-  recorded against another demo's state or shifted in time.
+- ``dynamics``: how badly the demo's state follows its actions (action-state disagreement): a ridge
+  regression predicts each step's change of state from the state and the last two actions, fitted on the
+  steps of each block of ``DYNAMICS_BLOCK`` consecutive demos (so memory does not grow with the dataset, and
+  the blocks are the parallel decoding pass's shards: the same numbers with any number of workers); the score
+  is the log of the demo's mean squared prediction error over the median demo's.  A robot held, blocked or
+  pushed by something it met, an arm that did not answer its commands, or actions recorded against another
+  demo's state or shifted in time.
 - ``timing``: the share of a demo's time steps (the ``timestamp`` column, where the format has one) that are
-  not the dataset's usual step -- off by more than ``TIMING_TOLERANCE`` of it, or not forward at all: dropped,
-  repeated or reordered frames.  NaN where the dataset records no timestamps.
+  not the dataset's frame period (1 / fps) -- off by more than ``TIMING_TOLERANCE`` of it, or not forward at
+  all: dropped, repeated or reordered frames.  NaN where the dataset records no timestamps.
 - ``duplicate``: how close the demo's actions come to another demo's: the log of the median nearest-neighbour
   distance over this demo's, the actions resampled to ``DUPLICATE_STEPS`` steps and put in each dimension's
   standard deviation; an exact copy (the same actions, state and frames, bit for bit) is named as such.
@@ -49,7 +51,7 @@ STILL = 0.05  # a step is still when its change of action is under 5% of the med
 FROZEN_LEVEL = 0.1  # grey levels (0-255): a frame this close to the previous one repeats it
 DUPLICATE_STEPS = 32
 DYNAMICS_RIDGE = 1e-3  # ridge penalty per step, on standardised features: a near-constant feature cannot blow up
-DYNAMICS_FIT_ROWS = 200_000  # the regression is fitted on at most this many steps, evenly strided
+DYNAMICS_BLOCK = 128  # demos per fit of the dynamics check (= the audit's decoding shard, ``run.SHARD``)
 DYNAMICS_WINDOW = 10  # the reason names the stretch of this many steps the state follows the actions worst
 TIMING_TOLERANCE = 0.5  # a time step off the usual one by more than half of it is irregular
 IDLE_MIN_SCALE = 0.05  # a robust standard deviation of the idle share stands for at least 5% of the steps
@@ -102,22 +104,19 @@ class PerDemo:
 
 
 class ActionTraces(PerDemo):
-    """Consumer of decoded demos: each demo's actions, state, timestamps (None where the format has none) and a
-    fingerprint of its actions, state and frames, kept for the action checks (``idle``, ``jerk``,
-    ``saturation``, ``duplicate``, ``dynamics``, ``timing``), which need the scales of all the demos."""
+    """Consumer of decoded demos: each demo's actions, a fingerprint of its actions, state and frames, and its
+    ``timing``, kept for the action checks (``idle``, ``jerk``, ``saturation``, ``duplicate``, ``timing``),
+    which need the scales of all the demos."""
 
-    fields = ("actions", "states", "times", "digests")
+    fields = ("actions", "digests", "timing")
     actions: list[np.ndarray]
-    states: list[np.ndarray]
-    times: list[np.ndarray | None]
     digests: list[str]
+    timing: list[tuple[float, str]]
 
     def add(self, demo: Demo) -> None:
         a = np.asarray(demo.actions, np.float32)
         self.actions.append(a)
-        self.states.append(np.asarray(demo.state, np.float32))
-        t = demo.extra.get("timestamp")
-        self.times.append(None if t is None else np.asarray(t, np.float64))
+        self.timing.append(_timing_of(demo.extra.get("timestamp"), demo.extra.get("fps")))
         h = hashlib.blake2b(digest_size=16)
         for x in (a, np.asarray(demo.state, np.float32), demo.frames):
             h.update(np.ascontiguousarray(x).tobytes())
@@ -218,67 +217,118 @@ def _dynamics_features(state: np.ndarray, actions: np.ndarray) -> np.ndarray:
     return np.column_stack([s[:-1], a[:-1], before[:-1]])
 
 
-def dynamics(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
-    """log(mean squared error of the pooled linear prediction of each step's change of state / the demos'
-    median of that), and the stretch of ``DYNAMICS_WINDOW`` steps it is worst over."""
-    n = len(traces.actions)
-    out, reasons = np.full(n, np.nan), ["too short"] * n
-    usable = [i for i in range(n) if len(traces.actions[i]) >= 3]
-    if len(usable) < 2:
-        return out, reasons
-    x = np.concatenate([_dynamics_features(traces.states[i], traces.actions[i]) for i in usable])
-    y = np.concatenate([np.diff(traces.states[i].astype(np.float64), axis=0) for i in usable])
-    fit = slice(None, None, max(1, len(x) // DYNAMICS_FIT_ROWS))
-    x_mean, x_sd, y_sd = x[fit].mean(0), x[fit].std(0), y[fit].std(0)
+def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray]) -> list[np.ndarray | None]:
+    """Per demo of one block, the squared error of each step's predicted change of state (mean over the state
+    dimensions that move, each in its standard deviation over the block), from one ridge regression fitted on
+    the block's steps; None for a demo under 3 steps, and for all when the state never changes."""
+    usable = [i for i, a in enumerate(actions) if len(a) >= 3]
+    out: list[np.ndarray | None] = [None] * len(actions)
+    if not usable:
+        return out
+    x = np.concatenate([_dynamics_features(states[i], actions[i]) for i in usable])
+    y = np.concatenate([np.diff(states[i].astype(np.float64), axis=0) for i in usable])
+    x_mean, x_sd, y_sd = x.mean(0), x.std(0), y.std(0)
     xs, ys = x_sd > 1e-6 * max(float(x_sd.max()), 1e-12), y_sd > 1e-6 * max(float(y_sd.max()), 1e-12)
     if not ys.any():  # the state never changes: there is nothing to follow
-        return np.zeros(n), ["the state never changes"] * n
-    xn = (x[fit][:, xs] - x_mean[xs]) / x_sd[xs]
-    yn = y[fit][:, ys] / y_sd[ys]
+        return out
+    xn = (x[:, xs] - x_mean[xs]) / x_sd[xs]
+    yn = y[:, ys] / y_sd[ys]
     y_mean = yn.mean(0)
     w = np.linalg.solve(xn.T @ xn + DYNAMICS_RIDGE * len(xn) * np.eye(xn.shape[1]), xn.T @ (yn - y_mean))
-    per_step = {}
+    start = 0
     for i in usable:
-        f = (_dynamics_features(traces.states[i], traces.actions[i])[:, xs] - x_mean[xs]) / x_sd[xs]
-        err = f @ w + y_mean - np.diff(traces.states[i].astype(np.float64), axis=0)[:, ys] / y_sd[ys]
-        per_step[i] = (err ** 2).mean(1)
-    typical = max(float(np.median([e.mean() for e in per_step.values()])), 1e-12)
-    for i, e in per_step.items():
-        out[i] = float(np.log(max(e.mean(), 1e-12) / typical))
-        width = min(DYNAMICS_WINDOW, len(e))
-        window = np.convolve(e, np.ones(width) / width, mode="valid")
-        start = int(np.argmax(window))
-        reasons[i] = (f"the state follows the actions {e.mean() / typical:.2g} x worse than usual; worst over "
-                      + _steps_text(start, start + width, len(e) + 1))
+        n = len(actions[i]) - 1
+        out[i] = ((xn[start:start + n] @ w + y_mean - yn[start:start + n]) ** 2).mean(1)
+        start += n
+    return out
+
+
+class DynamicsFit(PerDemo):
+    """Consumer of decoded demos for ``dynamics``: each block of ``DYNAMICS_BLOCK`` demos is fitted as soon as
+    it is complete; per demo only its mean error and its worst stretch are kept."""
+
+    fields = ("errors", "worst", "states", "actions")
+    errors: list[float]  # per fitted demo: mean squared error (NaN: not scored)
+    worst: list[tuple[int, int, int]]  # per fitted demo: start, width of its worst stretch, its steps
+    states: list[np.ndarray]  # the block not fitted yet
+    actions: list[np.ndarray]
+
+    def add(self, demo: Demo) -> None:
+        self.states.append(np.asarray(demo.state, np.float32))
+        self.actions.append(np.asarray(demo.actions, np.float32))
+        self._fit_full_blocks()
+
+    def _fit_full_blocks(self, partial: bool = False) -> None:
+        while len(self.actions) >= DYNAMICS_BLOCK or partial and self.actions:
+            block = slice(0, DYNAMICS_BLOCK)
+            for e in _dynamics_errors(self.states[block], self.actions[block]):
+                if e is None:
+                    self.errors.append(np.nan)
+                    self.worst.append((0, 0, 0))
+                    continue
+                width = min(DYNAMICS_WINDOW, len(e))
+                start = int(np.argmax(np.convolve(e, np.ones(width) / width, mode="valid")))
+                self.errors.append(float(e.mean()))
+                self.worst.append((start, width, len(e)))
+            del self.states[block], self.actions[block]
+
+    @classmethod
+    def merged(cls, parts: list["PerDemo"]) -> "DynamicsFit":
+        """The shards' fits in order, and their waiting demos fitted in blocks as they fill up -- what one
+        consumer fed every demo would hold, as long as each shard's blocks line up with the whole's."""
+        out = cls()
+        for part in parts:
+            if part.errors and out.actions:
+                raise ValueError("the dynamics check's blocks do not line up with the decoding shards: a shard "
+                                 f"must hold a multiple of {DYNAMICS_BLOCK} demos, or fewer")
+            out.errors += part.errors
+            out.worst += part.worst
+            out.states += part.states
+            out.actions += part.actions
+            out._fit_full_blocks()
+        return out
+
+    def finish(self) -> "DynamicsFit":
+        self._fit_full_blocks(partial=True)
+        return self
+
+
+def dynamics(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
+    """log(each demo's mean squared error of its block's linear prediction of the change of state / the
+    demos' median of that), and the stretch of ``DYNAMICS_WINDOW`` steps it is worst over."""
+    errors = np.asarray(fit.errors, np.float64)
+    ok = np.isfinite(errors)
+    if not ok.any():
+        return np.full(len(errors), np.nan), ["the state never changes, or too short"] * len(errors)
+    typical = max(float(np.median(errors[ok])), 1e-12)
+    out = np.where(ok, np.log(np.maximum(errors, 1e-12) / typical), np.nan)
+    reasons = [f"the state follows the actions {e / typical:.2g} x worse than usual; worst over "
+               + _steps_text(start, start + width, n + 1) if good else "too short, or a state that never changes"
+               for e, good, (start, width, n) in zip(errors, ok, fit.worst)]
     return out, reasons
+
+
+def _timing_of(t: np.ndarray | None, fps: float | None) -> tuple[float, str]:
+    """``timing`` of one demo: the share of its time steps off the frame period (see the module docstring)."""
+    if t is None or not fps:
+        return np.nan, "no timestamps"
+    if len(t) < 2:
+        return 0.0, "a single frame"
+    period = 1.0 / float(fps)
+    dt = np.diff(np.asarray(t, np.float64))
+    off = (np.abs(dt - period) > TIMING_TOLERANCE * period) | (dt <= 0)
+    if not off.any():
+        return 0.0, "regular time steps"
+    first = int(np.argmax(off))
+    back = np.flatnonzero(dt <= 0)
+    return float(off.mean()), (f"{100 * off.mean():.0f}% of time steps off the frame period ({period:.3g} s), "
+                               f"first at frame {first + 1}: {dt[first]:.3g} s"
+                               + (f"; time stands still or goes back at frame {int(back[0]) + 1}" if len(back) else ""))
 
 
 def timing(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
-    """Share of each demo's time steps off the dataset's usual step (see the module docstring), and where."""
-    n = len(traces.times)
-    out, reasons = np.full(n, np.nan), ["no timestamps"] * n
-    steps = [np.diff(t) for t in traces.times if t is not None and len(t) > 1]
-    if not steps:
-        return out, reasons
-    usual = float(np.median(np.concatenate(steps)))
-    for i, t in enumerate(traces.times):
-        if t is None:
-            continue
-        if len(t) < 2:
-            out[i], reasons[i] = 0.0, "a single frame"
-            continue
-        dt = np.diff(t)
-        off = (np.abs(dt - usual) > TIMING_TOLERANCE * abs(usual)) | (dt <= 0)
-        out[i] = float(off.mean())
-        if not off.any():
-            reasons[i] = "regular time steps"
-            continue
-        first = int(np.argmax(off))
-        back = np.flatnonzero(dt <= 0)
-        reasons[i] = (f"{100 * out[i]:.0f}% of time steps irregular (usual {usual:.3g} s), first at frame "
-                      f"{first + 1}: {dt[first]:.3g} s" + (f"; time stands still or goes back at frame {int(back[0]) + 1}"
-                                                          if len(back) else ""))
-    return out, reasons
+    """Share of each demo's time steps off the frame period (see the module docstring), and where."""
+    return np.array([v for v, _ in traces.timing], np.float64), [r for _, r in traces.timing]
 
 
 class FrameChanges(PerDemo):

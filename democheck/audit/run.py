@@ -146,7 +146,8 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
 
 
 # Demos per shard of a parallel decoding pass: a multiple of the action error's batch, so that every batch the
-# controller sees holds the same demos as in one process (and the numbers are the same).
+# controller sees holds the same demos as in one process (and the numbers are the same), and of the dynamics
+# check's block (``modelfree.DYNAMICS_BLOCK``), for the same reason.
 SHARD = 4 * ACTION_BATCH
 # Cues per shard of a parallel cue pass: whole batches of ``CUE_BATCH``, as one process encodes them.
 CUE_SHARD = 4 * CUE_BATCH

@@ -284,7 +284,7 @@ class _LeRobotBase:
             sim=_sim_record(sim, self.root, episode_index),
             env_state=None if entry["env_state"] is None else entry["env_state"][s:e],
             source_episode=None if src is None or pd.isna(src) or int(src) < 0 else int(src),
-            extra={} if entry["timestamp"] is None else {"timestamp": entry["timestamp"][s:e]},
+            extra={} if entry["timestamp"] is None else {"timestamp": entry["timestamp"][s:e], "fps": self.fps},
         )
 
 
