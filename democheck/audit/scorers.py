@@ -358,10 +358,12 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty, "
            "consistency, action error (log), motion, idle, dynamics and view (one task: the last five), each in "
-           "robust standard deviations within its task (2 = as unusual as 1 clean demo in 100)", ("scores",), _suspicion,
+           "robust standard deviations within its task (2 = as unusual as 1 clean demo in 100)", ("scores",),
+           _suspicion,
            short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
-           "dynamics, view): what democheck says with no model", ("scores",), _model_free, in_audit=False, short="no-model"),
+           "dynamics, view): what democheck says with no model", ("scores",), _model_free, in_audit=False,
+           short="no-model"),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),
     Scorer("tecnet_knn", "TecNets embedding: mean distance to the 5 nearest other demos of the task", ("tecnet",),
