@@ -344,7 +344,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            behaviour="actions", decode=_traces, short="dup."),
     Scorer("dynamics", "model-free: action-state disagreement -- log of how badly a linear model of its block of "
            f"{modelfree.DYNAMICS_BLOCK} demos predicts the demo's change of state from its state and actions, "
-           "over the median demo's", ("demos",), _dynamics,
+           "over the median demo's", ("demos",), _dynamics, in_suspicion=True,
            decode=lambda ev, rows, device: modelfree.DynamicsFit(), short="dyn."),
     Scorer("timing", "model-free: share of time steps off the frame period 1/fps (dropped, repeated or reordered "
            "frames; NaN without timestamps)", ("demos",), _timing, behaviour="actions", decode=_traces,
