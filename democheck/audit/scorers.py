@@ -344,7 +344,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            behaviour="actions", decode=_traces, short="dup."),
     Scorer("dynamics", "model-free: action-state disagreement -- log of how badly a linear model of its block of "
            f"{modelfree.DYNAMICS_BLOCK} demos predicts the demo's change of state from its state and actions, "
-           "over the median demo's", ("demos",), _dynamics, in_suspicion=True,
+           "over the median demo's", ("demos",), _dynamics,
            decode=lambda ev, rows, device: modelfree.DynamicsFit(), short="dyn."),
     Scorer("timing", "model-free: share of time steps off the frame period 1/fps (dropped, repeated or reordered "
            "frames; NaN without timestamps)", ("demos",), _timing, behaviour="actions", decode=_traces,
@@ -357,12 +357,12 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "robust z within its task", ("demos",), _view, in_suspicion=True, in_robust_sd=True,
            decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty, "
-           "consistency, action error (log), motion, idle, dynamics and view (one task: the last five), each in "
+           "consistency, action error (log), motion, idle and view (one task: the last four), each in "
            "robust standard deviations within its task (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion,
            short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
-           "dynamics, view): what democheck says with no model", ("scores",), _model_free, in_audit=False,
+           "view): what democheck says with no model", ("scores",), _model_free, in_audit=False,
            short="no-model"),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),
