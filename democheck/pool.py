@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import queue as queue_mod
+from functools import partial
 from typing import Any, Callable
 
 # What this process's shards share, set by the ``init`` given to ``run_shards``.
@@ -20,7 +21,16 @@ state: dict[str, Any] = {}
 def _start(progress: Any, init: Callable[..., None], args: tuple) -> None:
     state.clear()
     state["progress"] = progress
-    init(*args)
+    try:
+        init(*args)
+    except Exception as exc:  # raised by the first shard instead: a pool would restart a failing worker forever
+        state["init_error"] = exc
+
+
+def _guarded(shard: Callable[[Any], list[dict[str, Any]]], job: Any) -> list[dict[str, Any]]:
+    if "init_error" in state:
+        raise state["init_error"]
+    return shard(job)
 
 
 def tick(n: int = 1) -> None:
@@ -61,21 +71,28 @@ class Workers:
         done = 0
         if self._pool is None:
             for job in jobs:
-                rows += shard(job)
+                rows += _guarded(shard, job)
                 done += len(job[2])
                 if on_progress:
                     on_progress(done, total)
             return rows
-        pending = self._pool.map_async(shard, jobs, chunksize=1)
-        while not pending.ready() or not self._progress.empty():
+        while True:  # ticks of an earlier run that arrived after its results
             try:
-                done += self._progress.get(timeout=0.2)
+                self._progress.get_nowait()
+            except queue_mod.Empty:
+                break
+        pending = self._pool.map_async(partial(_guarded, shard), jobs, chunksize=1)
+        while not pending.ready():
+            try:
+                done = min(done + self._progress.get(timeout=0.2), total)
                 if on_progress:
                     on_progress(done, total)
             except queue_mod.Empty:
                 pass
         for part in pending.get():
             rows += part
+        if on_progress and done < total:
+            on_progress(total, total)
         return rows
 
 

@@ -91,6 +91,40 @@ def test_dynamics_ranks_actions_recorded_against_another_demos_state_first():
     assert abs(np.median(ev.scores["dynamics"])) < 0.05  # the usual demo is the unit
 
 
+def test_dynamics_is_the_same_fed_whole_or_in_shards_and_a_short_last_block_is_judged_by_the_one_before(
+        monkeypatch):
+    """Shards merged in order give every demo the error one consumer fed every demo gives it (shards smaller
+    than a block, a block each, several blocks each); a last block too small to fit on its own is scored by
+    the fit of the block before, so a bad demo there still stands out."""
+    monkeypatch.setattr(modelfree, "DYNAMICS_BLOCK", 8)
+    monkeypatch.setattr(modelfree, "DYNAMICS_MIN_BLOCK", 4)
+    rng = np.random.default_rng(3)
+    demos = [_demo(i, rng) for i in range(26)]  # three blocks of 8, and a last block of 2
+    demos[25].actions[:] = demos[3].actions  # recorded against another demo's state
+    whole = modelfree.DynamicsFit()
+    for d in demos:
+        whole.add(d)
+    whole = whole.finish()
+    for size in (4, 8, 16):
+        parts = []
+        for s in range(0, len(demos), size):
+            part = modelfree.DynamicsFit()
+            for d in demos[s:s + size]:
+                part.add(d)
+            parts.append(part)
+        merged = modelfree.DynamicsFit.merged(parts).finish()
+        assert np.array_equal(np.asarray(merged.errors), np.asarray(whole.errors)), size
+    values, _ = modelfree.dynamics(whole)
+    assert values[25] > np.nanmax(values[:25])
+    bad = [modelfree.DynamicsFit(), modelfree.DynamicsFit()]  # shards of 12 do not line up with blocks of 8
+    for i, d in enumerate(demos[:24]):
+        bad[i // 12].add(d)
+    import pytest
+
+    with pytest.raises(ValueError, match="line up"):
+        modelfree.DynamicsFit.merged(bad)
+
+
 def test_timing_ranks_the_dropped_frames_first_and_names_the_frame():
     ev = _ranks_first("timing")
     assert "first at frame 60" in ev.reasons["timing"][17], ev.reasons["timing"][17]
@@ -99,6 +133,9 @@ def test_timing_ranks_the_dropped_frames_first_and_names_the_frame():
     demos[5].extra["timestamp"][[30, 31]] = demos[5].extra["timestamp"][[31, 30]]  # two frames swapped
     ev = _evidence(demos, ["timing"])
     assert "goes back at frame 31" in ev.reasons["timing"][5], ev.reasons["timing"][5]
+    demos[7].extra["timestamp"][5] = np.nan  # a null in the column: not "regular"
+    ev = _evidence(demos, ["timing"])
+    assert np.isnan(ev.scores["timing"][7]) and "missing" in ev.reasons["timing"][7]
     for d in demos:
         d.extra.clear()
     assert np.isnan(_evidence(demos, ["timing"]).scores["timing"]).all()  # a format without timestamps
@@ -233,13 +270,16 @@ def test_both_passes_in_two_worker_processes_give_the_same_scores_with_a_model(t
     generate(replace(TINY, seed=7, demos_per_task=6, steps=12, defects=(("idle", 1),)), root, workers=1)
     ds, ckpt = open_dataset(root), load_checkpoint(tiny_model)
     monkeypatch.setattr(run, "SHARD", 4)  # 24 demos: six decoding shards
-    monkeypatch.setattr(run, "CUE_SHARD", 8)  # and three cue shards (the batch stays whole below them)
+    monkeypatch.setattr(run, "CUE_SHARD", 8)  # and three cue shards of two batches (the jobs carry the size)
     monkeypatch.setattr(run, "CUE_BATCH", 4)
-    calls = []
-    monkeypatch.setattr(run, "_cue_shard", lambda job, real=run._cue_shard: calls.append(job[0]) or real(job))
+    monkeypatch.setattr(run, "PARALLEL_MIN_SHARDS", 1)
+    passes = []
+    monkeypatch.setattr(run._Local, "run", lambda self, jobs, total, on_progress=None, real=run._Local.run:
+                        passes.extend(job[1]["pass"] for job in jobs) or real(self, jobs, total, on_progress))
     one, _ = audit(ds, ckpt, workers=1)
-    assert not calls  # one process: no shards
+    assert not passes  # one process: no shards
     two, _ = audit(ds, ckpt, workers=2)
+    assert passes.count("cues") == 3 and passes.count("decode") == 6
     assert {"task_uncertainty", "consistency", "action_error", "mu", "sigma"} <= set(two)
     for col in one.columns:
         assert one[col].equals(two[col]), col
@@ -314,7 +354,8 @@ def test_the_ray_engine_without_ray_says_how_to_get_it(monkeypatch):
 
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray now fails, as where it is not installed
     with pytest.raises(DemocheckError, match=r"pip install 'democheck\[ray\]'"):
-        ray_engine.run_shards([], None, "cpu", 2, None)
+        with ray_engine.Session(None, "cpu", 2, None):
+            pass
 
 
 def test_on_one_task_the_ranking_leaves_the_task_embeddings_scores_out():
@@ -337,3 +378,25 @@ def test_on_one_task_the_ranking_leaves_the_task_embeddings_scores_out():
                    scores=dict(scores))
     values, _ = SCORERS["suspicion"].score(two)
     assert values[7] == values.max() and values[7] > 5
+
+
+def _failing_init() -> None:
+    raise RuntimeError("no model here")
+
+
+def _echo_shard(job: tuple) -> list[dict]:
+    return [{"shard": job[0]}]
+
+
+def test_a_worker_whose_setup_fails_reports_it_instead_of_hanging():
+    """A spawned pool restarts a worker whose initializer raises, forever; the setup's error comes back from the
+    first shard instead (in one process and in two)."""
+    import pytest
+
+    from democheck import pool
+
+    for workers in (1, 2):
+        with pytest.raises(RuntimeError, match="no model here"):
+            pool.run_shards([(0, None, [0]), (1, None, [1])], _echo_shard, _failing_init, (), workers, 2)
+    assert pool.run_shards([(0, None, [0]), (1, None, [1])], _echo_shard, lambda: None, (), 1, 2) == [
+        {"shard": 0}, {"shard": 1}]

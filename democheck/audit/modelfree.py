@@ -52,6 +52,7 @@ FROZEN_LEVEL = 0.1  # grey levels (0-255): a frame this close to the previous on
 DUPLICATE_STEPS = 32
 DYNAMICS_RIDGE = 1e-3  # ridge penalty per step, on standardised features: a near-constant feature cannot blow up
 DYNAMICS_BLOCK = 128  # demos per fit of the dynamics check (= the audit's decoding shard, ``run.SHARD``)
+DYNAMICS_MIN_BLOCK = 32  # a last block of fewer demos is judged by the fit of the block before it
 DYNAMICS_WINDOW = 10  # the reason names the stretch of this many steps the state follows the actions worst
 TIMING_TOLERANCE = 0.5  # a time step off the usual one by more than half of it is irregular
 IDLE_MIN_SCALE = 0.05  # a robust standard deviation of the idle share stands for at least 5% of the steps
@@ -217,51 +218,74 @@ def _dynamics_features(state: np.ndarray, actions: np.ndarray) -> np.ndarray:
     return np.column_stack([s[:-1], a[:-1], before[:-1]])
 
 
-def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray]) -> list[np.ndarray | None]:
-    """Per demo of one block, the squared error of each step's predicted change of state (mean over the state
-    dimensions that move, each in its standard deviation over the block), from one ridge regression fitted on
-    the block's steps; None for a demo under 3 steps, and for all when the state never changes."""
+def _dynamics_fit(states: list[np.ndarray], actions: list[np.ndarray]) -> dict[str, np.ndarray] | None:
+    """One ridge regression of the change of state on ``_dynamics_features`` over these demos' steps, with its
+    standardisation (state dimensions that never move and constant features left out); None when no demo
+    has 3 steps or the state never changes."""
     usable = [i for i, a in enumerate(actions) if len(a) >= 3]
-    out: list[np.ndarray | None] = [None] * len(actions)
     if not usable:
-        return out
+        return None
     x = np.concatenate([_dynamics_features(states[i], actions[i]) for i in usable])
     y = np.concatenate([np.diff(states[i].astype(np.float64), axis=0) for i in usable])
     x_mean, x_sd, y_sd = x.mean(0), x.std(0), y.std(0)
     xs, ys = x_sd > 1e-6 * max(float(x_sd.max()), 1e-12), y_sd > 1e-6 * max(float(y_sd.max()), 1e-12)
     if not ys.any():  # the state never changes: there is nothing to follow
-        return out
+        return None
     xn = (x[:, xs] - x_mean[xs]) / x_sd[xs]
     yn = y[:, ys] / y_sd[ys]
     y_mean = yn.mean(0)
     w = np.linalg.solve(xn.T @ xn + DYNAMICS_RIDGE * len(xn) * np.eye(xn.shape[1]), xn.T @ (yn - y_mean))
-    start = 0
-    for i in usable:
-        n = len(actions[i]) - 1
-        out[i] = ((xn[start:start + n] @ w + y_mean - yn[start:start + n]) ** 2).mean(1)
-        start += n
+    return {"x_mean": x_mean[xs], "x_sd": x_sd[xs], "xs": xs, "y_sd": y_sd[ys], "ys": ys, "y_mean": y_mean, "w": w}
+
+
+def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray], fit: dict[str, np.ndarray] | None
+                     ) -> list[np.ndarray | None]:
+    """Per demo, the squared error of each step's predicted change of state under ``fit`` (mean over the state
+    dimensions that move, each in its standard deviation); None for a demo under 3 steps, or without a fit."""
+    out: list[np.ndarray | None] = [None] * len(actions)
+    if fit is None:
+        return out
+    for i, (s, a) in enumerate(zip(states, actions)):
+        if len(a) < 3:
+            continue
+        xn = (_dynamics_features(s, a)[:, fit["xs"]] - fit["x_mean"]) / fit["x_sd"]
+        yn = np.diff(s.astype(np.float64), axis=0)[:, fit["ys"]] / fit["y_sd"]
+        out[i] = ((xn @ fit["w"] + fit["y_mean"] - yn) ** 2).mean(1)
     return out
 
 
 class DynamicsFit(PerDemo):
-    """Consumer of decoded demos for ``dynamics``: each block of ``DYNAMICS_BLOCK`` demos is fitted as soon as
-    it is complete; per demo only its mean error and its worst stretch are kept."""
+    """Consumer of decoded demos for ``dynamics``: each block of ``DYNAMICS_BLOCK`` demos is fitted and scored as
+    soon as it is complete, per demo only its mean error and its worst stretch kept; a last block of fewer than
+    ``DYNAMICS_MIN_BLOCK`` demos is scored by the fit of the block before it (on its own steps alone a few
+    demos would explain themselves)."""
 
     fields = ("errors", "worst", "states", "actions")
-    errors: list[float]  # per fitted demo: mean squared error (NaN: not scored)
-    worst: list[tuple[int, int, int]]  # per fitted demo: start, width of its worst stretch, its steps
-    states: list[np.ndarray]  # the block not fitted yet
+    errors: list[float]  # per scored demo: mean squared error (NaN: not scored)
+    worst: list[tuple[int, int, int]]  # per scored demo: start, width of its worst stretch, its steps
+    states: list[np.ndarray]  # the block not scored yet
     actions: list[np.ndarray]
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.last_fit: dict[str, np.ndarray] | None = None  # the latest full block's
 
     def add(self, demo: Demo) -> None:
         self.states.append(np.asarray(demo.state, np.float32))
         self.actions.append(np.asarray(demo.actions, np.float32))
-        self._fit_full_blocks()
+        self._score_blocks()
 
-    def _fit_full_blocks(self, partial: bool = False) -> None:
-        while len(self.actions) >= DYNAMICS_BLOCK or partial and self.actions:
+    def _score_blocks(self, last: bool = False) -> None:
+        while len(self.actions) >= DYNAMICS_BLOCK or last and self.actions:
             block = slice(0, DYNAMICS_BLOCK)
-            for e in _dynamics_errors(self.states[block], self.actions[block]):
+            states, actions = self.states[block], self.actions[block]
+            if len(actions) >= DYNAMICS_MIN_BLOCK or self.last_fit is None:
+                fit = _dynamics_fit(states, actions)
+                if len(actions) == DYNAMICS_BLOCK and fit is not None:
+                    self.last_fit = fit
+            else:
+                fit = self.last_fit
+            for e in _dynamics_errors(states, actions, fit):
                 if e is None:
                     self.errors.append(np.nan)
                     self.worst.append((0, 0, 0))
@@ -274,8 +298,9 @@ class DynamicsFit(PerDemo):
 
     @classmethod
     def merged(cls, parts: list["PerDemo"]) -> "DynamicsFit":
-        """The shards' fits in order, and their waiting demos fitted in blocks as they fill up -- what one
-        consumer fed every demo would hold, as long as each shard's blocks line up with the whole's."""
+        """The shards' scores in order, and their waiting demos scored in blocks as they fill up -- what one
+        consumer fed every demo would hold, as long as each shard's blocks line up with the whole's
+        (``run.SHARD`` is a multiple of ``DYNAMICS_BLOCK``, or smaller)."""
         out = cls()
         for part in parts:
             if part.errors and out.actions:
@@ -285,11 +310,13 @@ class DynamicsFit(PerDemo):
             out.worst += part.worst
             out.states += part.states
             out.actions += part.actions
-            out._fit_full_blocks()
+            if part.last_fit is not None:
+                out.last_fit = part.last_fit
+            out._score_blocks()
         return out
 
     def finish(self) -> "DynamicsFit":
-        self._fit_full_blocks(partial=True)
+        self._score_blocks(last=True)
         return self
 
 
@@ -312,6 +339,8 @@ def _timing_of(t: np.ndarray | None, fps: float | None) -> tuple[float, str]:
     """``timing`` of one demo: the share of its time steps off the frame period (see the module docstring)."""
     if t is None or not fps:
         return np.nan, "no timestamps"
+    if not np.isfinite(t).all():
+        return np.nan, "timestamps missing at some frames"
     if len(t) < 2:
         return 0.0, "a single frame"
     period = 1.0 / float(fps)

@@ -56,7 +56,9 @@ class _Worker:
 
 class Session:
     """Ray, reached (or a local instance with ``workers`` CPUs started) for one audit's passes, and shut down
-    after when it was started here.  ``run`` has the interface of the local engine's workers."""
+    after when it was started here.  ``run`` has the interface of the local engine's workers; each call runs
+    its shards in an actor pool of its own (each actor loads the model once per pass).  Use as a context
+    manager: entering it without Ray installed says how to get it."""
 
     def __init__(self, model: str | None, device: str, workers: int, address: str | None):
         self.model, self.device, self.workers, self.address = model, device, max(int(workers), 1), address
@@ -99,11 +101,3 @@ class Session:
                 if on_progress:
                     on_progress(done, total)
         return out
-
-
-def run_shards(jobs: list[tuple], model: str | None, device: str, workers: int, address: str | None,
-               on_progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
-    """``run._run_shard(job)`` of every job on the cluster at ``address`` (None: a local Ray instance with
-    ``workers`` CPUs, started and stopped here)."""
-    with Session(model, device, workers, address) as session:
-        return session.run(jobs, sum(len(job[2]) for job in jobs), on_progress)

@@ -55,10 +55,11 @@ CUE_BATCH = 256  # cues encoded at a time
 def cue_posteriors(ds: DemoSet, model, device, batch: int | None = None,
                    on_progress: Callable[[int, int], None] | None = None, runner: Any = None) -> TaskPosterior:
     """The task posterior of every demo's cue, in ``ds.episode_indices`` order; with ``runner`` (``_runner``:
-    worker processes or Ray actors holding the same model) in shards of ``CUE_SHARD`` demos, the same numbers."""
+    worker processes or Ray actors, each holding the audit's PETNet -- which ``model`` must be) in shards of
+    ``CUE_SHARD`` demos encoded in the same batches, the same numbers."""
     eps = ds.episode_indices
     if runner is not None and eps:
-        jobs = [(i, {"pass": "cues", **_where(ds)}, eps[s:s + CUE_SHARD])
+        jobs = [(i, {"pass": "cues", "batch": batch or CUE_BATCH, **_where(ds)}, eps[s:s + CUE_SHARD])
                 for i, s in enumerate(range(0, len(eps), CUE_SHARD))]
         got = sorted(runner.run(jobs, len(eps), on_progress), key=lambda r: r["shard"])
         return TaskPosterior.concat([r["post"] for r in got])
@@ -104,13 +105,19 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
         return (lambda d, n: on_progress(f"{name} {ds.root.name}", d, n)) if on_progress else None
 
     model = str(ckpt.path) if ckpt is not None else None
-    parallel = engine == "ray" or workers > 1 and any(len(ds) >= PARALLEL_MIN_SHARDS * SHARD * workers for ds in sets)
+
+    def spread(ds: DemoSet, shard: int) -> bool:  # whether a pass over ``ds`` in shards of ``shard`` pays
+        return engine == "ray" or workers > 1 and len(ds) >= PARALLEL_MIN_SHARDS * shard * workers
+
+    decodes = any(s.decode is not None for s in scorers)
+    parallel = any(ckpt is not None and spread(ds, CUE_SHARD) or decodes and spread(ds, SHARD) for ds in sets)
     with _runner(parallel, engine, workers, model, str(device), ray_address) as runner:
         t0 = time.perf_counter()
         post = None
         if ckpt is not None:
             post = TaskPosterior.concat([cue_posteriors(ds, ckpt.model, device, on_progress=stage("PETNet", ds),
-                                                        runner=runner) for ds in sets])
+                                                        runner=runner if spread(ds, CUE_SHARD) else None)
+                                         for ds in sets])
         embedding = None
         if tecnet is not None:
             embedding = np.concatenate([cue_posteriors(ds, tecnet.model, device, on_progress=stage("TecNets", ds)).mu
@@ -130,7 +137,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
             for ds in sets:
                 rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
                 progress = stage("decoding" if ckpt is None else "actions", ds)
-                if runner is not None:
+                if runner is not None and spread(ds, SHARD):
                     for key, got in parallel_decoding(ds, ev, rows, decoding, runner, progress).items():
                         parts[key].append(got)
                 else:
@@ -149,6 +156,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
 # controller sees holds the same demos as in one process (and the numbers are the same), and of the dynamics
 # check's block (``modelfree.DYNAMICS_BLOCK``), for the same reason.
 SHARD = 4 * ACTION_BATCH
+assert SHARD % modelfree.DYNAMICS_BLOCK == 0 or SHARD < modelfree.DYNAMICS_BLOCK, "see modelfree.DynamicsFit.merged"
 # Cues per shard of a parallel cue pass: whole batches of ``CUE_BATCH``, as one process encodes them.
 CUE_SHARD = 4 * CUE_BATCH
 # Below this many shards per worker, starting the workers (each imports torch and loads the model, ~2 s) costs
@@ -162,7 +170,8 @@ ENGINES = ("local", "ray")
 def _runner(parallel: bool, engine: str, workers: int, model: str | None, device: str, ray_address: str | None
             ) -> Iterator[Any]:
     """What runs an audit's shards, started once for its cue pass and its decoding pass: ``workers`` spawned
-    processes (``pool.Workers``), Ray actors (``ray_engine.Session``), or None (this process, shard-free)."""
+    processes (``pool.Workers``, each loading the model once), Ray (``ray_engine.Session``: an actor pool per
+    pass), or None (this process, shard-free)."""
     if not parallel:
         yield None
     elif engine == "ray":
@@ -253,9 +262,9 @@ def _cue_shard(job: tuple) -> list[dict[str, Any]]:
 
     index, spec, eps = job
     ds, ckpt = _opened(spec), pool.state["ckpt"]
-    parts = []
-    for s in range(0, len(eps), CUE_BATCH):
-        parts.append(encode(ckpt.model, ds.cue_frames_many(eps[s:s + CUE_BATCH]), pool.state["device"]))
+    parts, batch = [], spec["batch"]
+    for s in range(0, len(eps), batch):
+        parts.append(encode(ckpt.model, ds.cue_frames_many(eps[s:s + batch]), pool.state["device"]))
         pool.tick(len(parts[-1]))
     return [{"shard": index, "post": TaskPosterior.concat(parts)}]
 
