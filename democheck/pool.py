@@ -1,10 +1,20 @@
-"""Worker processes (a pool) for work that is parallel over episodes (generation, probes, rollouts).
+"""Workers for work that is parallel over episodes (generation, probes, rollouts, the audit's passes).
 
 ``run_shards`` runs ``shard(job)`` for every job in ``spawn`` processes (never
 ``fork``: a process may already hold a GL context).  Each process first calls
 ``init(*args)``, which puts what its shards share -- a simulator, a model --
 into ``state``; a shard reads it from there and calls ``tick()`` after each
-episode so the parent's progress bar moves.
+episode so the parent's progress bar moves.  ``Workers`` keeps the processes
+for several runs.
+
+``RayWorkers`` runs the same jobs on Ray Data instead, for datasets beyond one
+machine (``democheck audit --engine ray``, ``democheck synth --engine ray``):
+the jobs become a Ray dataset of one row each, ``map_batches`` runs them in an
+actor pool (each actor calls ``init`` once, one CPU each), and the rows come
+back in job order -- the same rows as the local workers', so the same scores
+and files.  Every node must have democheck installed and read the dataset (and,
+for generation, the output's staging folder) at the same path: a shared
+filesystem.  ``pip install 'democheck[ray]'``.
 """
 
 from __future__ import annotations
@@ -13,6 +23,10 @@ import multiprocessing as mp
 import queue as queue_mod
 from functools import partial
 from typing import Any, Callable
+
+import numpy as np
+
+from democheck.errors import DemocheckError
 
 # What this process's shards share, set by the ``init`` given to ``run_shards``.
 state: dict[str, Any] = {}
@@ -105,3 +119,87 @@ def run_shards(jobs: list, shard: Callable[[Any], list[dict[str, Any]]], init: C
     """
     with Workers(workers, init, args) as pool:
         return pool.run(jobs, shard, total, on_progress)
+
+
+INSTALL = "pip install 'democheck[ray]'"
+
+
+def _ray():
+    try:
+        import ray
+        import ray.data  # noqa: F401  (Ray without its data library cannot run the pass)
+    except ImportError:
+        raise DemocheckError(f"--engine ray needs Ray Data, which is not installed: {INSTALL}") from None
+    return ray
+
+
+class _Held:
+    """One shard's job or result in a Ray dataset's row: an opaque object, which Ray serialises as it serialises
+    any task argument (so nothing is converted to Arrow on the way)."""
+
+    def __init__(self, value: Any):
+        self.value = value
+
+
+class _Worker:
+    """A Ray actor: ``init(*args)`` once (a model, a simulator), then jobs run one at a time by ``shard``, as a
+    spawned worker runs them."""
+
+    def __init__(self, init: Callable[..., None], args: tuple, shard: Callable[[Any], list[dict[str, Any]]]):
+        _start(None, init, args)
+        self.shard = shard
+
+    def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        done = [(held.value[0], _guarded(self.shard, held.value[1])) for held in batch["job"]]
+        return {"position": np.array([p for p, _ in done]),
+                "result": np.array([_Held(rows) for _, rows in done], dtype=object)}
+
+
+class RayWorkers:
+    """Ray, reached (or a local instance with ``workers`` CPUs started) for one command, and shut down after when
+    it was started here.  The interface of ``pool.Workers``: ``run(jobs, shard, total)`` gives the rows of every
+    job in job order; each call runs its jobs in an actor pool of its own, ``workers`` actors of one CPU, each
+    first calling ``init(*args)`` (so the model or simulator is set up once per actor and call).  Use as a context
+    manager: entering it without Ray installed says how to get it."""
+
+    def __init__(self, workers: int, init: Callable[..., None], args: tuple, address: str | None = None):
+        self.workers, self.init, self.args, self.address = max(int(workers), 1), init, args, address
+        self._started = False
+
+    def __enter__(self) -> "RayWorkers":
+        ray = _ray()
+        if not ray.is_initialized():
+            try:
+                ray.init(address=self.address, num_cpus=None if self.address else self.workers,
+                         include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+            except (ConnectionError, RuntimeError, ValueError) as exc:
+                raise DemocheckError(f"--engine ray: could not reach Ray at {self.address or 'a local instance'} "
+                                     f"({exc})") from None
+            self._started = True
+        import logging
+
+        logging.getLogger("ray.data").setLevel(logging.ERROR)  # democheck's own bar reports the progress
+        ray.data.DataContext.get_current().enable_progress_bars = False
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._started:
+            _ray().shutdown()
+
+    def run(self, jobs: list[tuple], shard: Callable[[Any], list[dict[str, Any]]], total: int,
+            on_progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
+        """``shard(job)`` of every job (a tuple whose third item lists its episodes) by the actor pool: the rows
+        of all jobs, in job order."""
+        ray = _ray()
+        done, results = 0, [None] * len(jobs)
+        items = [{"job": _Held((i, job))} for i, job in enumerate(jobs)]
+        shards = ray.data.from_items(items, override_num_blocks=max(len(items), 1))
+        ran = shards.map_batches(_Worker, fn_constructor_args=(self.init, self.args, shard), batch_size=1,
+                                 compute=ray.data.ActorPoolStrategy(size=self.workers), num_cpus=1)
+        for batch in ran.iter_batches(batch_size=1, batch_format="numpy"):
+            for position, held in zip(batch["position"], batch["result"]):
+                results[int(position)] = held.value
+                done += len(jobs[int(position)][2])
+                if on_progress:
+                    on_progress(min(done, total), total)
+        return [row for rows in results for row in rows]

@@ -274,8 +274,11 @@ def test_both_passes_in_two_worker_processes_give_the_same_scores_with_a_model(t
     monkeypatch.setattr(run, "CUE_BATCH", 4)
     monkeypatch.setattr(run, "PARALLEL_MIN_SHARDS", 1)
     passes = []
-    monkeypatch.setattr(run._Local, "run", lambda self, jobs, total, on_progress=None, real=run._Local.run:
-                        passes.extend(job[1]["pass"] for job in jobs) or real(self, jobs, total, on_progress))
+    from democheck import pool
+
+    monkeypatch.setattr(pool.Workers, "run", lambda self, jobs, shard, total, on_progress=None,
+                        real=pool.Workers.run: passes.extend(job[1]["pass"] for job in jobs)
+                        or real(self, jobs, shard, total, on_progress))
     one, _ = audit(ds, ckpt, workers=1)
     assert not passes  # one process: no shards
     two, _ = audit(ds, ckpt, workers=2)
@@ -349,12 +352,12 @@ def test_the_ray_engine_without_ray_says_how_to_get_it(monkeypatch):
 
     import pytest
 
-    from democheck.audit import ray_engine
+    from democheck import pool
     from democheck.errors import DemocheckError
 
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray now fails, as where it is not installed
     with pytest.raises(DemocheckError, match=r"pip install 'democheck\[ray\]'"):
-        with ray_engine.Session(None, "cpu", 2, None):
+        with pool.RayWorkers(2, print, ()):
             pass
 
 

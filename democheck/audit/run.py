@@ -61,7 +61,7 @@ def cue_posteriors(ds: DemoSet, model, device, batch: int | None = None,
     if runner is not None and eps:
         jobs = [(i, {"pass": "cues", "batch": batch or CUE_BATCH, **_where(ds)}, eps[s:s + CUE_SHARD])
                 for i, s in enumerate(range(0, len(eps), CUE_SHARD))]
-        got = sorted(runner.run(jobs, len(eps), on_progress), key=lambda r: r["shard"])
+        got = sorted(runner.run(jobs, _run_shard, len(eps), on_progress), key=lambda r: r["shard"])
         return TaskPosterior.concat([r["post"] for r in got])
     batch = batch or CUE_BATCH
     parts = []
@@ -93,7 +93,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
     ``episodes``: the pooled demos' table (default: the datasets' episode tables one after the other).
     ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).  ``workers`` > 1 runs both passes
     of datasets large enough (``PARALLEL_MIN_SHARDS``) in that many spawned processes, started once for both
-    (``_runner``), with the same results; ``engine`` "ray" runs them in that many Ray actors (``ray_engine``) on
+    (``_runner``), with the same results; ``engine`` "ray" runs them in that many Ray actors (``pool.RayWorkers``) on
     the cluster at ``ray_address`` (default: a local instance), the same again.  The TecNets baseline's cue pass
     (bench only) stays in this process.
     """
@@ -169,31 +169,21 @@ ENGINES = ("local", "ray")
 @contextmanager
 def _runner(parallel: bool, engine: str, workers: int, model: str | None, device: str, ray_address: str | None
             ) -> Iterator[Any]:
-    """What runs an audit's shards, started once for its cue pass and its decoding pass: ``workers`` spawned
-    processes (``pool.Workers``, each loading the model once), Ray (``ray_engine.Session``: an actor pool per
-    pass), or None (this process, shard-free)."""
+    """What runs an audit's shards (``run(jobs, _run_shard, total)``), started once for its cue pass and its
+    decoding pass: ``workers`` spawned processes (``pool.Workers``, each loading the model once), Ray
+    (``pool.RayWorkers``: an actor pool per pass), or None (this process, shard-free)."""
     if not parallel:
         yield None
     elif engine == "ray":
-        from democheck.audit import ray_engine
+        from democheck import pool
 
-        with ray_engine.Session(model, device, workers, ray_address) as session:
+        with pool.RayWorkers(workers, _decode_init, (model, device), ray_address) as session:
             yield session
     else:
         from democheck import pool
 
         with pool.Workers(workers, _decode_init, (model, device)) as local:
-            yield _Local(local)
-
-
-class _Local:
-    """``pool.Workers`` running the audit's shards (``_run_shard``), as ``ray_engine.Session`` runs them."""
-
-    def __init__(self, workers: Any):
-        self.workers = workers
-
-    def run(self, jobs: list, total: int, on_progress: Callable[[int, int], None] | None = None) -> list:
-        return self.workers.run(jobs, _run_shard, total, on_progress)
+            yield local
 
 
 def _where(ds: DemoSet) -> dict[str, Any]:
@@ -212,7 +202,7 @@ def parallel_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str
                  "names": [x.name for x in decoding.values()], "z": None if z is None else z[s:s + SHARD]},
              eps[s:s + SHARD])
             for i, s in enumerate(range(0, len(eps), SHARD))]
-    got = sorted(runner.run(jobs, len(eps), on_progress), key=lambda r: r["shard"])
+    got = sorted(runner.run(jobs, _run_shard, len(eps), on_progress), key=lambda r: r["shard"])
     out = {}
     for key, s in decoding.items():
         parts = [r["parts"][key] for r in got]

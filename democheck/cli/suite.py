@@ -25,6 +25,8 @@ def synth(
     defects: Annotated[Optional[str], typer.Option(help="Replace demos by bad ones, labelled with their kind: e.g. idle=4,wrong-object=10 (kinds: idle, random, wrong-object, both-objects, occluded, gave-up).")] = None,
     defect_rate: Annotated[Optional[float], typer.Option(help="Replace this share of all demos by the four semantic defects (wrong-object, both-objects, occluded, gave-up) in equal parts.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it already exists.")] = False,
+    engine: Annotated[str, typer.Option(help="Who renders the episodes: local (worker processes on this machine) or ray (Ray Data actors, one CPU each, --workers of them: a local Ray instance, or the cluster at --ray-address; every node needs democheck and the output folder's parent at the same path). Needs pip install 'democheck[ray]'. The files are the same.")] = "local",
+    ray_address: Annotated[Optional[str], typer.Option(help="With --engine ray: the Ray cluster's address (e.g. ray://head:10001 or auto); default: start a local instance.")] = None,
 ) -> None:
     """Generate a simulated pushing suite (scripted expert demos in MuJoCo) as a LeRobot v3 dataset."""
     with user_errors():
@@ -36,7 +38,8 @@ def synth(
         if workers < 1:
             raise DemocheckError("--workers must be at least 1")
         with Bar(f"synth {recipe.name}", "episodes") as bar:
-            summary = generate(recipe, out, workers=workers, force=force, on_progress=bar.callback())
+            summary = generate(recipe, out, workers=workers, force=force, on_progress=bar.callback(), engine=engine,
+                               ray_address=ray_address)
     table = Table(title=f"{recipe.name} -> {out}", show_header=False)
     ex = summary["expert"]
     table.add_row("tasks (train/val/test)", "/".join(str(summary["tasks"][s]) for s in ("train", "val", "test")))
