@@ -20,12 +20,13 @@ from democheck.audit.run import audit  # noqa: E402
 from democheck.data import open_dataset  # noqa: E402
 from democheck.petnet.checkpoint import load_checkpoint  # noqa: E402
 
-if __name__ == "__main__":  # spawned workers import this file again
-    args = [a for a in sys.argv[1:] if a != "--ray"]
-    ds = open_dataset(args[0])
-    ckpt = load_checkpoint(args[1] if len(args) > 1 else None)
+def measure(dataset, model=None, ray: bool = False, verbose: bool = False) -> dict:
+    """Audit ``dataset`` with 1 and 2 local workers (and 2 Ray actors with ``ray``): per setup the cue pass's,
+    the decoding pass's and the whole audit's seconds, and whether every column equals one worker's."""
+    ds = open_dataset(dataset)
+    ckpt = load_checkpoint(model)
     setups = {"1 worker": (1, "local"), "2 workers": (2, "local")}
-    if "--ray" in sys.argv:
+    if ray:
         setups["Ray, 2 actors"] = (2, "ray")
     runs = {}
     for name, (workers, engine) in setups.items():
@@ -33,12 +34,22 @@ if __name__ == "__main__":  # spawned workers import this file again
         table, summary = audit(ds, ckpt, workers=workers, engine=engine)
         runs[name] = (table, time.perf_counter() - t0, summary["timing"])
     base = runs["1 worker"]
-    print(f"{ds.root}: {len(ds)} demos")
+    out = {"demos": len(ds), "setups": {}}
     for name, (table, wall, timing) in runs.items():
         differ = [c for c in base[0].columns
                   if not (np.array_equal(np.stack(base[0][c].to_numpy()), np.stack(table[c].to_numpy()))
                           if c in ("sigma", "mu") else base[0][c].equals(table[c]))]
-        print(f"  {name:<14} cues {timing['score_s']:5.1f} s (x{base[2]['score_s'] / timing['score_s']:.2f}), "
-              f"decoding {timing['actions_s']:6.1f} s (x{base[2]['actions_s'] / timing['actions_s']:.2f}),"
-              f" whole audit {wall:6.1f} s (x{base[1] / wall:.2f}); scores identical to 1 worker: {not differ}"
-              + (f" (differ: {differ})" if differ else ""))
+        out["setups"][name] = {"cues_s": timing["score_s"], "decoding_s": timing["actions_s"], "whole_s": wall,
+                               "ratio": base[1] / wall, "identical": not differ, "differ": differ}
+        if verbose:
+            print(f"  {name:<14} cues {timing['score_s']:5.1f} s (x{base[2]['score_s'] / timing['score_s']:.2f}), "
+                  f"decoding {timing['actions_s']:6.1f} s (x{base[2]['actions_s'] / timing['actions_s']:.2f}),"
+                  f" whole audit {wall:6.1f} s (x{base[1] / wall:.2f}); scores identical to 1 worker: {not differ}"
+                  + (f" (differ: {differ})" if differ else ""), flush=True)
+    return out
+
+
+if __name__ == "__main__":  # spawned workers import this file again
+    args = [a for a in sys.argv[1:] if a != "--ray"]
+    print(f"{args[0]}:")
+    measure(args[0], args[1] if len(args) > 1 else None, ray="--ray" in sys.argv, verbose=True)

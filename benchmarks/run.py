@@ -9,6 +9,9 @@ Prints a markdown table of:
   forward/backward/Adam loop on the same shapes (``train_speed.py``);
 - audit demos/s (model load and t-SNE apart) and peak memory on the dataset
   and on a 10x replica (``audit_scale.py``);
+- the default audit (cue and decoding passes) with 1 and 2 worker processes, and
+  with 2 Ray actors where Ray is installed, each with its ratio to 1 worker and
+  whether the scores are identical (``parallel_audit.py``);
 - the training and audit figures again on the GPU when one is present.
 
 Every figure is the median of ``--repeats`` runs; each ratio is taken within
@@ -59,6 +62,7 @@ def main() -> None:
     import torch
 
     import audit_scale
+    import parallel_audit
     import synth_speed
     import train_speed
     from democheck.sim.suite import load_recipe
@@ -70,6 +74,12 @@ def main() -> None:
     res["train_cpu"] = train_speed.measure(str(args.data), repeats=args.repeats, device_name="cpu", verbose=True)
     res["audit_cpu"] = audit_scale.measure(args.data, args.times, repeats=args.repeats, workdir=args.workdir,
                                            device="cpu", verbose=True)
+    try:
+        import ray.data  # noqa: F401
+        has_ray = True
+    except ImportError:
+        has_ray = False
+    res["audit_workers"] = parallel_audit.measure(args.data, ray=has_ray, verbose=True)
     if torch.cuda.is_available():
         res["train_cuda"] = train_speed.measure(str(args.data), repeats=args.repeats, device_name="cuda", verbose=True)
         res["audit_cuda"] = audit_scale.measure(args.data, args.times, repeats=args.repeats, workdir=args.workdir,
@@ -101,6 +111,14 @@ def table(res: dict, args) -> str:
             rows.append(f"| audit ({dev}), {a[big]['demos']} demos | {a[big]['demos_per_s']:.0f} demos/s, peak "
                         f"{a[big]['peak_rss_mb']:.0f} MB | peak memory vs {a['1x']['demos']} demos | "
                         f"{a['memory_ratio']:.2f} |")
+    w = res.get("audit_workers")
+    if w:
+        one = w["setups"]["1 worker"]
+        for name, r in w["setups"].items():
+            if name != "1 worker":
+                rows.append(f"| default audit, {w['demos']} demos, {name} | {r['whole_s']:.1f} s (scores identical: "
+                            f"{'yes' if r['identical'] else 'NO'}) | 1 worker {one['whole_s']:.1f} s | "
+                            f"{r['ratio']:.2f} |")
     return "\n".join(rows)
 
 
