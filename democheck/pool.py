@@ -121,6 +121,20 @@ def run_shards(jobs: list, shard: Callable[[Any], list[dict[str, Any]]], init: C
         return pool.run(jobs, shard, total, on_progress)
 
 
+ENGINES = ("local", "ray")
+
+
+def run_on(engine: str, jobs: list, shard: Callable[[Any], list[dict[str, Any]]], init: Callable[..., None],
+           args: tuple, workers: int, total: int, on_progress: Callable[[int, int], None] | None = None,
+           address: str | None = None) -> list[dict[str, Any]]:
+    """``run_shards`` on this machine's worker processes (``engine`` "local") or on Ray actors ("ray", the
+    cluster at ``address``; default: a local instance): the same rows."""
+    if engine not in ENGINES:
+        raise DemocheckError(f"--engine {engine!r}: one of {', '.join(ENGINES)}")
+    with (RayWorkers(workers, init, args, address) if engine == "ray" else Workers(workers, init, args)) as runner:
+        return runner.run(jobs, shard, total, on_progress)
+
+
 INSTALL = "pip install 'democheck[ray]'"
 
 

@@ -218,9 +218,9 @@ def test_a_video_whose_metadata_is_not_utf8_is_one_clear_error(tmp_path):
         read_frames(path, [0], 20)
 
 
-def test_synth_on_ray_writes_the_local_engines_files(tmp_path):
-    """``democheck synth --engine ray`` on a local 2-CPU Ray instance: the same shards rendered by Ray Data actors,
-    every file byte for byte the local workers' (the suite record's timings apart)."""
+def test_synth_and_probe_on_ray_write_the_local_engines_files(tmp_path):
+    """``democheck synth --engine ray`` and ``probe --engine ray`` on a local 2-CPU Ray instance: the same shards
+    rendered by Ray Data actors, every file byte for byte the local workers' (the records' timings apart)."""
     import hashlib
     from dataclasses import replace
 
@@ -228,9 +228,20 @@ def test_synth_on_ray_writes_the_local_engines_files(tmp_path):
     from democheck.sim.suite import generate
     from tests.conftest import TINY
 
+    import ray
+
+    from democheck.sim.probes import make_probes
+
     recipe = replace(TINY, seed=5)
-    generate(recipe, tmp_path / "local", workers=2)
-    generate(recipe, tmp_path / "ray", workers=2, engine="ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR")  # one start for both
+    try:
+        generate(recipe, tmp_path / "local", workers=2)
+        generate(recipe, tmp_path / "ray", workers=2, engine="ray")
+        for engine in ("local", "ray"):
+            make_probes(tmp_path / "local", tmp_path / f"probes-{engine}", ["no-action", "hidden"], per_kind=2,
+                        seed=3, workers=2, engine=engine)
+    finally:
+        ray.shutdown()
 
     def digests(root):
         out = {}
@@ -239,10 +250,13 @@ def test_synth_on_ray_writes_the_local_engines_files(tmp_path):
                 data = f.read_bytes()
                 if f.name == "suite.json":
                     doc = json.loads(data)
-                    doc.pop("wall_s"), doc.pop("frames_per_s")
+                    for record in (doc, doc.get("probes", {})):
+                        record.pop("wall_s", None), record.pop("frames_per_s", None)
                     data = json.dumps(doc, sort_keys=True).encode()
                 out[str(f.relative_to(root))] = hashlib.sha256(data).hexdigest()
         return out
 
     local, on_ray = digests(tmp_path / "local"), digests(tmp_path / "ray")
     assert local == on_ray and any(k.endswith(".mp4") for k in local)
+    probes, probes_on_ray = digests(tmp_path / "probes-local"), digests(tmp_path / "probes-ray")
+    assert probes == probes_on_ray and any(k.endswith(".mp4") for k in probes)

@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from democheck.audit import modelfree, scorers as registry
+from democheck.pool import ENGINES as pool_engines
 from democheck.audit.action_error import ACTION_BATCH
 from democheck.audit.scorers import Evidence, Scorer
 from democheck.audit.scores import DEFAULT_FPR, exact_copies, flags, ocsvm_margin, rank_order
@@ -163,7 +164,7 @@ CUE_SHARD = 4 * CUE_BATCH
 # more than it saves: on push-v1, 168 demos took 2.1 s in one process and 3.4 s in two, 768 demos 10.1 s and
 # 7.5 s, 6,048 demos 78.6 s and 47.8 s (identical scores each time; benchmarks/parallel_audit.py).
 PARALLEL_MIN_SHARDS = 2
-ENGINES = ("local", "ray")
+ENGINES = pool_engines  # local, ray (``democheck.pool``)
 
 
 @contextmanager

@@ -12,6 +12,14 @@ from democheck.cli.common import Bar, app, console, parse_counts, user_errors
 from democheck.errors import DemocheckError
 
 
+ENGINE_HELP = ("Who renders the episodes: local (worker processes on this machine) or ray (Ray Data actors, one CPU "
+               "each, --workers of them: a local Ray instance, or the cluster at --ray-address; every node needs "
+               "democheck, the input and the output folder's parent at the same path). Needs pip install "
+               "'democheck[ray]'. The files are the same.")
+RAY_ADDRESS_HELP = ("With --engine ray: the Ray cluster's address (e.g. ray://head:10001 or auto); default: start a "
+                    "local instance.")
+
+
 @app.command()
 def synth(
     suite: Annotated[str, typer.Argument(help="Recipe name (push-v1, push-v1-test, push-mini) or a path to a .toml file.")],
@@ -25,8 +33,8 @@ def synth(
     defects: Annotated[Optional[str], typer.Option(help="Replace demos by bad ones, labelled with their kind: e.g. idle=4,wrong-object=10 (kinds: idle, random, wrong-object, both-objects, occluded, gave-up).")] = None,
     defect_rate: Annotated[Optional[float], typer.Option(help="Replace this share of all demos by the four semantic defects (wrong-object, both-objects, occluded, gave-up) in equal parts.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it already exists.")] = False,
-    engine: Annotated[str, typer.Option(help="Who renders the episodes: local (worker processes on this machine) or ray (Ray Data actors, one CPU each, --workers of them: a local Ray instance, or the cluster at --ray-address; every node needs democheck and the output folder's parent at the same path). Needs pip install 'democheck[ray]'. The files are the same.")] = "local",
-    ray_address: Annotated[Optional[str], typer.Option(help="With --engine ray: the Ray cluster's address (e.g. ray://head:10001 or auto); default: start a local instance.")] = None,
+    engine: Annotated[str, typer.Option(help=ENGINE_HELP)] = "local",
+    ray_address: Annotated[Optional[str], typer.Option(help=RAY_ADDRESS_HELP)] = None,
 ) -> None:
     """Generate a simulated pushing suite (scripted expert demos in MuJoCo) as a LeRobot v3 dataset."""
     with user_errors():
@@ -62,6 +70,8 @@ def probe(
     workers: Annotated[int, typer.Option(help="Parallel worker processes.")] = 2,
     camera: Annotated[Optional[str], typer.Option(help="Image feature to use when there are several.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it already exists.")] = False,
+    engine: Annotated[str, typer.Option(help=ENGINE_HELP)] = "local",
+    ray_address: Annotated[Optional[str], typer.Option(help=RAY_ADDRESS_HELP)] = None,
 ) -> None:
     """Make out-of-distribution probes from a dataset's demos: the labelled negatives `bench` measures detectors on."""
     with user_errors():
@@ -72,7 +82,8 @@ def probe(
             raise DemocheckError("--workers must be at least 1")
         with Bar("probe", "episodes") as bar:
             summary = make_probes(dataset, out, kind_list, per_kind=per_kind, seed=seed, workers=workers,
-                                  camera=camera, force=force, on_progress=bar.callback())
+                                  camera=camera, force=force, on_progress=bar.callback(), engine=engine,
+                                  ray_address=ray_address)
     console.print(f"{summary['episodes']} probes ({', '.join(f'{k}: {n}' for k, n in summary['kinds'].items())}) "
                   f"from {dataset} in {summary['wall_s']:.1f} s -> {out}")
     console.print(f"measure detectors on them: democheck bench {dataset} {out} --out <dir>")

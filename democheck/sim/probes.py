@@ -111,8 +111,10 @@ def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[
 
 def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = None, per_kind: int = 50,
                 seed: int = 0, workers: int = 2, camera: str | None = None, force: bool = False,
-                on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
-    """Write a probe dataset made from ``source`` under ``out`` (atomically); returns its summary.
+                on_progress: Callable[[int, int], None] | None = None, engine: str = "local",
+                ray_address: str | None = None) -> dict[str, Any]:
+    """Write a probe dataset made from ``source`` under ``out`` (atomically); returns its summary.  ``engine``
+    "ray" renders the same shards in Ray actors (``pool.run_on``): the same files.
 
     ``kinds``: default, every kind the data allows (all four with sim records, ``IMAGE_PROBES`` without).
     The probes keep the source's camera name, and their video is lossless, so a probe's frames equal its
@@ -146,8 +148,8 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
                "video": VideoOptions(DEFAULT_PIX_FMT, DEFAULT_CRF, camera=ds.camera, lossless=True)}
     t0 = time.perf_counter()
     with atomic_output_dir(out, force=force) as tmp:
-        rows = pool.run_shards(jobs, _probe_shard, _probe_init, (str(ds.root), camera, str(tmp), context), workers,
-                          len(episodes), on_progress)
+        rows = pool.run_on(engine, jobs, _probe_shard, _probe_init, (str(ds.root), camera, str(tmp), context),
+                           workers, len(episodes), on_progress, ray_address)
         sim_layout = ds.state_dim == len(STATE_NAMES) and ds.action_dim == len(ACTION_NAMES)
         state_names = STATE_NAMES if sim_layout else [f"state.{i}" for i in range(ds.state_dim)]
         action_names = ACTION_NAMES if sim_layout else [f"action.{i}" for i in range(ds.action_dim)]

@@ -20,7 +20,7 @@ import numpy as np
 from democheck import pool, resources
 from democheck.data.demo import Demo
 from democheck.data.lerobot_write import VideoOptions, write_meta, write_shard
-from democheck.errors import DemocheckError, RecipeError
+from democheck.errors import RecipeError
 from democheck.fsutil import atomic_output_dir
 from democheck.sim.catalog import CATALOG_VERSION, make_tasks
 from democheck.sim.env import ACTION_NAMES, ENV_STATE_NAMES, EPISODE_STEPS, STATE_NAMES
@@ -274,18 +274,12 @@ def generate(recipe: Recipe, out: str | Path, workers: int = 2, force: bool = Fa
     "ray" runs the same shards in ``workers`` Ray actors (``pool.RayWorkers``) on the cluster at
     ``ray_address`` (default: a local instance): the same files."""
     recipe.validate()
-    if engine not in ("local", "ray"):
-        raise DemocheckError(f"--engine {engine!r}: one of local, ray")
     tasks = recipe.tasks()
     jobs = plan_shards(recipe)
     t0 = time.perf_counter()
     with atomic_output_dir(out, force=force) as tmp:
-        if engine == "ray":
-            with pool.RayWorkers(workers, _suite_init, (recipe, str(tmp)), ray_address) as session:
-                rows = session.run(jobs, _suite_shard, recipe.n_episodes, on_progress)
-        else:
-            rows = pool.run_shards(jobs, _suite_shard, _suite_init, (recipe, str(tmp)), workers, recipe.n_episodes,
-                                   on_progress)
+        rows = pool.run_on(engine, jobs, _suite_shard, _suite_init, (recipe, str(tmp)), workers, recipe.n_episodes,
+                           on_progress, ray_address)
         wall = time.perf_counter() - t0
         expert_rows = [r for r in rows if r["label"] == "clean"]
         first_try = np.array([r["attempts"] == 1 for r in expert_rows])
