@@ -124,14 +124,25 @@ def run_shards(jobs: list, shard: Callable[[Any], list[dict[str, Any]]], init: C
 ENGINES = ("local", "ray")
 
 
+def check_engine(engine: str) -> None:
+    """One clear line for an ``--engine`` that is not one of ``ENGINES``."""
+    if engine not in ENGINES:
+        raise DemocheckError(f"--engine {engine!r}: one of {', '.join(ENGINES)}")
+
+
+def workers_for(engine: str, workers: int, init: Callable[..., None], args: tuple, address: str | None = None
+                ) -> "Workers | RayWorkers":
+    """The (unentered) workers of ``engine``: this machine's processes ("local") or Ray actors ("ray", the
+    cluster at ``address``; default: a local instance).  Both run the same jobs to the same rows."""
+    check_engine(engine)
+    return RayWorkers(workers, init, args, address) if engine == "ray" else Workers(workers, init, args)
+
+
 def run_on(engine: str, jobs: list, shard: Callable[[Any], list[dict[str, Any]]], init: Callable[..., None],
            args: tuple, workers: int, total: int, on_progress: Callable[[int, int], None] | None = None,
            address: str | None = None) -> list[dict[str, Any]]:
-    """``run_shards`` on this machine's worker processes (``engine`` "local") or on Ray actors ("ray", the
-    cluster at ``address``; default: a local instance): the same rows."""
-    if engine not in ENGINES:
-        raise DemocheckError(f"--engine {engine!r}: one of {', '.join(ENGINES)}")
-    with (RayWorkers(workers, init, args, address) if engine == "ray" else Workers(workers, init, args)) as runner:
+    """``run_shards`` on the workers of ``engine`` (``workers_for``): the same rows."""
+    with workers_for(engine, workers, init, args, address) as runner:
         return runner.run(jobs, shard, total, on_progress)
 
 

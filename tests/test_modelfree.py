@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from democheck.audit import modelfree
+from democheck.audit import dynamics, modelfree
 from democheck.audit.scorers import SCORERS, Evidence, compute, select
 from democheck.audit.scores import combined_log10, flags, tail_probabilities
 from democheck.data.demo import Demo
@@ -96,33 +96,33 @@ def test_dynamics_is_the_same_fed_whole_or_in_shards_and_a_short_last_block_is_j
     """Shards merged in order give every demo the error one consumer fed every demo gives it (shards smaller
     than a block, a block each, several blocks each); a last block too small to fit on its own is scored by
     the fit of the block before, so a bad demo there still stands out."""
-    monkeypatch.setattr(modelfree, "DYNAMICS_BLOCK", 8)
-    monkeypatch.setattr(modelfree, "DYNAMICS_MIN_BLOCK", 4)
+    monkeypatch.setattr(dynamics, "DYNAMICS_BLOCK", 8)
+    monkeypatch.setattr(dynamics, "DYNAMICS_MIN_BLOCK", 4)
     rng = np.random.default_rng(3)
     demos = [_demo(i, rng) for i in range(26)]  # three blocks of 8, and a last block of 2
     demos[25].actions[:] = demos[3].actions  # recorded against another demo's state
-    whole = modelfree.DynamicsFit()
+    whole = dynamics.DynamicsFit()
     for d in demos:
         whole.add(d)
     whole = whole.finish()
     for size in (4, 8, 16):
         parts = []
         for s in range(0, len(demos), size):
-            part = modelfree.DynamicsFit()
+            part = dynamics.DynamicsFit()
             for d in demos[s:s + size]:
                 part.add(d)
             parts.append(part)
-        merged = modelfree.DynamicsFit.merged(parts).finish()
+        merged = dynamics.DynamicsFit.merged(parts).finish()
         assert np.array_equal(np.asarray(merged.errors), np.asarray(whole.errors)), size
-    values, _ = modelfree.dynamics(whole)
+    values, _ = dynamics.dynamics(whole)
     assert values[25] > np.nanmax(values[:25])
-    bad = [modelfree.DynamicsFit(), modelfree.DynamicsFit()]  # shards of 12 do not line up with blocks of 8
+    bad = [dynamics.DynamicsFit(), dynamics.DynamicsFit()]  # shards of 12 do not line up with blocks of 8
     for i, d in enumerate(demos[:24]):
         bad[i // 12].add(d)
     import pytest
 
     with pytest.raises(ValueError, match="line up"):
-        modelfree.DynamicsFit.merged(bad)
+        dynamics.DynamicsFit.merged(bad)
 
 
 def test_timing_ranks_the_dropped_frames_first_and_names_the_frame():
@@ -236,7 +236,7 @@ def test_audit_without_a_model_on_data_the_shipped_model_cannot_read(tmp_path):
 
 def test_the_decoding_pass_in_two_worker_processes_gives_the_same_scores(tmp_path, monkeypatch):
     """Shards decoded in spawned workers, merged before the checks finish: every score as in one process."""
-    from democheck.audit import run
+    from democheck.audit import shards
     from democheck.audit.run import audit
     from democheck.data import open_dataset
     from democheck.sim.suite import generate
@@ -246,7 +246,7 @@ def test_the_decoding_pass_in_two_worker_processes_gives_the_same_scores(tmp_pat
     root = tmp_path / "d"
     generate(replace(TINY, seed=6, demos_per_task=6, steps=16, defects=(("idle", 1),)), root, workers=1)
     ds = open_dataset(root)
-    monkeypatch.setattr(run, "SHARD", 4)  # 24 demos: six shards, three per worker
+    monkeypatch.setattr(shards, "SHARD", 4)  # 24 demos: six shards, three per worker
     one, _ = audit(ds, None, workers=1)
     two, _ = audit(ds, None, workers=2)
     for col in one.columns:
@@ -259,7 +259,7 @@ def test_both_passes_in_two_worker_processes_give_the_same_scores_with_a_model(t
     process."""
     from dataclasses import replace
 
-    from democheck.audit import run
+    from democheck.audit import shards
     from democheck.audit.run import audit
     from democheck.data import open_dataset
     from democheck.petnet.checkpoint import load_checkpoint
@@ -269,10 +269,10 @@ def test_both_passes_in_two_worker_processes_give_the_same_scores_with_a_model(t
     root = tmp_path / "d"
     generate(replace(TINY, seed=7, demos_per_task=6, steps=12, defects=(("idle", 1),)), root, workers=1)
     ds, ckpt = open_dataset(root), load_checkpoint(tiny_model)
-    monkeypatch.setattr(run, "SHARD", 4)  # 24 demos: six decoding shards
-    monkeypatch.setattr(run, "CUE_SHARD", 8)  # and three cue shards of two batches (the jobs carry the size)
-    monkeypatch.setattr(run, "CUE_BATCH", 4)
-    monkeypatch.setattr(run, "PARALLEL_MIN_SHARDS", 1)
+    monkeypatch.setattr(shards, "SHARD", 4)  # 24 demos: six decoding shards
+    monkeypatch.setattr(shards, "CUE_SHARD", 8)  # and three cue shards of two batches (the jobs carry the size)
+    monkeypatch.setattr(shards, "CUE_BATCH", 4)
+    monkeypatch.setattr(shards, "PARALLEL_MIN_SHARDS", 1)
     passes = []
     from democheck import pool
 
@@ -327,7 +327,7 @@ def test_the_ray_engine_gives_the_local_engines_scores(tmp_path, monkeypatch, ti
     pytest.importorskip("ray.data")
     from dataclasses import replace
 
-    from democheck.audit import run
+    from democheck.audit import shards
     from democheck.audit.run import audit
     from democheck.data import open_dataset
     from democheck.petnet.checkpoint import load_checkpoint
@@ -337,9 +337,9 @@ def test_the_ray_engine_gives_the_local_engines_scores(tmp_path, monkeypatch, ti
     root = tmp_path / "d"
     generate(replace(TINY, seed=6, demos_per_task=6, steps=16, defects=(("idle", 1),)), root, workers=1)
     ds, ckpt = open_dataset(root), load_checkpoint(tiny_model)
-    monkeypatch.setattr(run, "SHARD", 8)  # 24 demos: three decoding shards
-    monkeypatch.setattr(run, "CUE_SHARD", 8)  # three cue shards of two whole batches
-    monkeypatch.setattr(run, "CUE_BATCH", 4)
+    monkeypatch.setattr(shards, "SHARD", 8)  # 24 demos: three decoding shards
+    monkeypatch.setattr(shards, "CUE_SHARD", 8)  # three cue shards of two whole batches
+    monkeypatch.setattr(shards, "CUE_BATCH", 4)
     local, _ = audit(ds, ckpt, workers=1)
     on_ray, _ = audit(ds, ckpt, workers=2, engine="ray")
     assert {"task_uncertainty", "action_error", "idle"} <= set(on_ray)

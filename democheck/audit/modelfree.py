@@ -22,13 +22,7 @@ held shut, counts in units of 1% of the busiest dimension's, so it cannot make a
   under ``FROZEN_LEVEL``) while the actions change: a camera that stopped delivering while the arm moved.
 - ``saturation``: the share of steps at which some action dimension sits at its smallest or largest value over
   all the demos (a command clipped at its limit).
-- ``dynamics``: how badly the demo's state follows its actions (action-state disagreement): a ridge
-  regression predicts each step's change of state from the state and the last two actions, fitted on the
-  steps of each block of ``DYNAMICS_BLOCK`` consecutive demos (so memory does not grow with the dataset, and
-  the blocks are the parallel decoding pass's shards: the same numbers with any number of workers); the score
-  is the log of the demo's mean squared prediction error over the median demo's.  A robot held, blocked or
-  pushed by something it met, an arm that did not answer its commands, or actions recorded against another
-  demo's state or shifted in time.
+- ``dynamics`` (``democheck.audit.dynamics``): how badly the demo's state follows its actions.
 - ``timing``: the share of a demo's time steps (the ``timestamp`` column, where the format has one) that are
   not the dataset's frame period (1 / fps) -- off by more than ``TIMING_TOLERANCE`` of it, or not forward at
   all: dropped, repeated or reordered frames.  NaN where the dataset records no timestamps.
@@ -50,15 +44,11 @@ from democheck.data.demo import Demo
 STILL = 0.05  # a step is still when its change of action is under 5% of the median change
 FROZEN_LEVEL = 0.1  # grey levels (0-255): a frame this close to the previous one repeats it
 DUPLICATE_STEPS = 32
-DYNAMICS_RIDGE = 1e-3  # ridge penalty per step, on standardised features: a near-constant feature cannot blow up
-DYNAMICS_BLOCK = 128  # demos per fit of the dynamics check (= the audit's decoding shard, ``run.SHARD``)
-DYNAMICS_MIN_BLOCK = 32  # a last block of fewer demos is judged by the fit of the block before it
-DYNAMICS_WINDOW = 10  # the reason names the stretch of this many steps the state follows the actions worst
 TIMING_TOLERANCE = 0.5  # a time step off the usual one by more than half of it is irregular
 IDLE_MIN_SCALE = 0.05  # a robust standard deviation of the idle share stands for at least 5% of the steps
 
 
-def _steps_text(start: int, stop: int, length: int) -> str:
+def steps_text(start: int, stop: int, length: int) -> str:
     return f"frames {start}-{stop} ({100 * (stop - start + 1) / max(length, 1):.0f}% of the demo)"
 
 
@@ -136,7 +126,7 @@ def idle(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
         still = (c / scale).mean(1) < STILL
         out[i] = float(still.mean())
         start, n = longest_run(still)
-        reasons.append(f"still at {100 * out[i]:.0f}% of steps; longest {_steps_text(start, start + n, len(c) + 1)}"
+        reasons.append(f"still at {100 * out[i]:.0f}% of steps; longest {steps_text(start, start + n, len(c) + 1)}"
                        if n else "never still")
     return out, reasons
 
@@ -211,130 +201,6 @@ def duplicate(traces: ActionTraces, episode_index: np.ndarray) -> tuple[np.ndarr
     return out, reasons
 
 
-def _dynamics_features(state: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    """Per step t < T-1: the state, the action and the action before it (zero at the first step)."""
-    s, a = state.astype(np.float64), actions.astype(np.float64)
-    before = np.vstack([np.zeros((1, a.shape[1])), a[:-1]])
-    return np.column_stack([s[:-1], a[:-1], before[:-1]])
-
-
-def _dynamics_fit(states: list[np.ndarray], actions: list[np.ndarray]) -> dict[str, np.ndarray] | None:
-    """One ridge regression of the change of state on ``_dynamics_features`` over these demos' steps, with its
-    standardisation (state dimensions that never move and constant features left out); None when no demo
-    has 3 steps or the state never changes."""
-    usable = [i for i, a in enumerate(actions) if len(a) >= 3]
-    if not usable:
-        return None
-    x = np.concatenate([_dynamics_features(states[i], actions[i]) for i in usable])
-    y = np.concatenate([np.diff(states[i].astype(np.float64), axis=0) for i in usable])
-    x_mean, x_sd, y_sd = x.mean(0), x.std(0), y.std(0)
-    xs, ys = x_sd > 1e-6 * max(float(x_sd.max()), 1e-12), y_sd > 1e-6 * max(float(y_sd.max()), 1e-12)
-    if not ys.any():  # the state never changes: there is nothing to follow
-        return None
-    xn = (x[:, xs] - x_mean[xs]) / x_sd[xs]
-    yn = y[:, ys] / y_sd[ys]
-    y_mean = yn.mean(0)
-    w = np.linalg.solve(xn.T @ xn + DYNAMICS_RIDGE * len(xn) * np.eye(xn.shape[1]), xn.T @ (yn - y_mean))
-    return {"x_mean": x_mean[xs], "x_sd": x_sd[xs], "xs": xs, "y_sd": y_sd[ys], "ys": ys, "y_mean": y_mean, "w": w}
-
-
-def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray], fit: dict[str, np.ndarray] | None
-                     ) -> list[np.ndarray | None]:
-    """Per demo, the squared error of each step's predicted change of state under ``fit`` (mean over the state
-    dimensions that move, each in its standard deviation); None for a demo under 3 steps, or without a fit."""
-    out: list[np.ndarray | None] = [None] * len(actions)
-    if fit is None:
-        return out
-    for i, (s, a) in enumerate(zip(states, actions)):
-        if len(a) < 3:
-            continue
-        xn = (_dynamics_features(s, a)[:, fit["xs"]] - fit["x_mean"]) / fit["x_sd"]
-        yn = np.diff(s.astype(np.float64), axis=0)[:, fit["ys"]] / fit["y_sd"]
-        out[i] = ((xn @ fit["w"] + fit["y_mean"] - yn) ** 2).mean(1)
-    return out
-
-
-class DynamicsFit(PerDemo):
-    """Consumer of decoded demos for ``dynamics``: each block of ``DYNAMICS_BLOCK`` demos is fitted and scored as
-    soon as it is complete, per demo only its mean error and its worst stretch kept; a last block of fewer than
-    ``DYNAMICS_MIN_BLOCK`` demos is scored by the fit of the block before it (on its own steps alone a few
-    demos would explain themselves)."""
-
-    fields = ("errors", "worst", "states", "actions")
-    errors: list[float]  # per scored demo: mean squared error (NaN: not scored)
-    worst: list[tuple[int, int, int]]  # per scored demo: start, width of its worst stretch, its steps
-    states: list[np.ndarray]  # the block not scored yet
-    actions: list[np.ndarray]
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.last_fit: dict[str, np.ndarray] | None = None  # the latest full block's
-
-    def add(self, demo: Demo) -> None:
-        self.states.append(np.asarray(demo.state, np.float32))
-        self.actions.append(np.asarray(demo.actions, np.float32))
-        self._score_blocks()
-
-    def _score_blocks(self, last: bool = False) -> None:
-        while len(self.actions) >= DYNAMICS_BLOCK or last and self.actions:
-            block = slice(0, DYNAMICS_BLOCK)
-            states, actions = self.states[block], self.actions[block]
-            if len(actions) >= DYNAMICS_MIN_BLOCK or self.last_fit is None:
-                fit = _dynamics_fit(states, actions)
-                if len(actions) == DYNAMICS_BLOCK and fit is not None:
-                    self.last_fit = fit
-            else:
-                fit = self.last_fit
-            for e in _dynamics_errors(states, actions, fit):
-                if e is None:
-                    self.errors.append(np.nan)
-                    self.worst.append((0, 0, 0))
-                    continue
-                width = min(DYNAMICS_WINDOW, len(e))
-                start = int(np.argmax(np.convolve(e, np.ones(width) / width, mode="valid")))
-                self.errors.append(float(e.mean()))
-                self.worst.append((start, width, len(e)))
-            del self.states[block], self.actions[block]
-
-    @classmethod
-    def merged(cls, parts: list["PerDemo"]) -> "DynamicsFit":
-        """The shards' scores in order, and their waiting demos scored in blocks as they fill up -- what one
-        consumer fed every demo would hold, as long as each shard's blocks line up with the whole's
-        (``run.SHARD`` is a multiple of ``DYNAMICS_BLOCK``, or smaller)."""
-        out = cls()
-        for part in parts:
-            if part.errors and out.actions:
-                raise ValueError("the dynamics check's blocks do not line up with the decoding shards: a shard "
-                                 f"must hold a multiple of {DYNAMICS_BLOCK} demos, or fewer")
-            out.errors += part.errors
-            out.worst += part.worst
-            out.states += part.states
-            out.actions += part.actions
-            if part.last_fit is not None:
-                out.last_fit = part.last_fit
-            out._score_blocks()
-        return out
-
-    def finish(self) -> "DynamicsFit":
-        self._score_blocks(last=True)
-        return self
-
-
-def dynamics(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
-    """log(each demo's mean squared error of its block's linear prediction of the change of state / the
-    demos' median of that), and the stretch of ``DYNAMICS_WINDOW`` steps it is worst over."""
-    errors = np.asarray(fit.errors, np.float64)
-    ok = np.isfinite(errors)
-    if not ok.any():
-        return np.full(len(errors), np.nan), ["the state never changes, or too short"] * len(errors)
-    typical = max(float(np.median(errors[ok])), 1e-12)
-    out = np.where(ok, np.log(np.maximum(errors, 1e-12) / typical), np.nan)
-    reasons = [f"the state follows the actions {e / typical:.2g} x worse than usual; worst over "
-               + _steps_text(start, start + width, n + 1) if good else "too short, or a state that never changes"
-               for e, good, (start, width, n) in zip(errors, ok, fit.worst)]
-    return out, reasons
-
-
 def _timing_of(t: np.ndarray | None, fps: float | None) -> tuple[float, str]:
     """``timing`` of one demo: the share of its time steps off the frame period (see the module docstring)."""
     if t is None or not fps:
@@ -387,7 +253,7 @@ def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
         out[i] = float(frozen.mean())
         start, length = longest_run(frozen)
         reasons.append(f"the frame repeats while the arm moves at {100 * out[i]:.0f}% of steps; longest "
-                       + _steps_text(start, start + length, n + 1) if length else "frames change while the arm moves")
+                       + steps_text(start, start + length, n + 1) if length else "frames change while the arm moves")
     return out, reasons
 
 

@@ -10,16 +10,14 @@ into a report folder (tables, summary, Rerun recording).
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
 
-from democheck.audit import modelfree, scorers as registry
-from democheck.pool import ENGINES as pool_engines
-from democheck.audit.action_error import ACTION_BATCH
+from democheck import pool
+from democheck.audit import scorers as registry, shards
 from democheck.audit.scorers import Evidence, Scorer
 from democheck.audit.scores import DEFAULT_FPR, exact_copies, flags, ocsvm_margin, rank_order
 from democheck.data.cache import dataset_fingerprint
@@ -50,21 +48,16 @@ def for_model(ds: DemoSet, ckpt: Checkpoint) -> DemoSet:
     return ds.resized(cfg.image_size)
 
 
-CUE_BATCH = 256  # cues encoded at a time
-
-
 def cue_posteriors(ds: DemoSet, model, device, batch: int | None = None,
                    on_progress: Callable[[int, int], None] | None = None, runner: Any = None) -> TaskPosterior:
-    """The task posterior of every demo's cue, in ``ds.episode_indices`` order; with ``runner`` (``_runner``:
-    worker processes or Ray actors, each holding the audit's PETNet -- which ``model`` must be) in shards of
-    ``CUE_SHARD`` demos encoded in the same batches, the same numbers."""
+    """The task posterior of every demo's cue, in ``ds.episode_indices`` order, in batches of ``batch`` (default
+    ``shards.CUE_BATCH``); with ``runner`` (``shards.runner``: worker processes or Ray actors, each holding the
+    audit's PETNet -- which ``model`` must be) in shards of whole batches (``shards.parallel_cues``), the same
+    numbers."""
     eps = ds.episode_indices
+    batch = batch or shards.CUE_BATCH
     if runner is not None and eps:
-        jobs = [(i, {"pass": "cues", "batch": batch or CUE_BATCH, **_where(ds)}, eps[s:s + CUE_SHARD])
-                for i, s in enumerate(range(0, len(eps), CUE_SHARD))]
-        got = sorted(runner.run(jobs, _run_shard, len(eps), on_progress), key=lambda r: r["shard"])
-        return TaskPosterior.concat([r["post"] for r in got])
-    batch = batch or CUE_BATCH
+        return shards.parallel_cues(ds, runner, batch, on_progress)
     parts = []
     for s in range(0, len(eps), batch):
         parts.append(encode(model, ds.cue_frames_many(eps[s:s + batch]), device))
@@ -93,13 +86,12 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
 
     ``episodes``: the pooled demos' table (default: the datasets' episode tables one after the other).
     ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).  ``workers`` > 1 runs both passes
-    of datasets large enough (``PARALLEL_MIN_SHARDS``) in that many spawned processes, started once for both
-    (``_runner``), with the same results; ``engine`` "ray" runs them in that many Ray actors (``pool.RayWorkers``) on
-    the cluster at ``ray_address`` (default: a local instance), the same again.  The TecNets baseline's cue pass
-    (bench only) stays in this process.
+    of datasets large enough (``shards.PARALLEL_MIN_SHARDS``) in that many spawned processes, started once for
+    both (``shards.runner``), with the same results; ``engine`` "ray" runs them in that many Ray actors
+    (``pool.RayWorkers``) on the cluster at ``ray_address`` (default: a local instance), the same again.  The
+    TecNets baseline's cue pass (bench only) stays in this process.
     """
-    if engine not in ENGINES:
-        raise DemocheckError(f"--engine {engine!r}: one of {', '.join(ENGINES)}")
+    pool.check_engine(engine)
     t = timings if timings is not None else {}
 
     def stage(name: str, ds: DemoSet) -> Callable[[int, int], None] | None:
@@ -107,17 +99,18 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
 
     model = str(ckpt.path) if ckpt is not None else None
 
-    def spread(ds: DemoSet, shard: int) -> bool:  # whether a pass over ``ds`` in shards of ``shard`` pays
-        return engine == "ray" or workers > 1 and len(ds) >= PARALLEL_MIN_SHARDS * shard * workers
+    def spread(ds: DemoSet, shard: int) -> bool:
+        return shards.pays(len(ds), shard, engine, workers)
 
     decodes = any(s.decode is not None for s in scorers)
-    parallel = any(ckpt is not None and spread(ds, CUE_SHARD) or decodes and spread(ds, SHARD) for ds in sets)
-    with _runner(parallel, engine, workers, model, str(device), ray_address) as runner:
+    parallel = any(ckpt is not None and spread(ds, shards.CUE_SHARD) or decodes and spread(ds, shards.SHARD)
+                   for ds in sets)
+    with shards.runner(parallel, engine, workers, model, str(device), ray_address) as runner:
         t0 = time.perf_counter()
         post = None
         if ckpt is not None:
             post = TaskPosterior.concat([cue_posteriors(ds, ckpt.model, device, on_progress=stage("PETNet", ds),
-                                                        runner=runner if spread(ds, CUE_SHARD) else None)
+                                                        runner=runner if spread(ds, shards.CUE_SHARD) else None)
                                          for ds in sets])
         embedding = None
         if tecnet is not None:
@@ -138,152 +131,19 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
             for ds in sets:
                 rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
                 progress = stage("decoding" if ckpt is None else "actions", ds)
-                if runner is not None and spread(ds, SHARD):
-                    for key, got in parallel_decoding(ds, ev, rows, decoding, runner, progress).items():
+                if runner is not None and spread(ds, shards.SHARD):
+                    for key, got in shards.parallel_decoding(ds, ev, rows, decoding, runner, progress).items():
                         parts[key].append(got)
                 else:
-                    consumers = _consumers(decoding.values(), ev, rows, device)
+                    consumers = shards.consumers(decoding.values(), ev, rows, device)
                     decoding_pass(ds, list(consumers.values()), progress)
                     for key, consumer in consumers.items():
                         parts[key].append(consumer.finish())
                 start += len(ds)
             for key, got in parts.items():
-                ev.behaviour[key] = _concat(got)
+                ev.behaviour[key] = shards.concat(got)
             t["actions_s"] = time.perf_counter() - t1
     return registry.compute(ev, scorers)
-
-
-# Demos per shard of a parallel decoding pass: a multiple of the action error's batch, so that every batch the
-# controller sees holds the same demos as in one process (and the numbers are the same), and of the dynamics
-# check's block (``modelfree.DYNAMICS_BLOCK``), for the same reason.
-SHARD = 4 * ACTION_BATCH
-assert SHARD % modelfree.DYNAMICS_BLOCK == 0 or SHARD < modelfree.DYNAMICS_BLOCK, "see modelfree.DynamicsFit.merged"
-# Cues per shard of a parallel cue pass: whole batches of ``CUE_BATCH``, as one process encodes them.
-CUE_SHARD = 4 * CUE_BATCH
-# Below this many shards per worker, starting the workers (each imports torch and loads the model, ~2 s) costs
-# more than it saves: on push-v1, 168 demos took 2.1 s in one process and 3.4 s in two, 768 demos 10.1 s and
-# 7.5 s, 6,048 demos 78.6 s and 47.8 s (identical scores each time; benchmarks/parallel_audit.py).
-PARALLEL_MIN_SHARDS = 2
-ENGINES = pool_engines  # local, ray (``democheck.pool``)
-
-
-@contextmanager
-def _runner(parallel: bool, engine: str, workers: int, model: str | None, device: str, ray_address: str | None
-            ) -> Iterator[Any]:
-    """What runs an audit's shards (``run(jobs, _run_shard, total)``), started once for its cue pass and its
-    decoding pass: ``workers`` spawned processes (``pool.Workers``, each loading the model once), Ray
-    (``pool.RayWorkers``: an actor pool per pass), or None (this process, shard-free)."""
-    if not parallel:
-        yield None
-    elif engine == "ray":
-        from democheck import pool
-
-        with pool.RayWorkers(workers, _decode_init, (model, device), ray_address) as session:
-            yield session
-    else:
-        from democheck import pool
-
-        with pool.Workers(workers, _decode_init, (model, device)) as local:
-            yield local
-
-
-def _where(ds: DemoSet) -> dict[str, Any]:
-    """How a worker opens ``ds`` as this process reads it."""
-    return {"root": str(ds.root), "camera": ds.camera, "image_size": ds.image_size}
-
-
-def parallel_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str, Scorer], runner: Any,
-                      on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
-    """The decoding pass of ``ds`` (its rows ``rows`` of the evidence) by ``runner``'s workers: each decodes
-    shards of ``SHARD`` consecutive demos with its own copy of the model; what a consumer keeps per demo
-    (``modelfree.PerDemo``) is merged before it finishes, what it finishes per demo is pooled after."""
-    eps = ds.episode_indices
-    z = ev.task_variables()[rows] if ev.posterior is not None else None
-    jobs = [(i, {"pass": "decode", **_where(ds), "tasks": ds.episodes.loc[eps[s:s + SHARD], "task"].tolist(),
-                 "names": [x.name for x in decoding.values()], "z": None if z is None else z[s:s + SHARD]},
-             eps[s:s + SHARD])
-            for i, s in enumerate(range(0, len(eps), SHARD))]
-    got = sorted(runner.run(jobs, _run_shard, len(eps), on_progress), key=lambda r: r["shard"])
-    out = {}
-    for key, s in decoding.items():
-        parts = [r["parts"][key] for r in got]
-        out[key] = (type(parts[0]).merged(parts).finish() if isinstance(parts[0], modelfree.PerDemo)
-                    else _concat([p[1] for p in parts]))
-    return out
-
-
-def _consumers(scorers, ev: Evidence, rows: slice, device: Any) -> dict[str, Any]:
-    """One consumer per behaviour key of ``scorers`` (scorers that share a key share it), for ``rows``."""
-    out: dict[str, Any] = {}
-    for s in scorers:
-        if s.source not in out:
-            out[s.source] = s.decode(ev, rows, device)
-    return out
-
-
-def _decode_init(model: str | None, device: str) -> None:
-    import torch
-
-    from democheck import pool
-    from democheck.petnet.checkpoint import load_checkpoint
-
-    torch.set_num_threads(1)  # one core per worker process
-    pool.state.update(ckpt=load_checkpoint(model, device=device) if model else None, device=device, sets={})
-
-
-def _run_shard(job: tuple) -> list[dict[str, Any]]:
-    """One shard of either pass, in a worker (``_decode_init`` ran first)."""
-    return (_cue_shard if job[1]["pass"] == "cues" else _decode_shard)(job)
-
-
-def _opened(spec: dict[str, Any]) -> DemoSet:
-    """The dataset a shard's ``spec`` names (``_where``), opened once per worker."""
-    from democheck import pool
-    from democheck.data import open_dataset
-
-    key = (spec["root"], spec["camera"], spec["image_size"])
-    sets = pool.state["sets"]
-    if key not in sets:
-        sets[key] = open_dataset(spec["root"], camera=spec["camera"]).resized(spec["image_size"])
-    return sets[key]
-
-
-def _cue_shard(job: tuple) -> list[dict[str, Any]]:
-    from democheck import pool
-
-    index, spec, eps = job
-    ds, ckpt = _opened(spec), pool.state["ckpt"]
-    parts, batch = [], spec["batch"]
-    for s in range(0, len(eps), batch):
-        parts.append(encode(ckpt.model, ds.cue_frames_many(eps[s:s + batch]), pool.state["device"]))
-        pool.tick(len(parts[-1]))
-    return [{"shard": index, "post": TaskPosterior.concat(parts)}]
-
-
-def _decode_shard(job: tuple) -> list[dict[str, Any]]:
-    from democheck import pool
-
-    index, spec, eps = job
-    ds = _opened(spec)
-    ev = Evidence(episodes=pd.DataFrame({"episode_index": eps, "task": spec["tasks"]}), model=pool.state["ckpt"])
-    ev._z = spec["z"]
-    consumers = _consumers([registry.SCORERS[n] for n in spec["names"]], ev, slice(0, len(eps)), pool.state["device"])
-    for e in eps:
-        demo = ds[e]
-        for c in consumers.values():
-            c.add(demo)
-        pool.tick()
-    parts = {k: c if isinstance(c, modelfree.PerDemo) else ("done", c.finish()) for k, c in consumers.items()}
-    return [{"shard": index, "parts": parts}]
-
-
-def _concat(parts: list) -> Any:
-    """Per-dataset results of one consumer, pooled: arrays, (values, reasons) pairs, or consumers that merge."""
-    if isinstance(parts[0], modelfree.PerDemo):
-        return type(parts[0]).merged(parts)
-    if isinstance(parts[0], tuple):
-        return np.concatenate([p[0] for p in parts]), [r for p in parts for r in p[1]]
-    return np.concatenate(parts)
 
 
 def score_posteriors(episodes: pd.DataFrame, post: TaskPosterior, model: Checkpoint | None = None,

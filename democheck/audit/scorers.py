@@ -25,7 +25,7 @@ import pandas as pd
 
 from democheck.audit.baselines import (HEURISTIC_FEATURES, heuristic_z, knn_same_task, motion_features, random_score,
                                        summarise_motion)
-from democheck.audit import modelfree
+from democheck.audit import dynamics, modelfree
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_terms, ocsvm_margin,
                                     rank_order, tail_probabilities)
@@ -259,7 +259,7 @@ def _duplicate(ev: Evidence) -> Scores:
 
 
 def _dynamics(ev: Evidence) -> Scores:
-    return modelfree.dynamics(ev.behaviour["dynamics"])
+    return dynamics.dynamics(ev.behaviour["dynamics"])
 
 
 def _timing(ev: Evidence) -> Scores:
@@ -343,9 +343,9 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "ratio; inf = an exact copy of another demo: actions, state and frames)", ("demos", "many"), _duplicate,
            behaviour="actions", decode=_traces, short="dup."),
     Scorer("dynamics", "model-free: action-state disagreement -- log of how badly a linear model of its block of "
-           f"{modelfree.DYNAMICS_BLOCK} demos predicts the demo's change of state from its state and actions, "
+           f"{dynamics.DYNAMICS_BLOCK} demos predicts the demo's change of state from its state and actions, "
            "over the median demo's", ("demos",), _dynamics,
-           decode=lambda ev, rows, device: modelfree.DynamicsFit(), short="dyn."),
+           decode=lambda ev, rows, device: dynamics.DynamicsFit(), short="dyn."),
     Scorer("timing", "model-free: share of time steps off the frame period 1/fps (dropped, repeated or reordered "
            "frames; NaN without timestamps)", ("demos",), _timing, behaviour="actions", decode=_traces,
            short="time"),
@@ -359,8 +359,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty, "
            "consistency, action error (log), motion, idle and view (one task: the last four), each in "
            "robust standard deviations within its task (2 = as unusual as 1 clean demo in 100)", ("scores",),
-           _suspicion,
-           short="susp."),
+           _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
            "view): what democheck says with no model", ("scores",), _model_free, in_audit=False,
            short="no-model"),
