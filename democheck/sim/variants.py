@@ -29,20 +29,20 @@ from democheck.sim.env import ENV_STATE_DIM, PushEnv
 from democheck.sim.expert import MarkovianExpert, ScriptedExpert
 
 BAD_OPERATORS = ("idle", "random")
-# The kinds a scripted expert drives (a recipe's ``action_noise`` perturbs these alone).
-PUSHING_KINDS = ("expert", "occluded", "wrong-object", "gave-up", "both-objects")
-
-
-def action_noise_for(kind: str, action_noise: float) -> float:
-    """The DART noise an episode of ``kind`` is recorded with: the recipe's where the expert drives, else none."""
-    return float(action_noise) if kind in PUSHING_KINDS else 0.0
 DEFECTS = ("wrong-object", "both-objects", "occluded", "gave-up")
 PLANT_KINDS = BAD_OPERATORS + DEFECTS
+# The kinds a scripted expert drives (a recipe's ``action_noise`` perturbs these alone): every semantic defect.
+PUSHING_KINDS = ("expert",) + DEFECTS
 PROBES = ("no-action", "random", "no-objects", "hidden")
 # Kinds made from the frames alone, so they work on datasets without a sim record.
 IMAGE_PROBES = ("no-action", "hidden")
 # The scripted experts a recipe can record with (``democheck.sim.expert``); push-v1 was made by "hysteresis".
 EXPERTS = {"hysteresis": ScriptedExpert, "markovian": MarkovianExpert}
+
+
+def action_noise_for(kind: str, action_noise: float) -> float:
+    """The DART noise an episode of ``kind`` is recorded with: the recipe's where the expert drives, else none."""
+    return float(action_noise) if kind in PUSHING_KINDS else 0.0
 
 
 def make_expert(env, role: str = "target", expert: str = "hysteresis") -> ScriptedExpert:
