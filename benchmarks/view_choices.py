@@ -44,13 +44,15 @@ def thumbnails(table: pd.DataFrame, size: int) -> np.ndarray:
         modelfree.VIEW_THUMB = old
 
 
-def judged(table: pd.DataFrame, view: np.ndarray | None) -> str:
+def judged(table: pd.DataFrame, view: np.ndarray | None, name: str = "view") -> str:
+    """The ranking's AUROC per kind, the share of clean demos flagged at ``DEFAULT_FPR`` and each kind's, with the
+    bench's ``name`` column replaced by ``view`` (None: left out of the ranking)."""
     labels = table["label"].fillna("clean").to_numpy()
     cols = {c: table[c].to_numpy(float) for c in table if c in SCORERS}
     if view is None:
-        cols.pop("view", None)
+        cols.pop(name, None)
     else:
-        cols["view"] = view
+        cols[name] = view
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=cols)
     ranked = scorers.ranked(cols, table["task"].to_numpy())
     p = 10.0 ** scores.combined_log10(scores.tail_probabilities(ranking_z(ev, ranked)))

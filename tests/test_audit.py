@@ -203,6 +203,7 @@ def _write_robomimic(path, n=6, T=8, size=16, joints=14):
             g.create_dataset("obs/agentview_image", data=rng.integers(0, 255, (T, size, size, 3), dtype=np.uint8))
             g.create_dataset("obs/robot0_eef_pos", data=rng.normal(size=(T, 3)))
             g.create_dataset("obs/robot0_joint_pos", data=rng.normal(size=(T, joints)))
+            g.create_dataset("obs/object", data=rng.normal(size=(T, 10)))  # the objects' poses
             if i == 5:
                 g.attrs["task"] = "another task"
         f.create_dataset("mask/train", data=np.array([b"demo_0", b"demo_1", b"demo_2", b"demo_5"]))
@@ -219,7 +220,7 @@ def test_robomimic_reader_and_audit(tiny_model, tmp_path):
     assert ds.by_task() == {"PushTiny": [0, 1, 2, 3, 4], "another task": [5]}
     assert ds.split("val") == [3, 4]
     demo = ds[2]
-    assert demo.frames.shape == (8, 16, 16, 3)
+    assert demo.frames.shape == (8, 16, 16, 3) and demo.env_state.shape == (8, 10)  # obs/object, not the state
     np.testing.assert_array_equal(ds.cue_frames(2), demo.frames[[0, -1]])
     assert open_dataset(path, task="lift").tasks == ["another task", "lift"]
     res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
@@ -227,6 +228,7 @@ def test_robomimic_reader_and_audit(tiny_model, tmp_path):
     assert res.exit_code == 0, res.output
     table = pd.read_parquet(tmp_path / "r" / "scores.parquet")
     assert np.isnan(table.set_index("episode_index").loc[5, "consistency"])  # a task with one demo
+    assert np.isfinite(table["outcome"]).sum() == 5  # the objects' ends compared within the task of five
 
 
 def test_audit_mismatch_and_fail_on(tiny_dataset, tiny_model, tmp_path):

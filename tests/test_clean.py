@@ -21,7 +21,7 @@ def audited(tmp_path_factory):
     from tests.conftest import TINY
 
     root = tmp_path_factory.mktemp("clean") / "data"
-    generate(replace(TINY, seed=5, demos_per_task=6, steps=20, defects=(("idle", 1), ("random", 1))), root, workers=1)
+    generate(replace(TINY, seed=5, demos_per_task=6, steps=60, defects=(("idle", 1), ("random", 1))), root, workers=1)
     report = root.with_name("report")
     res = runner.invoke(app, ["audit", str(root), "--out", str(report), "--no-model"])
     assert res.exit_code == 0, res.output

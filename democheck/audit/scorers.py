@@ -190,11 +190,21 @@ def ranking_z(ev: Evidence, names: list[str]) -> np.ndarray:
 
 
 def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
-    """The scores the ranking combines, of those ``available``: every ``in_suspicion`` scorer's, less the task
-    embedding's on a dataset of one task (``in_single_task_ranking``), less the model's with ``model_free``."""
+    """The scores the ranking combines, of those ``available`` (names, or columns by name): every
+    ``in_suspicion`` scorer's, less the task embedding's on a dataset of one task (``in_single_task_ranking``),
+    less the model's with ``model_free``, less a column with no score at all (the outcome of a dataset whose
+    tasks are all too small to compare): a look that cannot see anything must not cost the others' correction."""
     one_task = len(np.unique(tasks)) == 1
+
+    def scored(n: str) -> bool:
+        columns = isinstance(available, (dict, pd.DataFrame))
+        return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
+
     return [n for n, s in SCORERS.items() if s.in_suspicion and n in available and (s.model_free or not model_free)
-            and (s.in_single_task_ranking or not one_task)]
+            and (s.in_single_task_ranking or not one_task) and scored(n)]
+
+
+REASON_P = 0.05  # a score this surprising (tail probability) is named in the ranking's reason beside the first
 
 
 def _combination(ev: Evidence, model_free: bool = False) -> Scores:
@@ -207,8 +217,8 @@ def _combination(ev: Evidence, model_free: bool = False) -> Scores:
     value = -combined_log10(log_p)
     reasons = []
     for i, row in enumerate(log_p):
-        # The score that drove it, and a second one that is surprising too (often the one that says where).
-        order = [j for j in np.argsort(row, kind="stable")[:2] if j == np.argmin(row) or row[j] < np.log(1e-3)]
+        # The score that drove it most, and up to two more that added to it (often the one that says where).
+        order = [j for j in np.argsort(row, kind="stable")[:3] if j == np.argmin(row) or row[j] < np.log(REASON_P)]
         parts = []
         for j in order:
             own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
@@ -268,6 +278,10 @@ def _timing(ev: Evidence) -> Scores:
 
 def _frozen_video(ev: Evidence) -> Scores:
     return modelfree.frozen_video(ev.behaviour["frozen_video"])
+
+
+def _outcome(ev: Evidence) -> Scores:
+    return modelfree.outcome(ev.behaviour["outcome"], ev.tasks)
 
 
 def _ocsvm_flag(ev: Evidence) -> Scores:
@@ -356,12 +370,16 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            f"(over {modelfree.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
            "robust z within its task", ("demos",), _view, in_suspicion=True, in_robust_sd=True,
            decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
+    Scorer("outcome", "model-free: how differently from its task's other demos the demo left the world (the "
+           "environment state where recorded, else the state: last value and change from the first, RMS of robust "
+           "z within its task)", ("demos",), _outcome, in_suspicion=True,
+           decode=lambda ev, rows, device: modelfree.OutcomeStats(), short="outc."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty, "
-           "consistency, action error (log), motion, idle and view (one task: the last four), each in "
+           "consistency, action error (log), motion, idle, view and outcome (one task: the last five), each in "
            "robust standard deviations within its task (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
-           "view): what democheck says with no model", ("scores",), _model_free, in_audit=False,
+           "view, outcome): what democheck says with no model", ("scores",), _model_free, in_audit=False,
            short="no-model"),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),

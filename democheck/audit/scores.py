@@ -30,25 +30,35 @@ Every score is one number per demo, higher = more suspect:
   probability (``p_value``): 2 means "as unusual as one clean demo in a hundred".  Each score of the
   ranking is first put in robust standard deviations within its task (``calibrated``: a task whose demos
   all score high does not fill the top ranks), then turned into a tail probability by
-  ``tail_probabilities``, and the smallest of those is corrected for the number of scores looked at
-  (Sidak: ``combined_log10``).  The reference is the audited demos themselves -- their middle half, which
-  a minority of bad demos does not move: each score's right tail is taken as exponential from its 25th to
-  its 75th percentile onwards.  So a score whose clean demos spread widely (the task uncertainty of a
-  model on new tasks) needs a larger value to count as much as one whose clean demos agree (how still the
-  arm is), instead of the largest robust z winning whatever its score's usual spread.  Chosen on the
-  development sets (push-v1-dev + probes with the shipped model, Meta-World mw-dev with a your-data model;
-  ``benchmarks/suspicion_choices.py``): mean AUROC over their kinds 0.962 and 0.957 with the largest robust z,
-  0.971 and 0.965 with these tail probabilities; the 25th-50th, 50th-75th and 50th-90th percentiles gave
-  0.975/0.961, 0.970/0.966 and 0.963/0.975 (no better on both).  Combining by rank among the audited demos
-  instead (empirical p-values: their minimum, or Fisher's sum) gave 0.966/0.953 and 0.956/0.948: ranks cannot
-  tell how far beyond every clean demo a bad one lies.
+  ``tail_probabilities``.  The reference is the audited demos themselves -- their middle half, which a
+  minority of bad demos does not move: each score's right tail is taken as exponential from its 25th to its
+  75th percentile onwards, so a score whose clean demos spread widely (the task uncertainty of a model on new
+  tasks) needs a larger value to count as much as one whose clean demos agree (how still the arm is).
+  The tail probabilities are combined by Fisher's method with Brown's correction (``combined_log10``):
+  -2 sum log p against a scaled chi-square whose variance counts the scores' dependence, measured on the
+  audited demos' core (``brown_scale``).  Several moderate surprises add up -- a demo that gave up half-way
+  is a little still, a little slow, and ends a little short, each as unusual as one clean demo in ten to a
+  hundred -- where the smallest alone (the Sidak minimum, the ranking before; still used below
+  ``BROWN_MIN_DEMOS`` demos) waits for one of them to be extreme.  Chosen on the development sets
+  (``benchmarks/suspicion_choices.py``): on push-v1-dev audited alone (614 clean, the shipped model, the
+  outcome check in), at ``--fpr 0.01`` the Sidak minimum flagged 0.81% of the clean demos and 0.61 of the
+  gave-up demos, Fisher-Brown 0.65% and 0.97 (both-objects and occluded 1.00, wrong-object 0.95 either way;
+  ranking AUROC 0.993 and 0.999 for gave-up, the other kinds equal); on Meta-World
+  mw2-dev (200 clean, its your-data model) 4.0% and 3.0% of the clean demos (2 of them exact copies of
+  another demo), every bad demo either way.  Fisher's sum without Brown's correction takes the scores as
+  independent: on scores that move together it flags several times the rate asked for
+  (``tests/test_modelfree.py``).  Earlier choices, with the Sidak minimum: the tails against the largest
+  robust z, mean AUROC over the kinds of push-v1-dev + probes and Meta-World mw-dev 0.962 and 0.957 with the
+  largest z, 0.971 and 0.965 with these tail probabilities; the 25th-50th, 50th-75th and 50th-90th
+  percentiles gave 0.975/0.961, 0.970/0.966 and 0.963/0.975 (no better on both); ranks among the audited
+  demos instead (empirical p-values: their minimum, or Fisher's sum) 0.966/0.953 and 0.956/0.948: ranks
+  cannot tell how far beyond every clean demo a bad one lies.
 - ``is_anomaly``: ``p_value`` at most the false-positive rate asked for (``audit --fpr``, default
-  ``DEFAULT_FPR``): if the audited demos were all clean, about that share of them would be flagged.  On the
-  development sets at 1%: 0.8% of push-v1-dev's clean demos flagged (without probes, 20% bad) and 2.0% of
-  mw-dev's; the exponential tail is a model, not a law -- with labels, the audit's summary reports the
-  observed rate.  Exact copies of another demo are flagged too.  The paper's linear one-class SVM stays a
-  column (``ocsvm_margin``) and a bench scorer (``ocsvm_flag``): fitted on the training demos' precisions
-  1/sigma^2, it sees sigma only, which barely moves for an idle or flailing arm.
+  ``DEFAULT_FPR``): if the audited demos were all clean, about that share of them would be flagged.  The
+  exponential tails and Brown's two-moment match are models, not laws -- with labels, the audit's summary
+  reports the observed rate.  Exact copies of another demo are flagged too.  The paper's linear one-class SVM
+  stays a column (``ocsvm_margin``) and a bench scorer (``ocsvm_flag``): fitted on the training demos'
+  precisions 1/sigma^2, it sees sigma only, which barely moves for an idle or flailing arm.
 """
 
 from __future__ import annotations
@@ -65,6 +75,8 @@ CONSISTENCY_K = 5
 DEFAULT_FPR = 0.01  # see ``is_anomaly`` above
 TAIL_QUANTILES = (0.25, 0.75)  # see ``suspicion`` above
 TAIL_MIN_SCALE = 0.5  # robust SD: no tail falls faster than by e per half a robust standard deviation
+BROWN_CORE = 0.1  # see ``brown_scale``
+BROWN_MIN_DEMOS = 30
 
 
 def consistency_terms(post: TaskPosterior, tasks: np.ndarray, k: int | None = CONSISTENCY_K) -> np.ndarray:
@@ -176,14 +188,53 @@ def tail_probabilities(z: np.ndarray) -> np.ndarray:
     return out
 
 
-def combined_log10(log_p: np.ndarray) -> np.ndarray:
+def sidak_log10(log_p: np.ndarray) -> np.ndarray:
     """log10 of the Sidak-corrected smallest of each row's K tail probabilities (given as natural logs):
-    1 - (1 - min p)^K, the chance that the most surprising of K independent clean scores is this surprising."""
+    1 - (1 - min p)^K, the chance that the most surprising of K independent clean scores is this surprising
+    (valid, and conservative, whatever their dependence)."""
     k = log_p.shape[1]
     m = np.nan_to_num(log_p.min(axis=1), nan=0.0, neginf=-np.inf)
     with np.errstate(divide="ignore", invalid="ignore"):
         exact = np.log(-np.expm1(k * np.log1p(-np.exp(np.minimum(m, -1e-16)))))
     return np.where(m < -30, np.log(k) + m, exact) / np.log(10)
+
+
+def brown_scale(log_p: np.ndarray) -> tuple[float, float] | None:
+    """(c, f) of Brown's method for the rows' K tail probabilities: Fisher's statistic -2 sum log p is taken as
+    c x chi-square with f degrees of freedom, matching its mean 2K and its variance 4K + 4 sum_{i != j} rho_ij,
+    the rho_ij the Spearman correlations of the columns' -log p over the core (their sum taken as at least 0) -- the rows whose Sidak-combined
+    probability is above ``BROWN_CORE`` (a bad demo, surprising on several scores at once, would otherwise pass
+    for dependence).  None when the core has fewer than ``BROWN_MIN_DEMOS`` rows or a single column."""
+    k = log_p.shape[1]
+    core = 10.0 ** sidak_log10(log_p) > BROWN_CORE
+    if k < 2 or core.sum() < BROWN_MIN_DEMOS:
+        return None
+    from scipy.stats import spearmanr
+
+    with np.errstate(all="ignore"):
+        rho = np.atleast_2d(spearmanr(-log_p[core]).correlation)
+    rho = np.nan_to_num(rho, nan=0.0)  # a column constant over the core (no score there) depends on nothing
+    # Never taken as less variable than independent scores: negative dependence is not counted on.
+    var = 4.0 * k + 4.0 * max(float(rho.sum() - np.trace(rho)), 0.0)
+    return var / (4.0 * k), 8.0 * k * k / var
+
+
+def combined_log10(log_p: np.ndarray) -> np.ndarray:
+    """log10 of the combined tail probability of each row's K tail probabilities (given as natural logs):
+    Fisher's -2 sum log p against Brown's scaled chi-square (``brown_scale``: the scores' dependence measured on
+    the audited demos themselves), or, with too few demos to measure it, the Sidak minimum."""
+    if log_p.shape[1] == 0:
+        return np.zeros(len(log_p))
+    scale = brown_scale(log_p)
+    if scale is None:
+        return sidak_log10(log_p)
+    from scipy.stats import chi2
+
+    c, f = scale
+    stat = -2.0 * np.nan_to_num(log_p, nan=0.0, neginf=-np.inf).sum(axis=1)
+    with np.errstate(all="ignore"):
+        out = chi2.logsf(stat / c, f) / np.log(10)
+    return np.where(np.isinf(stat), -np.inf, out)
 
 
 def exact_copies(table: pd.DataFrame) -> np.ndarray | None:

@@ -168,6 +168,8 @@ class _LeRobotBase:
         self.action_dim = int(np.prod(self.features[self.action_key].get("shape", [1])))
         self.state_names = feature_names(self.features[self.state_key], self.state_dim)
         self.action_names = feature_names(self.features[self.action_key], self.action_dim)
+        env = self.features.get(ENV_STATE_KEY)
+        self.env_state_names = feature_names(env, int(np.prod(env.get("shape", [1])))) if isinstance(env, dict) else None
         self._cache: OrderedDict[Path, dict[str, Any]] = OrderedDict()
 
     def _pick_camera(self, camera: str | None) -> str:
@@ -284,7 +286,8 @@ class _LeRobotBase:
             sim=_sim_record(sim, self.root, episode_index),
             env_state=None if entry["env_state"] is None else entry["env_state"][s:e],
             source_episode=None if src is None or pd.isna(src) or int(src) < 0 else int(src),
-            extra={} if entry["timestamp"] is None else {"timestamp": entry["timestamp"][s:e], "fps": self.fps},
+            extra={**({} if entry["timestamp"] is None else {"timestamp": entry["timestamp"][s:e], "fps": self.fps}),
+                   "state_names": self.state_names, "env_state_names": self.env_state_names},
         )
 
 

@@ -6,7 +6,8 @@ of demo names (``train``/``valid`` become democheck's train/val split), and
 ``data.attrs["env_args"]`` (JSON).  One task per file, named by a ``task``
 attribute of the demo or of ``data``, by ``--task``, or else by the
 environment's name.  Frames are sliced from HDF5 directly, so a cue reads two
-frames, not the episode.
+frames, not the episode.  ``obs/object`` (the objects' poses, in robomimic's low-dimensional datasets) is the
+demo's environment state (``Demo.env_state``), not part of its state.
 """
 
 from __future__ import annotations
@@ -69,6 +70,8 @@ class Robomimic:
             else:
                 robot = [k for k in low if k.startswith("robot")]
                 self.state_keys = robot or low
+            # robomimic's low-dimensional datasets keep the objects' poses under obs/object: the environment's state.
+            self.env_key = "object" if "object" in low and "object" not in self.state_keys else None
             self.action_key = action_key or "actions"
             if self.action_key not in first:
                 raise DatasetError(f"{path}: {names[0]} has no {self.action_key!r}")
@@ -108,13 +111,15 @@ class Robomimic:
             state = np.concatenate([np.asarray(g["obs"][k][()], np.float32).reshape(len(frames), -1)
                                     for k in self.state_keys], axis=1) if self.state_keys else np.zeros((len(frames), 0), np.float32)
             actions = np.asarray(g[self.action_key][()], np.float32)
+            env_state = (np.asarray(g["obs"][self.env_key][()], np.float32).reshape(len(frames), -1)
+                         if self.env_key else None)
         where = f"{self.root}: data/{self.episodes.loc[episode_index, 'name']}"
         check_arrays(where, "obs (state keys)", state, self.state_dim)
         check_arrays(where, self.action_key, actions, self.action_dim)
         row = self.episodes.loc[episode_index]
         split = row.get("split") if "split" in row else None
         return Demo(episode_index=episode_index, task=str(row["task"]), frames=frames, state=state, actions=actions,
-                    split=split if isinstance(split, str) else None)
+                    split=split if isinstance(split, str) else None, env_state=env_state)
 
     def cue_frames(self, episode_index: int) -> np.ndarray:
         with self._h5.File(self.root, "r") as f:
