@@ -220,6 +220,10 @@ def test_the_combined_tail_probability_keeps_its_false_alarm_rate():
     z[0, 2] = 40.0
     p = 10.0 ** combined_log10(tail_probabilities(z))
     assert p[0] < 1e-12 and p[0] == p.min()
+    # Beyond what a float holds, the most surprising demos keep their order (no tie at p = 0).
+    z[1, 1], z[2, 1] = 4000.0, 2000.0
+    log10_p = combined_log10(tail_probabilities(z))
+    assert np.isfinite(log10_p[:3]).all() and log10_p[1] < log10_p[2] < -300
 
 
 def test_a_minority_of_bad_demos_makes_the_tail_probabilities_conservative_and_missing_scores_count_nothing():

@@ -222,18 +222,23 @@ def _combination(ev: Evidence, model_free: bool = False) -> Scores:
         parts = []
         for j in order:
             own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
-            parts.append(f"{names[j]}: {_odds(float(np.exp(row[j])))}" + (f"; {own}" if own else ""))
+            parts.append(f"{names[j]}: {_odds(float(row[j]))}" + (f"; {own}" if own else ""))
         reasons.append("; also ".join(parts))
     return value, reasons
 
 
-def _odds(p: float) -> str:
-    """'as unusual as 1 clean demo in 3,400' for a tail probability."""
+def _odds(log_p: float) -> str:
+    """'as unusual as 1 clean demo in 3,400' for a tail probability (given as its natural log)."""
+    p = float(np.exp(log_p))
     if p >= 0.5:
         return "typical"
     if p >= 1e-6:
         return f"as unusual as 1 clean demo in {1 / p:,.0f}"
-    return f"far beyond the clean demos (tail probability {p:.1e})"
+    if p > 0:
+        return f"far beyond the clean demos (tail probability {p:.1e})"
+    if np.isfinite(log_p):  # below what a float holds: its power of ten
+        return f"far beyond the clean demos (tail probability 1e{log_p / np.log(10):.0f})"
+    return "beyond any clean demo"
 
 
 def _suspicion(ev: Evidence) -> Scores:
