@@ -43,7 +43,7 @@ FLAG_RED = [230, 40, 40]
 BAR_BLUE = [90, 140, 220]
 # Scores shown as histograms, and how: on a log10 scale where the score's right tail is long.
 HISTOGRAMS = {"suspicion": False, "task_uncertainty": False, "consistency": False, "action_error": True,
-              "motion": False, "idle": False, "novelty": True}
+              "motion": False, "idle": False, "novelty": True, "outcome": True}
 
 
 def _ramp(values: np.ndarray) -> np.ndarray:
