@@ -1,7 +1,7 @@
 """LeRobot's own loader on a dataset ``democheck clean`` wrote: it opens, and every sampled frame of a kept
 episode -- image, state, action, task -- is what LeRobot reads at the same place of the source dataset.
 
-    HF_HUB_OFFLINE=1 /tmp/peers/venv-lerobot/bin/python benchmarks/lerobot_reads_clean.py SOURCE CLEAN \
+    HF_HUB_OFFLINE=1 /tmp/peers/venv-lerobot/bin/python benchmarks/lerobot_reads_clean.py SOURCE CLEAN --dropped "[3, 17]" \
         [--samples 3] [--backend pyav]
 
 Runs in LeRobot's own virtual environment (LeRobot pins an older torch; ``../shared/peers/setup_peers.sh``
