@@ -1,14 +1,16 @@
-"""The development-set sweep behind the ``outcome`` check's constants (``democheck.audit.modelfree``).
+"""The development-set sweep behind the ``outcome`` check's constants (``democheck.audit.outcome``).
 
-    python benchmarks/outcome_choices.py BENCH_DIR [BENCH_DIR ...]
+    python benchmarks/outcome_choices.py BENCH_DIR [BENCH_DIR ...] [--only DATASET]
 
 BENCH_DIR is a ``democheck bench`` output (scores.parquet).  Every dataset the bench read is decoded once more
 for each demo's first and last recorded environment state (or state: ``OutcomeStats``); then for each floor
-(``OUTCOME_FLOOR``: the least robust SD of a dimension, as a share of its spread over all the demos) and scale
-(raw or log) the outcome score replaces the bench's ``outcome`` column and the ranking is combined as ``democheck
-audit`` combines it.  Printed per variant: the outcome score's own AUROC per kind, then the ranking's AUROC per
-kind, the share of clean demos flagged at ``--fpr 0.01`` and each kind's share flagged; the first row is the
-ranking without the outcome check.
+(``OUTCOME_FLOOR``: the least robust SD of a dimension, as a share of its spread over all the demos) and each
+way of putting a demo's dimensions together (``FORMS``: the RMS raw or on a log scale, the RMS of z capped at
+5, 10 or 20, the share of dimensions over 3, 5 or 10 robust SD) the outcome score replaces the bench's
+``outcome`` column and the ranking is combined as ``democheck audit`` combines it.  Printed per variant: the
+outcome score's own AUROC per kind, then the ranking's AUROC per kind, the share of clean demos flagged at
+``--fpr 0.01`` and each kind's share flagged; the first row is the ranking without the outcome check.
+``--only`` keeps the rows of one of the bench's datasets (the demos an audit of that dataset alone would see).
 """
 
 from __future__ import annotations
@@ -18,53 +20,65 @@ import argparse
 import numpy as np
 import pandas as pd
 
-from democheck.audit import modelfree
+from democheck.audit import outcome, scores
 from democheck.data import open_dataset
-from view_choices import judged
 from suspicion_choices import aurocs
+from view_choices import judged
 
 FLOORS = (0.02, 0.05, 0.1, 0.2)
-SCALES = {"raw": lambda s: s, "log": lambda s: np.log(np.maximum(s, 1e-6))}
 
 
-def outcome_stats(table: pd.DataFrame) -> modelfree.OutcomeStats:
+def _share_over(k: float):
+    def share(z: np.ndarray) -> np.ndarray:
+        seen = np.isfinite(z).sum(1)
+        return np.where(seen > 0, (np.nan_to_num(z) > k).sum(1) / np.maximum(seen, 1), np.nan)
+    return share
+
+
+# name -> (how a demo's [F] robust z become one number, the least spread of its robust SD in the ranking, or
+# None: a score the ranking puts in robust SD itself).  A share is put in robust SD within its task here, as the
+# view check's share is.
+FORMS = {"rms": (outcome.rms, None), "log rms": (lambda z: np.log(np.maximum(outcome.rms(z), 1e-6)), None),
+         **{f"rms cap {c}": ((lambda z, c=c: outcome.rms(np.minimum(z, c))), None) for c in (5, 10, 20)},
+         **{f"share > {k}": (_share_over(k), 0.02) for k in (3, 5, 10)}}
+
+
+def outcome_stats(table: pd.DataFrame) -> outcome.OutcomeStats:
     """Every row's ``OutcomeStats``, in the table's order."""
-    parts: dict[int, tuple[np.ndarray, str, list[str] | None]] = {}
-    for path, rows in table.groupby("dataset").groups.items():
-        ds, stats = open_dataset(path), modelfree.OutcomeStats()
-        for i in rows:
-            stats.add(ds[int(table.at[i, "source_index"])])
-        for i, e, s, n in zip(rows, stats.ends, stats.sources, stats.names):
-            parts[int(i)] = (e, s, n)
-    out = modelfree.OutcomeStats()
-    for i in range(len(table)):
-        e, s, n = parts[i]
-        out.ends.append(e), out.sources.append(s), out.names.append(n)
-    return out
+    sets = {path: open_dataset(path) for path in table["dataset"].unique()}
+    stats = outcome.OutcomeStats()
+    for path, source in zip(table["dataset"], table["source_index"]):
+        stats.add(sets[path][int(source)])
+    return stats
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("benches", nargs="+")
+    ap.add_argument("--only", help="keep the rows of this dataset of the bench (its path as the bench names it)")
     args = ap.parse_args()
     for path in args.benches:
-        table = pd.read_parquet(f"{path}/scores.parquet").reset_index(drop=True)
+        table = pd.read_parquet(f"{path}/scores.parquet")
+        if args.only:
+            table = table[table["dataset"] == args.only]
+        table = table.reset_index(drop=True)
         labels = table["label"].fillna("clean").to_numpy()
         kinds = sorted(set(labels) - {"clean"})
         print(f"\n{path}: {len(table)} demos; AUROC {' '.join(kinds)} | clean flagged | kinds flagged")
-        print(f"  {'without outcome':<22} {'':<48} {judged(table, None, 'outcome')}")
+        print(f"  {'without outcome':<26} {judged(table, None, 'outcome')}")
         stats, tasks = outcome_stats(table), table["task"].to_numpy()
-        old = modelfree.OUTCOME_FLOOR
+        old = outcome.OUTCOME_FLOOR
         try:
             for floor in FLOORS:
-                modelfree.OUTCOME_FLOOR = floor
-                score, _ = modelfree.outcome(stats, tasks)
-                alone = " ".join(f"{a:.3f}" for a in aurocs(score, labels).values())
-                for scale, f in SCALES.items():
-                    print(f"  floor {floor:<5g} {scale:<4}  alone {alone} | ranking {judged(table, f(score), 'outcome')}",
+                outcome.OUTCOME_FLOOR = floor
+                for form, (combine, min_scale) in FORMS.items():
+                    score, _ = outcome.outcome(stats, tasks, combine)
+                    ranked = score if min_scale is None else scores.calibrated(score, tasks, min_scale=min_scale)
+                    alone = " ".join(f"{a:.3f}" for a in aurocs(score, labels).values())
+                    print(f"  floor {floor:<5g} {form:<12} alone {alone} | ranking {judged(table, ranked, 'outcome')}",
                           flush=True)
         finally:
-            modelfree.OUTCOME_FLOOR = old
+            outcome.OUTCOME_FLOOR = old
 
 
 if __name__ == "__main__":

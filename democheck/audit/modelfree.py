@@ -26,12 +26,8 @@ held shut, counts in units of 1% of the busiest dimension's, so it cannot make a
 - ``timing``: the share of a demo's time steps (the ``timestamp`` column, where the format has one) that are
   not the dataset's frame period (1 / fps) -- off by more than ``TIMING_TOLERANCE`` of it, or not forward at
   all: dropped, repeated or reordered frames.  NaN where the dataset records no timestamps.
-- ``outcome``: how differently from its task's other demos the demo left the world: per dimension of the
-  recorded environment state (LeRobot's ``observation.environment_state``, robomimic's ``obs/object``: where the
-  objects are) -- or, where the dataset records none, of the state -- its value at the last step and its change
-  from the first, in robust standard deviations of the task's demos there (at least ``OUTCOME_FLOOR`` of that
-  dimension's spread over all the demos), root-mean-square over the dimensions: the wrong object pushed, both
-  pushed, the job left half done.  NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.
+- ``outcome`` (``democheck.audit.outcome``): how differently from its task's other demos the demo left the
+  world (where the objects ended up).
 - ``duplicate``: how close the demo's actions come to another demo's: the log of the median nearest-neighbour
   distance over this demo's, the actions resampled to ``DUPLICATE_STEPS`` steps and put in each dimension's
   standard deviation; an exact copy (the same actions, state and frames, bit for bit) is named as such.
@@ -53,18 +49,6 @@ FROZEN_LEVEL = 0.1  # grey levels (0-255): a frame this close to the previous on
 DUPLICATE_STEPS = 32
 TIMING_TOLERANCE = 0.5  # a time step off the usual one by more than half of it is irregular
 IDLE_MIN_SCALE = 0.05  # a robust standard deviation of the idle share stands for at least 5% of the steps
-# A dimension's robust SD within a task stands for at least 5% of its spread of final values over all the
-# demos: in a clean pushing demo the other object does not move at all, and a MAD of zero would call any nudge
-# infinitely unusual.  Chosen on the development sets (push-v1-dev + probes with the shipped model; Meta-World
-# mw2-dev with its your-data model; ``benchmarks/outcome_choices.py``) among floors of 2, 5, 10 and 20%, the
-# score raw or on a log scale; also measured: the share of dimensions over 3, 5 or 10 robust SD, the RMS with
-# each z capped at 5, 10 or 20.  The raw RMS at 2% or 5% was best on push-v1-dev audited alone: ranking AUROC
-# 0.999-1.000 on every kind; at --fpr 0.01 both-objects 1.00, wrong-object 0.95, gave-up 0.97 of the demos
-# flagged (without the check 0.31, 0.15, 0.84), 0.65% of the clean demos (0.5% without); on mw2-dev, whose ranking had every kind at
-# 1.000 already, it flags 2 more of 200 clean demos (3.0%: clean Meta-World demos that end with the hand or
-# an object somewhere unusual), the log scale 1 more, the shares and caps lost push-v1-dev's flags.
-OUTCOME_FLOOR = 0.05
-OUTCOME_MIN_DEMOS = 4
 
 
 def steps_text(start: int, stop: int, length: int) -> str:
@@ -362,20 +346,36 @@ VIEW_MIN_DEMOS = 5  # a task with fewer demos is compared with all the demos' pi
 _PLACES = (("top", "middle", "bottom"), ("left", "centre", "right"))
 
 
+def task_z(x: np.ndarray, tasks: np.ndarray, floor: np.ndarray | float, min_demos: int, small: str = "nan"
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Per entry of ``x`` [N, ...], |x - its task's median| over the task's robust SD there (1.4826 x MAD, at
+    least ``floor``), NaN entries left out; and the median each was measured against.  A task of fewer than
+    ``min_demos`` demos (with any value) is measured against all the demos (``small="all"``) or not at all
+    (``small="nan"``: NaN)."""
+    x, tasks = np.asarray(x), np.asarray(tasks)
+    z, median = np.full(x.shape, np.nan), np.full(x.shape, np.nan)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: NaN, as they should be
+        for t in np.unique(tasks):
+            rows = np.flatnonzero(tasks == t)
+            ref = x[rows]
+            if np.isfinite(ref.reshape(len(rows), -1)).any(1).sum() < min_demos:
+                if small == "nan":
+                    continue
+                ref = x
+            med = np.nanmedian(ref, axis=0)
+            spread = np.fmax(1.4826 * np.nanmedian(np.abs(ref - med), axis=0), floor)
+            z[rows] = np.abs(x[rows] - med) / spread
+            median[rows] = med
+    return z, median
+
+
 def view_unlike(thumbs: np.ndarray, tasks: np.ndarray, k: float = VIEW_K, floor: float = VIEW_FLOOR) -> np.ndarray:
     """[N, h, w] True where a demo's average picture (``ViewStats``) is unlike its task's other demos' there:
     more than ``k`` robust standard deviations (at least ``floor`` grey levels) from the task's median, in some
     colour channel."""
-    x = np.asarray(thumbs, np.float32)
-    tasks = np.asarray(tasks)
-    out = np.zeros(x.shape[:3], bool)
-    groups = {t: np.flatnonzero(tasks == t) for t in np.unique(tasks)}
-    for t, rows in groups.items():
-        ref = x[rows] if len(rows) >= VIEW_MIN_DEMOS else x
-        median = np.median(ref, axis=0)
-        spread = np.maximum(1.4826 * np.median(np.abs(ref - median), axis=0), floor)
-        out[rows] = (np.abs(x[rows] - median) / spread).max(axis=-1) > k
-    return out
+    z, _ = task_z(np.asarray(thumbs, np.float32), tasks, floor, VIEW_MIN_DEMOS, small="all")
+    return z.max(axis=-1) > k
 
 
 def view(thumbs: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
@@ -396,79 +396,3 @@ def view(thumbs: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
         reasons.append(f"{100 * f:.0f}% of the view unlike its task's other demos' (mostly {place})")
     return z, reasons
 
-
-class OutcomeStats(PerDemo):
-    """Consumer of decoded demos: the first and last step of what the dataset records of the world -- the
-    environment state where the demo has one, else its state -- and that record's dimension names."""
-
-    fields = ("ends", "sources", "names")
-    ends: list[np.ndarray]
-    sources: list[str]
-    names: list[list[str] | None]
-
-    def add(self, demo: Demo) -> None:
-        env = demo.env_state is not None and np.size(demo.env_state) > 0
-        x = np.asarray(demo.env_state if env else demo.state, np.float64)
-        x = x.reshape(len(x), -1)
-        self.ends.append(np.stack([x[0], x[-1]]) if len(x) else np.full((2, x.shape[1]), np.nan))
-        self.sources.append("environment state" if env else "state")
-        self.names.append(demo.extra.get("env_state_names" if env else "state_names"))
-
-
-def _padded(rows: list[np.ndarray]) -> np.ndarray:
-    out = np.full((len(rows), max((len(r) for r in rows), default=0)), np.nan)
-    for i, r in enumerate(rows):
-        out[i, :len(r)] = r
-    return out
-
-
-def _outcome_z(features: np.ndarray, last: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """[N, F] |feature - its task's median| over max(the task's robust SD, ``OUTCOME_FLOOR`` x the dimension's
-    spread of final values over all the demos), NaN where a task is too small or a dimension never varies; and
-    [N, F] the task's median."""
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        spread = 1.4826 * np.nanmedian(np.abs(last - np.nanmedian(last, 0)), 0)
-        spread = np.where(spread > 0, spread, np.nanstd(last, 0))
-        floor = np.tile(np.where(spread > 0, OUTCOME_FLOOR * spread, np.nan), features.shape[1] // max(last.shape[1], 1))
-        z, median = np.full(features.shape, np.nan), np.full(features.shape, np.nan)
-        for t in np.unique(tasks):
-            rows = np.flatnonzero(tasks == t)
-            if np.isfinite(features[rows]).any(1).sum() < OUTCOME_MIN_DEMOS:
-                continue
-            med = np.nanmedian(features[rows], 0)
-            mad = 1.4826 * np.nanmedian(np.abs(features[rows] - med), 0)
-            z[rows] = np.abs(features[rows] - med) / np.fmax(mad, floor)
-            median[rows] = med
-    return z, median
-
-
-def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
-    """How differently from its task's other demos each demo left the world (see the module docstring), and the
-    dimension that differs most."""
-    n = len(stats.ends)
-    out, reasons = np.full(n, np.nan), ["no task of enough demos to compare with"] * n
-    tasks = np.asarray(tasks)
-    for source in sorted(set(stats.sources)):
-        rows = np.flatnonzero(np.asarray(stats.sources) == source)
-        first = _padded([stats.ends[i][0] for i in rows])
-        last = _padded([stats.ends[i][1] for i in rows])
-        d = last.shape[1]
-        features = np.concatenate([last, last - first], 1)
-        z, median = _outcome_z(features, last, tasks[rows])
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            out[rows] = np.sqrt(np.nanmean(z ** 2, 1))
-        for k, i in enumerate(rows):
-            if not np.isfinite(z[k]).any():
-                if np.isfinite(last[k]).any():
-                    continue
-                reasons[i] = f"no {source} recorded"
-                continue
-            j = int(np.nanargmax(z[k]))
-            names = stats.names[i]
-            name = names[j % d] if names and len(names) == d else f"{source}[{j % d}]"
-            what = f"{name} at the end" if j < d else f"the change of {name}"
-            reasons[i] = (f"left the world unlike its task's other demos: {what} {features[k, j]:.3g} "
-                          f"(the task's median {median[k, j]:.3g}; {z[k, j]:.0f} robust SD)")
-    return out, reasons

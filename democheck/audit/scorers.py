@@ -25,7 +25,7 @@ import pandas as pd
 
 from democheck.audit.baselines import (HEURISTIC_FEATURES, heuristic_z, knn_same_task, motion_features, random_score,
                                        summarise_motion)
-from democheck.audit import dynamics, modelfree
+from democheck.audit import dynamics, modelfree, outcome
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_terms, ocsvm_margin,
                                     rank_order, tail_probabilities)
@@ -195,9 +195,9 @@ def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
     less the model's with ``model_free``, less a column with no score at all (the outcome of a dataset whose
     tasks are all too small to compare): a look that cannot see anything must not cost the others' correction."""
     one_task = len(np.unique(tasks)) == 1
+    columns = isinstance(available, (dict, pd.DataFrame))
 
     def scored(n: str) -> bool:
-        columns = isinstance(available, (dict, pd.DataFrame))
         return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
 
     return [n for n, s in SCORERS.items() if s.in_suspicion and n in available and (s.model_free or not model_free)
@@ -286,7 +286,7 @@ def _frozen_video(ev: Evidence) -> Scores:
 
 
 def _outcome(ev: Evidence) -> Scores:
-    return modelfree.outcome(ev.behaviour["outcome"], ev.tasks)
+    return outcome.outcome(ev.behaviour["outcome"], ev.tasks)
 
 
 def _ocsvm_flag(ev: Evidence) -> Scores:
@@ -378,7 +378,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("outcome", "model-free: how differently from its task's other demos the demo left the world (the "
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "
            "z within its task)", ("demos",), _outcome, in_suspicion=True,
-           decode=lambda ev, rows, device: modelfree.OutcomeStats(), short="outc."),
+           decode=lambda ev, rows, device: outcome.OutcomeStats(), short="outc."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty, "
            "consistency, action error (log), motion, idle, view and outcome (one task: the last five), each in "
            "robust standard deviations within its task (2 = as unusual as 1 clean demo in 100)", ("scores",),

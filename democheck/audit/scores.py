@@ -202,9 +202,9 @@ def sidak_log10(log_p: np.ndarray) -> np.ndarray:
 def brown_scale(log_p: np.ndarray) -> tuple[float, float] | None:
     """(c, f) of Brown's method for the rows' K tail probabilities: Fisher's statistic -2 sum log p is taken as
     c x chi-square with f degrees of freedom, matching its mean 2K and its variance 4K + 4 sum_{i != j} rho_ij,
-    the rho_ij the Spearman correlations of the columns' -log p over the core (their sum taken as at least 0) -- the rows whose Sidak-combined
-    probability is above ``BROWN_CORE`` (a bad demo, surprising on several scores at once, would otherwise pass
-    for dependence).  None when the core has fewer than ``BROWN_MIN_DEMOS`` rows or a single column."""
+    the rho_ij the Spearman correlations of the columns' -log p over the core (their sum taken as at least 0):
+    the rows whose Sidak-combined probability is above ``BROWN_CORE`` (a bad demo, surprising on several scores
+    at once, would otherwise pass for dependence).  None when the core has fewer than ``BROWN_MIN_DEMOS`` rows or a single column."""
     k = log_p.shape[1]
     core = 10.0 ** sidak_log10(log_p) > BROWN_CORE
     if k < 2 or core.sum() < BROWN_MIN_DEMOS:
@@ -228,9 +228,8 @@ def combined_log10(log_p: np.ndarray) -> np.ndarray:
     scale = brown_scale(log_p)
     if scale is None:
         return sidak_log10(log_p)
-    from scipy.stats import chi2
-
     from scipy.special import gammaln
+    from scipy.stats import chi2
 
     c, f = scale
     stat = -2.0 * np.nan_to_num(log_p, nan=0.0, neginf=-np.inf).sum(axis=1)
