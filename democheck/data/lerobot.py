@@ -13,9 +13,8 @@ v3.0 layout written by democheck (LeRobot and the tools built for it open it)::
 
 Several episodes share one data file and one video file; the episodes table
 says where each one lies.  The layout's names (paths, feature keys) are here,
-for the reader and the writer alike.  Both versions' readers stay in this one
-module (a little over 400 lines): they share the base class, the path checks
-and the video cache, and differ only in where the metadata says things are.
+for the reader and the writer alike.  The v2.1 reader (``lerobot_v21``) is the
+same base class with its metadata read from JSON lines and one file per episode.
 """
 
 from __future__ import annotations
@@ -377,68 +376,6 @@ class LeRobotV3(_LeRobotBase):
         return np.stack([self._decode_images(entry, s, s + 1, path)[0], self._decode_images(entry, e - 1, e, path)[0]])
 
 
-class LeRobotV21(_LeRobotBase):
-    """Reader for LeRobotDataset v2.0/v2.1 (one data and one video file per episode)."""
-
-    format = "lerobot-v2.1"
-
-    def __init__(self, root: Path, info: dict[str, Any], **keys: str | None):
-        super().__init__(root, info, **keys)
-        self.chunks_size = int(info.get("chunks_size", CHUNKS_SIZE))
-        tasks_path = root / "meta" / "tasks.jsonl"
-        ep_path = root / "meta" / "episodes.jsonl"
-        task_names = {int(t["task_index"]): t["task"] for t in _read_jsonl(tasks_path)}
-        rows = []
-        for ep in _read_jsonl(ep_path):
-            try:
-                tasks = ep.get("tasks") or [task_names.get(int(ep.get("task_index", 0)), "")]
-                rows.append({"episode_index": int(ep["episode_index"]), "task": str(tasks[0]), "length": int(ep["length"])})
-            except (KeyError, TypeError, ValueError):
-                raise DatasetError(f"{ep_path}: malformed episode line {ep!r:.80}") from None
-        if not rows:
-            raise DatasetError(f"{ep_path}: no episodes")
-        self.episodes = self._attach_sidecar(pd.DataFrame(rows).set_index("episode_index"))
-        check_episodes(root / "meta/episodes.jsonl", self.episodes)
-
-    def _path(self, template_key: str, episode_index: int) -> Path:
-        chunk = episode_index // self.chunks_size
-        rel = _template(self.info, template_key, None, self.root, episode_chunk=chunk, episode_index=episode_index,
-                        video_key=self.camera)
-        return _inside(self.root, rel)
-
-    def load(self, episode_index: int) -> Demo:
-        path = self._path("data_path", episode_index)
-        entry, s, e = self._rows(path, episode_index)
-        if self.camera_dtype == "video":
-            frames = video.read_range(self._path("video_path", episode_index), 0, e - s, self.fps)
-        else:
-            frames = self._decode_images(entry, s, e, path)
-        return self._make_demo(episode_index, frames, entry, s, e)
-
-    def cue_frames(self, episode_index: int) -> np.ndarray:
-        n = int(self.episodes.loc[episode_index, "length"])
-        if self.camera_dtype == "video":
-            return video.read_frames(self._path("video_path", episode_index), [0, n - 1], self.fps)
-        path = self._path("data_path", episode_index)
-        entry, s, e = self._rows(path, episode_index)
-        return np.stack([self._decode_images(entry, s, s + 1, path)[0], self._decode_images(entry, e - 1, e, path)[0]])
-
-
-def _read_jsonl(path: Path) -> list[dict[str, Any]]:
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: missing") from None
-    out = []
-    for n, line in enumerate(text.splitlines(), 1):
-        if line.strip():
-            try:
-                out.append(json.loads(line))
-            except json.JSONDecodeError:
-                raise DatasetError(f"{path}:{n}: not valid JSON") from None
-    return out
-
-
 def open_lerobot(root: Path, camera: str | None = None, state_key: str | None = None,
                  action_key: str | None = None) -> _LeRobotBase:
     info = _read_json(root / "meta" / "info.json")
@@ -449,5 +386,7 @@ def open_lerobot(root: Path, camera: str | None = None, state_key: str | None = 
     if version.startswith("v3"):
         return LeRobotV3(root, info, **keys)
     if version.startswith("v2"):
+        from democheck.data.lerobot_v21 import LeRobotV21
+
         return LeRobotV21(root, info, **keys)
     raise DatasetError(f"{root / 'meta/info.json'}: unsupported LeRobot codebase_version {version!r} (v2.x, v3.x)")

@@ -1,0 +1,80 @@
+"""Reader for LeRobotDataset v2.0/v2.1: the base reader of ``democheck.data.lerobot`` with the older layout's
+metadata -- ``meta/episodes.jsonl`` and ``meta/tasks.jsonl`` -- and one data and one video file per episode,
+found through ``info.json``'s path templates.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from democheck.data import video
+from democheck.data.demo import Demo, check_episodes
+from democheck.data.lerobot import CHUNKS_SIZE, _inside, _LeRobotBase, _template
+from democheck.errors import DatasetError
+
+
+class LeRobotV21(_LeRobotBase):
+    """Reader for LeRobotDataset v2.0/v2.1 (one data and one video file per episode)."""
+
+    format = "lerobot-v2.1"
+
+    def __init__(self, root: Path, info: dict[str, Any], **keys: str | None):
+        super().__init__(root, info, **keys)
+        self.chunks_size = int(info.get("chunks_size", CHUNKS_SIZE))
+        tasks_path = root / "meta" / "tasks.jsonl"
+        ep_path = root / "meta" / "episodes.jsonl"
+        task_names = {int(t["task_index"]): t["task"] for t in _read_jsonl(tasks_path)}
+        rows = []
+        for ep in _read_jsonl(ep_path):
+            try:
+                tasks = ep.get("tasks") or [task_names.get(int(ep.get("task_index", 0)), "")]
+                rows.append({"episode_index": int(ep["episode_index"]), "task": str(tasks[0]), "length": int(ep["length"])})
+            except (KeyError, TypeError, ValueError):
+                raise DatasetError(f"{ep_path}: malformed episode line {ep!r:.80}") from None
+        if not rows:
+            raise DatasetError(f"{ep_path}: no episodes")
+        self.episodes = self._attach_sidecar(pd.DataFrame(rows).set_index("episode_index"))
+        check_episodes(root / "meta/episodes.jsonl", self.episodes)
+
+    def _path(self, template_key: str, episode_index: int) -> Path:
+        chunk = episode_index // self.chunks_size
+        rel = _template(self.info, template_key, None, self.root, episode_chunk=chunk, episode_index=episode_index,
+                        video_key=self.camera)
+        return _inside(self.root, rel)
+
+    def load(self, episode_index: int) -> Demo:
+        path = self._path("data_path", episode_index)
+        entry, s, e = self._rows(path, episode_index)
+        if self.camera_dtype == "video":
+            frames = video.read_range(self._path("video_path", episode_index), 0, e - s, self.fps)
+        else:
+            frames = self._decode_images(entry, s, e, path)
+        return self._make_demo(episode_index, frames, entry, s, e)
+
+    def cue_frames(self, episode_index: int) -> np.ndarray:
+        n = int(self.episodes.loc[episode_index, "length"])
+        if self.camera_dtype == "video":
+            return video.read_frames(self._path("video_path", episode_index), [0, n - 1], self.fps)
+        path = self._path("data_path", episode_index)
+        entry, s, e = self._rows(path, episode_index)
+        return np.stack([self._decode_images(entry, s, s + 1, path)[0], self._decode_images(entry, e - 1, e, path)[0]])
+
+
+def _read_jsonl(path: Path) -> list[dict[str, Any]]:
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing") from None
+    out = []
+    for n, line in enumerate(text.splitlines(), 1):
+        if line.strip():
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:
+                raise DatasetError(f"{path}:{n}: not valid JSON") from None
+    return out
