@@ -21,15 +21,17 @@ from democheck.data.demo import Demo
 
 # A dimension's robust SD within a task stands for at least 5% of its spread of final values over all the
 # demos: in a clean pushing demo the other object does not move at all, and a MAD of zero would call any nudge
-# infinitely unusual.  Chosen on the development sets (push-v1-dev + probes with the shipped model; Meta-World
-# mw2-dev with its your-data model; ``benchmarks/outcome_choices.py``) among floors of 2, 5, 10 and 20%, and
-# among ways to put the dimensions together: the RMS raw or on a log scale, the RMS with each z capped at 5, 10
-# or 20, the share of dimensions over 3, 5 or 10 robust SD.  The raw RMS at 2% or 5% was best on push-v1-dev
-# audited alone: ranking AUROC 0.999-1.000 on every kind; at --fpr 0.01 both-objects 1.00, wrong-object 0.95,
-# gave-up 0.97 of the demos flagged (without the check 0.31, 0.15, 0.84), 0.65% of the clean demos (0.5%
-# without); on mw2-dev, whose ranking had every kind at 1.000 already, it flags 2 more of 200 clean demos
-# (3.0%: clean Meta-World demos that end with the hand or an object somewhere unusual), the log scale 1 more;
-# the log, the shares and the caps lost push-v1-dev's flags.
+# infinitely unusual.  Chosen on the development sets (``benchmarks/outcome_choices.py runs/push-dev2 --only
+# data/push-v1-dev``: push-v1-dev audited alone with the shipped model; ``... runs/foreign/mw2-dev/bench``:
+# Meta-World mw2-dev with its your-data model) among floors of 2, 5, 10 and 20%, and ways to put the
+# dimensions together (``FORMS`` there).  The plain RMS at 5%: push-v1-dev's ranking AUROC 1.000 on every kind
+# and at --fpr 0.01 every both-objects, wrong-object and gave-up demo flagged (without the check 0.31, 0.15,
+# 0.84), 0.8% of the clean demos (0.5% without); on mw2-dev, whose ranking had every kind at 1.000 already, 2
+# more of 200 clean demos flagged (3.0%: clean Meta-World demos that end with the hand or an object somewhere
+# unusual).  On a log scale, or with each z capped at 5 or 10, push-v1-dev kept 0.36-0.62 of its both-objects
+# flags (mw2-dev: 2.0-3.0% of clean flagged); capped at 20, the same as the plain RMS; the share of dimensions
+# over 3, 5 or 10 robust SD flagged 1.0-11% of push-v1-dev's clean demos and 3.0-5.0% of mw2-dev's.  2% did as
+# well as 5% on both sets; 10 and 20% lost flags.
 OUTCOME_FLOOR = 0.05
 OUTCOME_MIN_DEMOS = 4
 
