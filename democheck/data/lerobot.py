@@ -104,7 +104,7 @@ def feature_names(feature: dict[str, Any], dim: int) -> list[str] | None:
     return None
 
 
-def _template(info: dict[str, Any], key: str, default: str | None, root: Path, **fields: Any) -> str:
+def path_template(info: dict[str, Any], key: str, default: str | None, root: Path, **fields: Any) -> str:
     """A file path from one of info.json's path templates, with a malformed template as a DatasetError."""
     tpl = info.get(key, default)
     try:
@@ -115,7 +115,7 @@ def _template(info: dict[str, Any], key: str, default: str | None, root: Path, *
         raise DatasetError(f"{root / 'meta/info.json'}: {key} {tpl!r:.60} is not a usable path template ({exc})") from None
 
 
-def _inside(root: Path, rel: str) -> Path:
+def inside_root(root: Path, rel: str) -> Path:
     """A path from the dataset's metadata, refused if it escapes the dataset folder or cannot be a path."""
     if "\0" in rel:
         raise DatasetError(f"{root / 'meta/info.json'}: path {rel!r} holds a NUL character")
@@ -141,7 +141,7 @@ def _column_matrix(table: pa.Table, key: str, path: Path) -> np.ndarray:
         raise DatasetError(f"{path}: column {key!r} is {col.type}, not numbers") from None
 
 
-class _LeRobotBase:
+class LeRobotBase:
     """What v2.1 and v3.0 readers share: info.json, feature keys, episode table, sidecar."""
 
     format = "lerobot"
@@ -168,7 +168,8 @@ class _LeRobotBase:
         self.state_names = feature_names(self.features[self.state_key], self.state_dim)
         self.action_names = feature_names(self.features[self.action_key], self.action_dim)
         env = self.features.get(ENV_STATE_KEY)
-        self.env_state_names = feature_names(env, int(np.prod(env.get("shape", [1])))) if isinstance(env, dict) else None
+        self.env_state_names = (feature_names(env, int(np.prod(env.get("shape", [1]))))
+                                if isinstance(env, dict) else None)
         self._cache: OrderedDict[Path, dict[str, Any]] = OrderedDict()
 
     def _pick_camera(self, camera: str | None) -> str:
@@ -264,7 +265,7 @@ class _LeRobotBase:
             cell = entry["images"][i]
             data = cell.get("bytes") if isinstance(cell, dict) else cell
             if not data and isinstance(cell, dict) and cell.get("path"):
-                data = _inside(self.root, cell["path"]).read_bytes()
+                data = inside_root(self.root, cell["path"]).read_bytes()
             try:
                 out.append(np.asarray(Image.open(BytesIO(data)).convert("RGB")))
             except Exception as exc:  # PIL raises many types for bad bytes
@@ -302,7 +303,7 @@ def _sim_record(text: Any, root: Path, episode_index: int) -> dict[str, Any] | N
     return sim
 
 
-class LeRobotV3(_LeRobotBase):
+class LeRobotV3(LeRobotBase):
     """Reader for LeRobotDataset v3.0 (several episodes per data and video file)."""
 
     format = "lerobot-v3.0"
@@ -325,20 +326,20 @@ class LeRobotV3(_LeRobotBase):
 
     def _data_path(self, episode_index: int) -> Path:
         r = self._eps.loc[episode_index]
-        rel = _template(self.info, "data_path", DATA_PATH, self.root, chunk_index=int(r["data/chunk_index"]),
+        rel = path_template(self.info, "data_path", DATA_PATH, self.root, chunk_index=int(r["data/chunk_index"]),
                         file_index=int(r["data/file_index"]))
-        return _inside(self.root, rel)
+        return inside_root(self.root, rel)
 
     def _video_span(self, episode_index: int) -> tuple[Path, int, int]:
         r = self._eps.loc[episode_index]
         pre = f"videos/{self.camera}/"
         try:
-            rel = _template(self.info, "video_path", VIDEO_PATH, self.root, video_key=self.camera,
+            rel = path_template(self.info, "video_path", VIDEO_PATH, self.root, video_key=self.camera,
                             chunk_index=int(r[pre + "chunk_index"]), file_index=int(r[pre + "file_index"]))
             start = int(round(float(r[pre + "from_timestamp"]) * self.fps))
         except KeyError as exc:
             raise DatasetError(f"{self.root / 'meta/episodes'}: no {exc} for camera {self.camera!r}") from None
-        return _inside(self.root, rel), start, start + int(r["length"])
+        return inside_root(self.root, rel), start, start + int(r["length"])
 
     def load(self, episode_index: int) -> Demo:
         path = self._data_path(episode_index)
@@ -377,7 +378,7 @@ class LeRobotV3(_LeRobotBase):
 
 
 def open_lerobot(root: Path, camera: str | None = None, state_key: str | None = None,
-                 action_key: str | None = None) -> _LeRobotBase:
+                 action_key: str | None = None) -> LeRobotBase:
     info = _read_json(root / "meta" / "info.json")
     if not isinstance(info, dict):
         raise DatasetError(f"{root / 'meta/info.json'}: not a JSON object")

@@ -14,11 +14,11 @@ import pandas as pd
 
 from democheck.data import video
 from democheck.data.demo import Demo, check_episodes
-from democheck.data.lerobot import CHUNKS_SIZE, _inside, _LeRobotBase, _template
+from democheck.data.lerobot import CHUNKS_SIZE, LeRobotBase, inside_root, path_template
 from democheck.errors import DatasetError
 
 
-class LeRobotV21(_LeRobotBase):
+class LeRobotV21(LeRobotBase):
     """Reader for LeRobotDataset v2.0/v2.1 (one data and one video file per episode)."""
 
     format = "lerobot-v2.1"
@@ -43,9 +43,9 @@ class LeRobotV21(_LeRobotBase):
 
     def _path(self, template_key: str, episode_index: int) -> Path:
         chunk = episode_index // self.chunks_size
-        rel = _template(self.info, template_key, None, self.root, episode_chunk=chunk, episode_index=episode_index,
+        rel = path_template(self.info, template_key, None, self.root, episode_chunk=chunk, episode_index=episode_index,
                         video_key=self.camera)
-        return _inside(self.root, rel)
+        return inside_root(self.root, rel)
 
     def load(self, episode_index: int) -> Demo:
         path = self._path("data_path", episode_index)
