@@ -15,14 +15,12 @@ outcome score's own AUROC per kind, then the ranking's AUROC per kind, the share
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 import pandas as pd
 
 from democheck.audit import outcome, scores
 from democheck.data import open_dataset
-from suspicion_choices import aurocs
+from suspicion_choices import aurocs, bench_tables
 from view_choices import judged
 
 FLOORS = (0.02, 0.05, 0.1, 0.2)
@@ -53,15 +51,7 @@ def outcome_stats(table: pd.DataFrame) -> outcome.OutcomeStats:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("benches", nargs="+")
-    ap.add_argument("--only", help="keep the rows of this dataset of the bench (its path as the bench names it)")
-    args = ap.parse_args()
-    for path in args.benches:
-        table = pd.read_parquet(f"{path}/scores.parquet")
-        if args.only:
-            table = table[table["dataset"] == args.only]
-        table = table.reset_index(drop=True)
+    for path, _, table in bench_tables(__doc__):
         labels = table["label"].fillna("clean").to_numpy()
         kinds = sorted(set(labels) - {"clean"})
         print(f"\n{path}: {len(table)} demos; AUROC {' '.join(kinds)} | clean flagged | kinds flagged")

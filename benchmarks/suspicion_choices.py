@@ -23,6 +23,7 @@ bench's datasets (the demos an audit of that dataset alone would see).
 from __future__ import annotations
 
 import argparse
+from typing import Iterator
 
 import numpy as np
 import pandas as pd
@@ -71,21 +72,28 @@ def variants(z: np.ndarray) -> dict[str, np.ndarray]:
             "rank min-p": -np.log(p.min(axis=1)), "rank Fisher": -np.log(p).sum(axis=1)}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def bench_tables(doc: str) -> Iterator[tuple[str, str | None, pd.DataFrame]]:
+    """The command line ``BENCH_DIR [BENCH_DIR ...] [--only DATASET]`` of a sweep whose help is ``doc``: each
+    bench's path, the dataset kept, and its scores.parquet (only that dataset's rows with ``--only``)."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("benches", nargs="+")
     ap.add_argument("--only", help="keep the rows of this dataset of the bench (its path as the bench names it)")
     args = ap.parse_args()
     for path in args.benches:
         table = pd.read_parquet(f"{path}/scores.parquet")
         if args.only:
-            table = table[table["dataset"] == args.only].reset_index(drop=True)
+            table = table[table["dataset"] == args.only]
+        yield path, args.only, table.reset_index(drop=True)
+
+
+def main() -> None:
+    for path, only, table in bench_tables(__doc__):
         labels = table["label"].fillna("clean").to_numpy()
         ev = Evidence(episodes=table[["episode_index", "task"]], scores={c: table[c].to_numpy() for c in table
                                                                          if c in SCORERS})
         ranked = scorers.ranked(table, table["task"].to_numpy())
         kinds = sorted(set(labels) - {"clean"})
-        print(f"\n{path}{' (' + args.only + ')' if args.only else ''}: {len(table)} demos, "
+        print(f"\n{path}{' (' + only + ')' if only else ''}: {len(table)} demos, "
               f"{table['task'].nunique()} tasks, {np.mean(labels != 'clean'):.0%} bad")
         print(f"  {'scores':<46} {'combination':<16} " + " ".join(f"{k[:8]:>8}" for k in kinds) + "     mean")
         sets = {"+".join(ranked): ranked}
