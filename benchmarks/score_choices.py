@@ -6,10 +6,8 @@ ranking's combination and its flag levels: ``benchmarks/suspicion_choices.py``).
     democheck bench data/push-v1-dev data/push-v1-dev-probes --out runs/bench-dev
     python benchmarks/score_choices.py runs/bench-dev/scores.parquet
 
-It prints the AUROC of consistency against the k nearest other demos of the task, per kind, for several k:
-as shipped (the mean scaled squared distance to them) and in its earlier form (against the product of their
-Gaussians, in units of sqrt(v + var): a cue's own variance shrinks its distance, so a cue that says
-nothing looks consistent; and all others).  The bench must have been written with a model (its table holds ``mu`` and ``sigma``).
+It prints the AUROC of consistency against the k nearest other demos of the task, per kind, for several k
+(and all others).  The bench must have been written with a model (its table holds ``mu`` and ``sigma``).
 """
 
 from __future__ import annotations
@@ -20,8 +18,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit.scores import consistency
-from democheck.petnet.posterior import TaskPosterior, product_of_others
+from democheck.petnet.posterior import product_of_others
 
 
 def main() -> None:
@@ -33,21 +30,16 @@ def main() -> None:
     var = np.stack(t["sigma"].to_numpy()).astype(np.float64) ** 2
     labels, tasks = t["label"].to_numpy(), t["task"].to_numpy()
     kinds = sorted(set(labels) - {"clean"})
-    post = TaskPosterior(mu, var, np.zeros_like(var))
-
-    def show(name: str, score: np.ndarray) -> None:
+    print("consistency AUROC by k:", " ".join(kinds), "| mean")
+    for k in (1, 2, 3, 5, 8, None):
+        m, v = product_of_others(mu, var, tasks, k)
+        score = np.sqrt(((mu - m) ** 2 / (v + var)).mean(1))
         au = []
         for kind in kinds:
             sel = (labels == kind) | (labels == "clean")
             au.append(roc_auc_score(labels[sel] == kind, np.nan_to_num(score[sel])))
-        print(f"  {name:<24}" + " ".join(f"{a:.3f}" for a in au) + f" | {np.mean(au):.3f}")
+        print(f"  k={k or 'all':>3}: " + " ".join(f"{a:.2f}" for a in au) + f" | {np.mean(au):.3f}")
 
-    print("consistency AUROC by k:", " ".join(kinds), "| mean")
-    for k in (1, 2, 3, 4, 5, 6, 8):
-        show(f"k={k}", consistency(post, tasks, k))
-    for k in (1, 2, 3, 5, 8, None):
-        m, v = product_of_others(mu, var, tasks, k)
-        show(f"product form, k={k or 'all'}", np.sqrt(((mu - m) ** 2 / (v + var)).mean(1)))
 
 if __name__ == "__main__":
     main()

@@ -341,9 +341,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("novelty", "how unfamiliar the cue's images are: squared feature distance from the training cues over "
            "the model's reference (above 1: less familiar than 9 in 10 real cues of new tasks)",
            ("cues", "novelty"), _novelty, short="novel."),
-    Scorer("consistency", f"distance of the demo's task mean from its {CONSISTENCY_K} nearest other demos' of its "
-           "task, RMS over them and the dimensions of (mu_i - mu_j) / s, s each dimension's median task SD",
-           ("cues",), _consistency,
+    Scorer("consistency", f"distance of the demo's task mean from the product of its {CONSISTENCY_K} nearest other "
+           "demos of its task, RMS over dimensions of (mu - m) / sqrt(v + var)", ("cues",), _consistency,
            in_suspicion=True, in_single_task_ranking=False, short="cons."),
     Scorer("action_error", f"how badly PETNet's controller, told the task by the other demos of the task, explains "
            f"the demo's normalised actions (MSE at {ACTION_STEPS} evenly spaced timesteps)", ("demos", "model"),

@@ -4,20 +4,19 @@ Every score is one number per demo, higher = more suspect:
 
 - ``task_uncertainty`` (the paper's score): the mean over embedding dimensions
   of the task standard deviation sqrt(var) of the demo's cue.
-- ``consistency``: how far the demo's ``mu`` lies from those of its ``CONSISTENCY_K`` nearest *other* demos of
-  the same task (all of them when there are fewer): the root-mean-square over those neighbours and the
-  embedding's dimensions of (mu_i - mu_j) / s, where s is the median task standard deviation of that
-  dimension over the cues scored (the width of a typical cue's posterior), nearest by that same distance.
-  Variance catches cues that say nothing; consistency catches cues that say something else than their task's
-  other demos -- another task, or no task at all: an empty scene's cue lands away from every real cue of its
-  task although its variance is ordinary.  The neighbours, not all the others, because the task's own bad
-  demos and tasks done in more than one way blur the rest.  An earlier form measured the distance from the
-  product of the neighbours' Gaussians in units of sqrt(v + var), the demo's own variance included: a wide
-  cue then looked consistent, whatever it showed.  On the development sets
-  (``benchmarks/score_choices.py``; push-v1-dev + probes with the shipped model, 8 kinds / Meta-World mw2-dev
-  with its your-data model, 5 kinds), mean AUROC: this form 0.962 / 0.808 (k = 3, 4, 6, 8: 0.941 / 0.822,
-  0.947 / 0.815, 0.966 / 0.806, 0.952 / 0.794; 5 is also the kNN baseline's k), the earlier 0.828 / 0.801
-  (no-objects 0.994 against 0.963, hidden 1.00 against 0.53).  NaN for a task with a single demo.
+- ``consistency``: how far the demo's ``mu`` lies from the product-of-Gaussians
+  posterior of its ``CONSISTENCY_K`` nearest *other* demos of the same task
+  (all of them when there are fewer), as the root-mean-square over
+  dimensions of (mu - m) / sqrt(v + var), where (m, v) is that posterior and
+  var the demo's own variance: the spread expected of a demo that says the
+  same as its neighbours.  Nearest by that same distance, pairwise.  The
+  posterior of *all* the others is blurred by the task's own bad demos and
+  by tasks done in more than one way; the neighbours' is not (on a separate
+  development set, ``push-v1-dev`` + probes, mean AUROC over the 8 kinds:
+  all others 0.67; k = 1, 2, 3, 5, 8: 0.75, 0.76, 0.77, 0.80, 0.80; 5 is
+  also the kNN baseline's k; ``benchmarks/score_choices.py``).  Variance catches cues that say nothing;
+  consistency catches cues that clearly say the wrong thing.  NaN for a task
+  with a single demo.
 - ``action_error`` (on by default; ``audit --no-actions`` skips it): how badly the model's
   own controller, told the task by the other demos of the same task (their
   product-of-Gaussians mean; the demo's own mu for a task's only demo),
@@ -80,32 +79,14 @@ BROWN_CORE = 0.1  # see ``brown_scale``
 BROWN_MIN_DEMOS = 30
 
 
-def consistency_terms(post: TaskPosterior, tasks: np.ndarray, k: int = CONSISTENCY_K, chunk: int = 256
-                      ) -> np.ndarray:
-    """Per demo and dimension, the mean over its ``k`` nearest other demos of the task (all when there are
-    fewer) of ((mu_i - mu_j) / s)^2, with s the median task standard deviation of that dimension over the cues
-    scored (see the module docstring); nearest by the RMS of the same over dimensions.  [N, z], NaN for a
-    task's only demo.  A task of thousands of demos is taken ``chunk`` demos at a time."""
-    mu = np.asarray(post.mu, np.float64)
-    scale = np.fmax(np.median(np.asarray(post.sigma, np.float64), axis=0), 1e-12)
-    x = mu / scale
-    out = np.full(mu.shape, np.nan)
-    for task in np.unique(tasks):
-        idx = np.flatnonzero(tasks == task)
-        if len(idx) < 2:
-            continue
-        kk = min(k, len(idx) - 1)
-        for s in range(0, len(idx), chunk):  # [chunk, n, z] at a time
-            rows = idx[s:s + chunk]
-            sq = (x[rows, None] - x[None, idx]) ** 2
-            d = sq.mean(-1)
-            d[np.arange(len(rows)), s + np.arange(len(rows))] = np.inf  # not itself
-            nn = np.argpartition(d, kk - 1, axis=1)[:, :kk]  # [rows, kk], positions in idx
-            out[rows] = np.take_along_axis(sq, nn[:, :, None], axis=1).mean(1)
-    return out
+def consistency_terms(post: TaskPosterior, tasks: np.ndarray, k: int | None = CONSISTENCY_K) -> np.ndarray:
+    """Per demo and dimension, (mu - m)^2 / (v + var) against the product of its k nearest other demos of the
+    task (see the module docstring): [N, z], NaN for a task's only demo."""
+    m, v = post.others(tasks, k)
+    return (post.mu - m) ** 2 / (v + post.var)
 
 
-def consistency(post: TaskPosterior, tasks: np.ndarray, k: int = CONSISTENCY_K) -> np.ndarray:
+def consistency(post: TaskPosterior, tasks: np.ndarray, k: int | None = CONSISTENCY_K) -> np.ndarray:
     """Task consistency of each demo against its k nearest other demos of the task (see module docstring)."""
     return np.sqrt(consistency_terms(post, tasks, k).mean(1))
 
