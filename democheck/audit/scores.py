@@ -14,7 +14,10 @@ Every score is one number per demo, higher = more suspect:
   by tasks done in more than one way; the neighbours' is not (on a separate
   development set, ``push-v1-dev`` + probes, mean AUROC over the 8 kinds:
   all others 0.67; k = 1, 2, 3, 5, 8: 0.75, 0.76, 0.77, 0.80, 0.80; 5 is
-  also the kNN baseline's k; ``benchmarks/score_choices.py``).  Variance catches cues that say nothing;
+  also the kNN baseline's k; ``benchmarks/score_choices.py``).  Measured and not shipped: each dimension in
+  units of its median task SD instead of sqrt(v + var) -- alone far better (dev mean AUROC 0.96, no-objects
+  0.99, hidden 1.00) but the ranking *worse* on no-objects (dev 0.952 -> 0.924-0.949): the combination
+  dilutes it (see ``suspicion``).  Variance catches cues that say nothing;
   consistency catches cues that clearly say the wrong thing.  NaN for a task
   with a single demo.
 - ``action_error`` (on by default; ``audit --no-actions`` skips it): how badly the model's
