@@ -8,8 +8,9 @@ ranking's combination and its flag levels: ``benchmarks/suspicion_choices.py``).
 
 It prints the AUROC of consistency against the k nearest other demos of the task, per kind, for several k
 (and all others), and two forms measured and not shipped, each dimension in units of its median task SD
-instead of sqrt(v + var) (so that a cue's own variance does not shrink its distance): from the same
-product ("scaled product") and the mean squared distance to the k nearest ("scaled mean square").  The bench must have been written with a model (its table holds ``mu`` and ``sigma``).
+instead of sqrt(v + var), so that a cue's own variance does not shrink its distance: from the same product
+("scaled product") and the kNN baseline's mean distance to the k nearest ("scaled kNN").  The bench must
+have been written with a model (its table holds ``mu`` and ``sigma``).
 """
 
 from __future__ import annotations
@@ -20,20 +21,8 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
+from democheck.audit.baselines import knn_same_task
 from democheck.petnet.posterior import product_of_others
-
-
-def mean_square_to_nearest(x: np.ndarray, tasks: np.ndarray, k: int) -> np.ndarray:
-    """Mean over dimensions and a demo's k nearest other demos of its task of the squared difference of ``x``."""
-    out = np.full(len(x), np.nan)
-    for task in np.unique(tasks):
-        idx = np.flatnonzero(tasks == task)
-        if len(idx) < 2:
-            continue
-        d = ((x[idx, None] - x[None, idx]) ** 2).mean(-1)
-        np.fill_diagonal(d, np.inf)
-        out[idx] = np.sort(d, axis=1)[:, :min(k, len(idx) - 1)].mean(1)
-    return out
 
 
 def main() -> None:
@@ -45,25 +34,22 @@ def main() -> None:
     var = np.stack(t["sigma"].to_numpy()).astype(np.float64) ** 2
     labels, tasks = t["label"].to_numpy(), t["task"].to_numpy()
     kinds = sorted(set(labels) - {"clean"})
-    print("consistency AUROC by k:", " ".join(kinds), "| mean")
-    for k in (1, 2, 3, 5, 8, None):
-        m, v = product_of_others(mu, var, tasks, k)
-        score = np.sqrt(((mu - m) ** 2 / (v + var)).mean(1))
+
+    def show(name: str, score: np.ndarray) -> None:
         au = []
         for kind in kinds:
             sel = (labels == kind) | (labels == "clean")
             au.append(roc_auc_score(labels[sel] == kind, np.nan_to_num(score[sel])))
-        print(f"  k={k or 'all':>3}: " + " ".join(f"{a:.2f}" for a in au) + f" | {np.mean(au):.3f}")
-    scale = np.median(np.sqrt(var), axis=0)
-    for name, k, score in [("scaled product", k, None) for k in (5, 8)] + [("scaled mean square", 5, None)]:
-        if name == "scaled product":
-            score = np.sqrt((((mu - product_of_others(mu, var, tasks, k)[0]) / scale) ** 2).mean(1))
-        else:
-            score = np.sqrt(mean_square_to_nearest(mu / scale, tasks, k))
-        au = [roc_auc_score(labels[(labels == kind) | (labels == "clean")] == kind,
-                            np.nan_to_num(score[(labels == kind) | (labels == "clean")])) for kind in kinds]
-        print(f"  {name}, k={k}: " + " ".join(f"{a:.2f}" for a in au) + f" | {np.mean(au):.3f}")
+        print(f"  {name}: " + " ".join(f"{a:.2f}" for a in au) + f" | {np.mean(au):.3f}")
 
+    print("consistency AUROC by k:", " ".join(kinds), "| mean")
+    for k in (1, 2, 3, 5, 8, None):
+        m, v = product_of_others(mu, var, tasks, k)
+        show(f"k={k or 'all':>3}", np.sqrt(((mu - m) ** 2 / (v + var)).mean(1)))
+    scale = np.median(np.sqrt(var), axis=0)
+    for k in (5, 8):
+        show(f"scaled product, k={k}", np.sqrt((((mu - product_of_others(mu, var, tasks, k)[0]) / scale) ** 2).mean(1)))
+    show("scaled kNN, k=5", knn_same_task(mu / scale, tasks, 5))
 
 if __name__ == "__main__":
     main()
