@@ -20,7 +20,7 @@ import pandas as pd
 from sklearn.metrics import roc_auc_score
 
 from democheck.audit import modelfree, scorers, scores
-from democheck.audit.scorers import SCORERS, Evidence, ranking_z
+from democheck.audit.scorers import SCORERS, Evidence
 from democheck.data import open_dataset
 
 SIZES = (16, 32)
@@ -54,12 +54,12 @@ def judged(table: pd.DataFrame, view: np.ndarray | None, name: str = "view") -> 
     else:
         cols[name] = view
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=cols)
-    ranked = scorers.ranked(cols, table["task"].to_numpy())
-    p = 10.0 ** scores.combined_log10(scores.tail_probabilities(ranking_z(ev, ranked)))
+    _, log_p, core = scorers.combination(ev)  # as the audit ranks and flags
+    s = -scores.combined_log10(log_p)
     kinds = sorted(set(labels) - {"clean"})
-    au = [roc_auc_score(labels[(labels == k) | (labels == "clean")] == k, -p[(labels == k) | (labels == "clean")])
+    au = [roc_auc_score(labels[(labels == k) | (labels == "clean")] == k, s[(labels == k) | (labels == "clean")])
           for k in kinds]
-    flagged = p <= scores.DEFAULT_FPR
+    flagged = scores.conformal_p(s, core) <= scores.DEFAULT_FPR
     return (" ".join(f"{a:.3f}" for a in au) + f" | clean {flagged[labels == 'clean'].mean():.3f} | "
             + " ".join(f"{flagged[labels == k].mean():.2f}" for k in kinds))
 

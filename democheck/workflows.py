@@ -204,7 +204,7 @@ def write_episode_list(path: str | Path, table: pd.DataFrame, flagged: bool) -> 
 
 def episodes_to_drop(report: Path, drop: str) -> list[int]:
     """The episodes ``democheck clean --drop`` names: ``flagged`` (the report's flags), ``fpr:X`` (those the
-    report would flag at --fpr X: a p_value at most X, or an exact copy), ``top:K`` (its K most suspect) or
+    report would flag at --fpr X: a p_reference at most X, or an exact copy), ``top:K`` (its K most suspect) or
     ``list:FILE`` (episode indices as ``[3, 17]`` or one per line)."""
     table = pd.read_parquet(report / "scores.parquet")
     if drop == "flagged":
@@ -217,8 +217,9 @@ def episodes_to_drop(report: Path, drop: str) -> list[int]:
             level = -1.0
         if not 0 < level < 1:
             raise DemocheckError(f"--drop {drop}: the level must lie between 0 and 1")
-        return table.loc[flags(table["p_value"].to_numpy(), level, exact_copies(table)),
-                         "episode_index"].astype(int).tolist()
+        # Reports written before the conformal flags have no p_reference: their combined tail probability.
+        p = table["p_reference"] if "p_reference" in table else table["p_value"]
+        return table.loc[flags(p.to_numpy(), level, exact_copies(table)), "episode_index"].astype(int).tolist()
     if kind == "top" and arg.isdigit():
         return table.sort_values("rank").head(int(arg))["episode_index"].astype(int).tolist()
     if kind == "list" and arg:

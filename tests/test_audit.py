@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 from democheck.audit.metrics import detection, precision_at_k
 from democheck.audit.run import score_posteriors
-from democheck.audit.scores import consistency, fit_ocsvm, ocsvm_margin
+from democheck.audit.scores import consistency_parts, fit_ocsvm, ocsvm_margin, task_neighbours
 from democheck.cli import app
 from democheck.petnet.posterior import TaskPosterior, product_of_others
 
@@ -61,13 +61,24 @@ def test_planted_wrong_task_demo_ranks_first_by_consistency():
 
 def test_consistency_matches_brute_force_and_handles_singletons():
     rng = np.random.default_rng(2)
-    mu, var = rng.normal(size=(4, 3)), rng.uniform(0.1, 1, (4, 3))
-    tasks = np.array(["a", "a", "a", "b"])
-    c = consistency(_post(mu, var), tasks)
-    p = 1 / var[1:3]
-    m, v = (p * mu[1:3]).sum(0) / p.sum(0), 1 / p.sum(0)
-    assert np.isclose(c[0], np.sqrt(((mu[0] - m) ** 2 / (v + var[0])).mean()))
-    assert np.isnan(c[3])
+    n = 23
+    mu, var = rng.normal(size=(n, 4)), rng.uniform(0.1, 1, (n, 4))
+    tasks = np.array(["a"] * 20 + ["b"] * 2 + ["c"])  # b: one other demo; c: none
+    c, apart = consistency_parts(_post(mu, var), tasks)
+    x = mu / np.median(np.sqrt(var), axis=0)  # units: each dimension's median task SD
+    for i in [0, 7, 19, 20]:
+        others = np.flatnonzero((tasks == tasks[i]) & (np.arange(n) != i))
+        d = np.linalg.norm(x[i] - x[others], axis=1)
+        nn = others[np.argsort(d)[:5]]  # task b: its one other demo
+        assert np.isclose(c[i], np.sort(d)[:5].mean()) and np.allclose(apart[i], np.abs(x[i] - x[nn].mean(0)))
+    # In a small task, never more than half of the other demos: a bad minority is not every demo's neighbour.
+    small = np.array(["s"] * 6 + ["a"] * 17)
+    c6 = consistency_parts(_post(mu, var), small)[0]
+    x6 = mu / np.median(np.sqrt(var), axis=0)
+    assert np.isclose(c6[0], np.sort(np.linalg.norm(x6[0] - x6[1:6], axis=1))[:2].mean())
+    assert np.isnan(c[22])  # a task's only demo
+    # Taken a few demos at a time, the same numbers.
+    assert np.allclose(task_neighbours(x, tasks, 5, at_most_half=True, chunk=3)[0], c, equal_nan=True)
 
 
 def test_consistency_against_the_k_nearest_others_matches_brute_force():

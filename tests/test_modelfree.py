@@ -7,7 +7,8 @@ from scipy import stats
 
 from democheck.audit import dynamics, modelfree
 from democheck.audit.scorers import SCORERS, Evidence, compute, select
-from democheck.audit.scores import combined_log10, flags, sidak_log10, tail_probabilities
+from democheck.audit.scores import (combined_log10, conformal_p, flags, robust_tails, sidak_log10,
+                                    tail_probabilities)
 from democheck.data.demo import Demo
 
 T, A, S = 100, 6, 9
@@ -240,6 +241,43 @@ def test_a_minority_of_bad_demos_makes_the_tail_probabilities_conservative_and_m
     z = np.array([[np.nan], [1.0], [2.0], [np.inf]])
     lp = tail_probabilities(z)[:, 0]
     assert lp[0] == 0.0 and lp[3] == -np.inf
+
+
+def test_the_robust_core_leaves_the_bad_demos_out_and_the_conformal_flags_keep_their_rate():
+    """A fifth of the demos far out on one score of four: fitted on every demo, that score's tail is wider than
+    the clean demos' and fewer bad demos are flagged; fitted on the robust core it is the clean demos' own, the core holds the clean
+    demos but the few extreme ones, and the conformal flags take no more than the share of clean demos asked for
+    (the binomial interval's upper end; fewer where the bad demos left in the core take the top of it) and most
+    bad demos -- also where the clean tails are heavier than exponential (log-normal), where the combined
+    probability's own level flags several times the rate asked for.  (A quarter or more, all on one score, hides
+    itself: the core then keeps them all.)"""
+    rng = np.random.default_rng(4)
+    n_clean, n_bad, k = 6000, 1500, 4
+    for clean in (rng.exponential(1.0, (n_clean, k)), np.exp(rng.normal(0.0, 0.8, (n_clean, k)))):
+        bad = clean[:n_bad].copy()
+        bad[:, 1] += rng.uniform(10.0, 30.0, n_bad) * clean[:, 1].std()  # unusual on one score, the rest as clean
+        z = np.concatenate([clean, bad])
+        everything = 10.0 ** combined_log10(tail_probabilities(z))
+        log_p, core = robust_tails(z)
+        assert core[:n_clean].mean() > 0.99 and core[n_clean:].mean() < 0.25
+        p = conformal_p(-combined_log10(log_p), core)
+        for fpr in (0.01, 0.05):
+            assert (p[:n_clean] <= fpr).sum() <= stats.binom.interval(0.999, n_clean, fpr)[1], fpr
+            assert (p[n_clean:] <= fpr).mean() > max(0.85, (everything[n_clean:] <= fpr).mean())
+    model = 10.0 ** combined_log10(log_p)  # the log-normal set
+    assert (model[:n_clean] <= 0.01).sum() > 2 * stats.binom.interval(0.999, n_clean, 0.01)[1]
+
+
+def test_conformal_p_counts_the_other_core_demos_and_carries_on_beyond_them():
+    s = np.array([0.1, 0.5, 1.0, 2.0, 5.0, 3.0])
+    core = np.array([True, True, True, True, False, False])
+    p = conformal_p(s, core)
+    # A core demo leaves itself out: of the 3 others, 2 are at least as suspect as 0.5 -> (1 + 2) / 4.
+    assert np.isclose(p[1], 3 / 4) and np.isclose(p[3], 1 / 4)
+    # Beyond the most suspect core demo (2.0): 1 / 5, a tenth of it per unit of suspicion further.
+    assert np.isclose(p[5], 0.1 / 5) and np.isclose(p[4], 0.001 / 5)
+    assert conformal_p(np.array([np.inf]), np.array([False]))[0] == 0.0
+    np.testing.assert_allclose(conformal_p(s, np.zeros(6, bool)), 10.0 ** -s)  # no core: the probability itself
 
 
 def test_audit_without_a_model_on_data_the_shipped_model_cannot_read(tmp_path):

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from democheck.audit.scores import robust_stats, standardise
+from democheck.audit.scores import robust_stats, standardise, task_neighbours
 
 # An arm that moves less than this share of its median per-step motion is idle at that step.
 IDLE_FRACTION_OF_MEDIAN = 0.05
@@ -60,17 +60,7 @@ def heuristic_score(features: np.ndarray) -> np.ndarray:
 
 def knn_same_task(emb: np.ndarray, tasks: np.ndarray, k: int = 5) -> np.ndarray:
     """Mean distance to the k nearest other demos of the same task (NaN for a task's only demo)."""
-    out = np.full(len(emb), np.nan)
-    for task in np.unique(tasks):
-        idx = np.flatnonzero(tasks == task)
-        if len(idx) < 2:
-            continue
-        e = emb[idx].astype(np.float64)
-        d = np.linalg.norm(e[:, None] - e[None], axis=-1)
-        np.fill_diagonal(d, np.inf)
-        kk = min(k, len(idx) - 1)
-        out[idx] = np.sort(d, axis=1)[:, :kk].mean(1)
-    return out
+    return task_neighbours(emb, tasks, k)[0]
 
 
 def random_score(n: int, seed: int = 0) -> np.ndarray:

@@ -19,7 +19,8 @@ import pandas as pd
 from democheck import pool
 from democheck.audit import scorers as registry, shards
 from democheck.audit.scorers import Evidence, Scorer
-from democheck.audit.scores import DEFAULT_FPR, exact_copies, flags, ocsvm_margin, rank_order
+from democheck.audit.scores import (CORE_P, DEFAULT_FPR, conformal_p, exact_copies, expected_false_flags, flags,
+                                    ocsvm_margin, rank_order)
 from democheck.data.cache import dataset_fingerprint
 from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
@@ -158,8 +159,9 @@ def score_posteriors(episodes: pd.DataFrame, post: TaskPosterior, model: Checkpo
 
 def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
     """The ScoreTable: one row per demo, every computed score, ranked by suspicion (rank 1 = most suspect);
-    ``p_value`` is the combined tail probability the suspicion is -log10 of, ``is_anomaly`` a p_value at most
-    ``fpr`` (or an exact copy of another demo)."""
+    ``p_value`` is the combined tail probability the suspicion is -log10 of, ``reference`` whether the demo is in
+    the robust core those tails were fitted on, ``p_reference`` the share of that core at least as suspect
+    (``scores.conformal_p``) and ``is_anomaly`` a p_reference at most ``fpr`` (or an exact copy of another demo)."""
     eps = ev.episodes
     table = pd.DataFrame({"episode_index": eps["episode_index"].to_numpy(np.int64), "task": ev.tasks})
     for name in registry.SCORERS:
@@ -167,10 +169,14 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
             table[name] = ev.scores[name]
     if "suspicion" not in table:
         table["suspicion"] = np.nan
-    table["p_value"] = 10.0 ** -table["suspicion"].to_numpy(np.float64)
+    suspicion = table["suspicion"].to_numpy(np.float64)
+    table["p_value"] = 10.0 ** -suspicion
+    # The reference the flags are calibrated on: the robust core the ranking's tails were fitted on.
+    table["reference"] = registry.combination(ev)[2] if "suspicion" in ev.scores else np.zeros(len(table), bool)
+    table["p_reference"] = conformal_p(suspicion, table["reference"].to_numpy())
     table["reason"] = ev.reasons.get("suspicion", [""] * len(table))
     copies = exact_copies(table)
-    table["is_anomaly"] = flags(table["p_value"].to_numpy(), fpr, copies)
+    table["is_anomaly"] = flags(table["p_reference"].to_numpy(), fpr, copies)
     if copies is not None and copies.any():
         dup = ev.reasons["duplicate"]
         table["reason"] = [dup[i] if copies[i] else r for i, r in enumerate(table["reason"])]
@@ -241,7 +247,11 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
             "p_value": "the combined tail probability of the ranking's scores (suspicion = -log10 p_value)",
             "reason": "what put the demo where it ranks: the score with the smallest tail probability, and where "
                       "the demo is worst",
-            "is_anomaly": f"p_value at most the false-positive rate asked for ({fpr:g}), or an exact copy of "
+            "reference": "in the robust core the ranking's tails were fitted on: the demos believed clean, which "
+                         "the flags are calibrated on",
+            "p_reference": "the share of the reference demos at least as suspect (conformal; beyond the most "
+                           "suspect of them, the combined tail probability's own decay)",
+            "is_anomaly": f"p_reference at most the false-positive rate asked for ({fpr:g}), or an exact copy of "
                           "another demo",
             "score": "the old name of task_uncertainty, kept for one release"},
         "top_suspects": table.head(top)[["rank", "episode_index", "task",
@@ -269,14 +279,17 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
     unflagged demos clean, and, with labels, the observed recall per kind and share of clean demos flagged."""
     flagged = table["is_anomaly"].to_numpy(bool)
     copies = exact_copies(table)
+    reference = table["reference"].to_numpy(bool)
     out: dict[str, Any] = {
-        "fpr": fpr, "rule": f"combined tail probability (p_value) at most {fpr:g}, or an exact copy of another demo",
-        # fpr of the clean demos, of whom there are about the unflagged ones plus the false flags themselves:
-        # E = fpr (n - flagged + E).
-        "expected_false_flags": round(fpr * (len(table) - int(flagged.sum())) / (1 - fpr), 2),
+        "fpr": fpr, "rule": f"at most {fpr:g} of the reference demos at least as suspect (p_reference), or an exact "
+                            "copy of another demo",
+        # If the reference demos are clean and the others like them, about fpr of them are flagged.
+        "expected_false_flags": round(expected_false_flags(reference, fpr), 2),
+        "p_value_at_level": _level(table, fpr),
         "exact_copies": 0 if copies is None else int(copies.sum()),
-        "reference": "the audited demos themselves: each score's tail is fitted on its middle half, which holds "
-                     "if fewer than about a quarter of the demos are bad",
+        "reference": f"the audited demos' robust core ({int(reference.sum())} of {len(table)}): the demos whose "
+                     f"combined tail probability is above {CORE_P:g} once each score's tail is fitted on them, "
+                     "refitted until it no longer changes -- believed clean while the bad demos are a minority",
         "scores": registry.ranked(table, table["task"].to_numpy()),
     }
     left_out = [n for n, s in registry.SCORERS.items() if s.in_suspicion and not s.in_single_task_ranking
@@ -294,6 +307,12 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
                                "recall": {k: round(float(flagged[labels == k].mean()), 3)
                                           for k in sorted(set(labels) - {"clean"})}}
     return out
+
+
+def _level(table: pd.DataFrame, fpr: float) -> float | None:
+    """The largest ``p_value`` flagged at ``fpr`` (what the conformal rule amounts to on this dataset)."""
+    flagged = table["p_reference"].to_numpy() <= fpr
+    return float(table["p_value"].to_numpy()[flagged].max()) if flagged.any() else None
 
 
 def warnings(table: pd.DataFrame, ckpt: Checkpoint | None) -> list[str]:

@@ -27,8 +27,8 @@ from democheck.audit.baselines import (HEURISTIC_FEATURES, heuristic_z, knn_same
                                        summarise_motion)
 from democheck.audit import dynamics, modelfree, outcome
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
-from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_terms, ocsvm_margin,
-                                    rank_order, tail_probabilities)
+from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_parts, ocsvm_margin,
+                                    rank_order, robust_tails)
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -164,8 +164,8 @@ def _novelty(ev: Evidence) -> Scores:
 
 
 def _consistency(ev: Evidence) -> Scores:
-    terms = consistency_terms(ev.posterior, ev.tasks)
-    return np.sqrt(terms.mean(1)), _dimension_reasons(terms, "furthest from its task")
+    value, apart = consistency_parts(ev.posterior, ev.tasks)
+    return value, _dimension_reasons(apart, "furthest from its task")
 
 
 def _action_error(ev: Evidence) -> Scores:
@@ -207,13 +207,20 @@ def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
 REASON_P = 0.05  # a score this surprising (tail probability) is named in the ranking's reason beside the first
 
 
+def combination(ev: Evidence, model_free: bool = False) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """The ranking's scores (``ranked``), their tail probabilities (natural logs, [N, K]) fitted on the audited
+    demos' robust core (``scores.robust_tails``), and that core [N]: the reference the flags are calibrated on."""
+    names = ranked(ev.scores, ev.tasks, model_free)
+    log_p, core = robust_tails(ranking_z(ev, names))
+    return names, log_p, core
+
+
 def _combination(ev: Evidence, model_free: bool = False) -> Scores:
     """-log10 of the combined tail probability of the ranking's scores (``scores.combined_log10``), and the
     score that drove it."""
-    names = ranked(ev.scores, ev.tasks, model_free)
+    names, log_p, _ = combination(ev, model_free)
     if not names:
         return np.full(len(ev.episodes), np.nan), None
-    log_p = tail_probabilities(ranking_z(ev, names))
     value = -combined_log10(log_p)
     reasons = []
     for i, row in enumerate(log_p):
@@ -335,14 +342,14 @@ def _traces(ev: Evidence, rows: slice, device: Any) -> modelfree.ActionTraces:
 SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("task_uncertainty", "PETNet's task uncertainty (the paper's score): mean task standard deviation of the "
            "demo's cue, both parts of the variance", ("cues",), _task_uncertainty, in_suspicion=True,
-           in_single_task_ranking=False, short="unc."),
+           in_single_task_ranking=False, log_in_ranking=True, short="unc."),
     Scorer("task_uncertainty_head", "the paper's variance head alone, without the novelty part",
            ("cues",), _task_uncertainty_head, in_audit=False, short="head"),
     Scorer("novelty", "how unfamiliar the cue's images are: squared feature distance from the training cues over "
            "the model's reference (above 1: less familiar than 9 in 10 real cues of new tasks)",
            ("cues", "novelty"), _novelty, short="novel."),
-    Scorer("consistency", f"distance of the demo's task mean from the product of its {CONSISTENCY_K} nearest other "
-           "demos of its task, RMS over dimensions of (mu - m) / sqrt(v + var)", ("cues",), _consistency,
+    Scorer("consistency", f"mean distance of the demo's task mean from those of its {CONSISTENCY_K} nearest other "
+           "demos of its task, each dimension in units of its median task standard deviation", ("cues",), _consistency,
            in_suspicion=True, in_single_task_ranking=False, short="cons."),
     Scorer("action_error", f"how badly PETNet's controller, told the task by the other demos of the task, explains "
            f"the demo's normalised actions (MSE at {ACTION_STEPS} evenly spaced timesteps)", ("demos", "model"),
@@ -379,9 +386,10 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "
            "z within its task)", ("demos",), _outcome, in_suspicion=True,
            decode=lambda ev, rows, device: outcome.OutcomeStats(), short="outc."),
-    Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty, "
+    Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
            "consistency, action error (log), motion, idle, view and outcome (one task: the last five), each in "
-           "robust standard deviations within its task (2 = as unusual as 1 clean demo in 100)", ("scores",),
+           "robust standard deviations within its task, the tails fitted on the robust core (2 = as unusual as 1 "
+           "clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
            "view, outcome): what democheck says with no model", ("scores",), _model_free, in_audit=False,

@@ -117,8 +117,8 @@ def suspects_markdown(table: pd.DataFrame, top: int, title: str, fpr: float | No
     level = f"at most {fpr:g}" if fpr is not None else "at most the false-positive rate asked for"
     lines += ["", f"{int(table['is_anomaly'].sum())} of {len(table)} demos flagged.", "",
               *[f"- {c.replace('_', ' ')}: {SCORERS[c].description}" for c in ["suspicion", *cols]],
-              f"- flagged: a combined tail probability (10^-suspicion) {level}, or an exact copy of another demo "
-              "(summary.json, flag)",
+              f"- flagged: a share of the reference demos (the audited demos' robust core, believed clean) at least as "
+              f"suspect (p_reference) {level}, or an exact copy of another demo (summary.json, flag)",
               "- why: the score that drove the ranking, how rare among clean demos, and where in the demo"]
     return "\n".join(lines)
 
@@ -212,8 +212,8 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
             values = np.log10(np.maximum(values, 1e-12))
         _histogram(rec, f"scores/{name}", values, flagged)
         what = name.replace("_", " ") + (" (log10)" if log10 else "")
-        if name == "suspicion" and fpr is not None:
-            what += f": flagged at {-np.log10(fpr):g} and above (fpr {fpr:g})"
+        if name == "suspicion" and fpr is not None and flagged.any():
+            what += f": flagged from {np.nanmin(np.where(np.isinf(values), np.nan, values)[flagged]):.3g} up (fpr {fpr:g})"
         hist_views.append(rrb.BarChartView(origin=f"scores/{name}", name=what, plot_legend=rrb.PlotLegend(visible=False)))
     sigma = np.stack(table["sigma"].to_numpy()) if len(table) and "sigma" in table else None
     typical = np.median(sigma[~flagged] if (~flagged).any() else sigma, axis=0) if sigma is not None else None
