@@ -86,8 +86,10 @@ def print_audit(summary: dict, out: Path) -> None:
         cells = ["n/a" if r[c] is None else short(r[c]) for c in cols]
         table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"], *cells, "[red]yes[/]" if r["is_anomaly"] else "")
     console.print(table)
-    console.print(f"{summary['flagged']} flagged at --fpr {flag['fpr']:g} (about {flag['expected_false_flags']:.1f} "
-                  "false flags expected among them)", highlight=False)
+    level = flag.get("p_value_at_level")
+    console.print(f"{summary['flagged']} flagged at --fpr {flag['fpr']:g}"
+                  + (f" (on this data: a p_value at most {level:.3g})" if level is not None else "")
+                  + f"; about {flag['expected_false_flags']:.1f} false flags expected among them", highlight=False)
     if flag.get("one_task"):
         console.print(flag["one_task"], highlight=False)
     for w in summary.get("warnings", []):
