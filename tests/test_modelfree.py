@@ -240,7 +240,20 @@ def test_a_minority_of_bad_demos_makes_the_tail_probabilities_conservative_and_m
     assert b[900:].max() < 1e-6 < b[:900].min()
     z = np.array([[np.nan], [1.0], [2.0], [np.inf]])
     lp = tail_probabilities(z)[:, 0]
-    assert lp[0] == 0.0 and lp[3] == -np.inf
+    assert np.isnan(lp[0]) and lp[3] == -np.inf
+    # A missing score is left out of the combination with its degrees of freedom: the demo is judged on the scores
+    # it has, neither more nor less typical for the one it lacks.
+    rng = np.random.default_rng(2)
+    z = rng.exponential(1.0, (3000, 4))
+    log_p = tail_probabilities(z)
+    row = log_p[7].copy()
+    without = log_p.copy()
+    without[7, 3] = np.nan
+    three = combined_log10(np.vstack([log_p[:, :3], row[None, :3]]))[-1]  # the same row with three scores
+    assert combined_log10(without)[7] < combined_log10(np.where(np.isnan(without), 0.0, without))[7]
+    assert abs(combined_log10(without)[7] - three) < 0.15
+    assert combined_log10(np.full((40, 3), np.nan)).tolist() == [0.0] * 40
+    assert np.isclose(sidak_log10(np.array([[np.nan, np.log(0.01)]]))[0], -2.0)  # one score seen: its own p
 
 
 def test_the_robust_core_leaves_the_bad_demos_out_and_the_conformal_flags_keep_their_rate():

@@ -223,7 +223,7 @@ def _combination(ev: Evidence, model_free: bool = False) -> Scores:
         return np.full(len(ev.episodes), np.nan), None
     value = -combined_log10(log_p)
     reasons = []
-    for i, row in enumerate(log_p):
+    for i, row in enumerate(np.nan_to_num(log_p, nan=0.0)):  # no score: nothing to name
         # The score that drove it most, and up to two more that added to it (often the one that says where).
         order = [j for j in np.argsort(row, kind="stable")[:3] if j == np.argmin(row) or row[j] < np.log(REASON_P)]
         parts = []

@@ -209,10 +209,11 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None) -> np.ndar
     """Natural log of the tail probability of each entry of [N, K] scores in robust standard deviations,
     column by column: an exponential tail through the ``TAIL_QUANTILES`` of the column's rows in ``core``
     (default: all; probability 0.75 at their 25th percentile, 0.25 at their 75th), at most 1, its scale at least
-    ``TAIL_MIN_SCALE``.  NaN (no score) gives log 1; +inf (an exact copy) log 0."""
+    ``TAIL_MIN_SCALE``.  NaN (no score) stays NaN, which the combinations leave out; +inf (an exact copy) gives
+    log 0."""
     lo, hi = TAIL_QUANTILES
     core = np.ones(len(z), bool) if core is None else np.asarray(core, bool)
-    out = np.zeros(z.shape)
+    out = np.full(z.shape, np.nan)
     for k in range(z.shape[1]):
         x = z[:, k]
         ok = np.isfinite(x) | (x == np.inf)
@@ -222,7 +223,7 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None) -> np.ndar
         q_lo, q_hi = np.quantile(fit, [lo, hi]) if len(fit) else (0.0, 0.0)
         beta = max((q_hi - q_lo) / np.log((1 - lo) / (1 - hi)), TAIL_MIN_SCALE)
         tail = np.log(1 - lo) - (x - q_lo) / beta
-        out[:, k] = np.where(ok, np.minimum(tail, 0.0), 0.0)
+        out[:, k] = np.where(ok, np.minimum(tail, 0.0), np.nan)
     return out
 
 
@@ -263,11 +264,12 @@ def conformal_p(suspicion: np.ndarray, core: np.ndarray) -> np.ndarray:
 
 
 def sidak_log10(log_p: np.ndarray) -> np.ndarray:
-    """log10 of the Sidak-corrected smallest of each row's K tail probabilities (given as natural logs):
-    1 - (1 - min p)^K, the chance that the most surprising of K independent clean scores is this surprising
-    (valid, and conservative, whatever their dependence)."""
-    k = log_p.shape[1]
-    m = np.nan_to_num(log_p.min(axis=1), nan=0.0, neginf=-np.inf)
+    """log10 of the Sidak-corrected smallest of each row's K tail probabilities (given as natural logs; NaN: no
+    score, left out): 1 - (1 - min p)^K, the chance that the most surprising of K independent clean scores is
+    this surprising (valid, and conservative, whatever their dependence)."""
+    seen = ~np.isnan(log_p)
+    k = np.maximum(seen.sum(axis=1), 1)
+    m = np.where(seen, log_p, 0.0).min(axis=1, initial=0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         exact = np.log(-np.expm1(k * np.log1p(-np.exp(np.minimum(m, -1e-16)))))
     return np.where(m < -30, np.log(k) + m, exact) / np.log(10)
@@ -286,7 +288,7 @@ def brown_scale(log_p: np.ndarray) -> tuple[float, float] | None:
     from scipy.stats import spearmanr
 
     with np.errstate(all="ignore"):
-        rho = np.atleast_2d(spearmanr(-log_p[core]).correlation)
+        rho = np.atleast_2d(spearmanr(-np.nan_to_num(log_p[core], nan=0.0)).correlation)
     rho = np.nan_to_num(rho, nan=0.0)  # a column constant over the core (no score there) depends on nothing
     # Never taken as less variable than independent scores: negative dependence is not counted on.
     var = 4.0 * k + 4.0 * max(float(rho.sum() - np.trace(rho)), 0.0)
@@ -296,7 +298,10 @@ def brown_scale(log_p: np.ndarray) -> tuple[float, float] | None:
 def combined_log10(log_p: np.ndarray) -> np.ndarray:
     """log10 of the combined tail probability of each row's K tail probabilities (given as natural logs):
     Fisher's -2 sum log p against Brown's scaled chi-square (``brown_scale``: the scores' dependence measured on
-    the audited demos themselves), or, with too few demos to measure it, the Sidak minimum."""
+    the audited demos themselves), or, with too few demos to measure it, the Sidak minimum.  A row's missing
+    scores (NaN) are left out, with their share of the degrees of freedom: a look that saw nothing is not
+    evidence that the demo is typical (counted as p = 1, it would make a demo with a missing score look more
+    ordinary than a clean demo with every score)."""
     if log_p.shape[1] == 0:
         return np.zeros(len(log_p))
     scale = brown_scale(log_p)
@@ -306,6 +311,8 @@ def combined_log10(log_p: np.ndarray) -> np.ndarray:
     from scipy.stats import chi2
 
     c, f = scale
+    seen = (~np.isnan(log_p)).sum(axis=1)
+    f = f * np.maximum(seen, 1) / log_p.shape[1]
     stat = -2.0 * np.nan_to_num(log_p, nan=0.0, neginf=-np.inf).sum(axis=1)
     with np.errstate(all="ignore"):
         x = stat / c
@@ -314,7 +321,7 @@ def combined_log10(log_p: np.ndarray) -> np.ndarray:
         # surprising demos keep their order instead of all tying at -inf.
         far = (f / 2.0 - 1.0) * np.log(x / 2.0) - x / 2.0 - gammaln(f / 2.0)
         out = np.where(np.isfinite(out) | ~np.isfinite(x), out, far)
-    return np.where(np.isinf(stat), -np.inf, out / np.log(10))
+    return np.where(np.isinf(stat), -np.inf, np.where(seen > 0, out / np.log(10), 0.0))
 
 
 def exact_copies(table: pd.DataFrame) -> np.ndarray | None:
