@@ -14,7 +14,10 @@ its task as ``democheck audit`` does, and then:
   or ``scaled kNN`` (the shipped form, ``scores.consistency``);
 - ``log unc.``: the task uncertainty on a log scale in the ranking, or not;
 - the flag rule: ``model`` (the combined tail probability at most the fpr) or ``conformal`` (the share of the
-  core at least as suspect at most the fpr, ``scores.conformal_p``; the shipped rule).
+  core at least as suspect at most the fpr, ``scores.conformal_p``; the shipped rule);
+- ``final fit LO-HI`` (the shipped choices otherwise): once the core is found, each tail refitted through the
+  core's LO and HI percentiles instead of ``TAIL_QUANTILES`` -- upper percentiles, which the core leaves to the
+  clean demos, for scores whose clean tail is lighter or heavier than the quartiles say.
 
 Printed per variant: the ranking's AUROC per kind and its mean; at each fpr the share of clean demos flagged
 against the number the audit states it expects (``scores.expected_false_flags``), and each kind's share
@@ -35,6 +38,7 @@ from suspicion_choices import aurocs, bench_tables
 
 FPRS = (0.01, 0.02)
 CORES = (None, 1e-3, 1e-4, 1e-5)
+FINAL_FITS = ((0.5, 0.9), (0.75, 0.95), (0.5, 0.95))
 
 
 def product_consistency(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray) -> np.ndarray:
@@ -56,17 +60,37 @@ def ranking(table, consistency: np.ndarray, log_uncertainty: bool, model_free: b
         SCORERS["task_uncertainty"] = saved
 
 
-def calibrate(z: np.ndarray, core_p: float | None) -> tuple[np.ndarray, np.ndarray]:
-    """(-log10 combined tail probability, core) with the tails fitted on all demos or on the robust core."""
+def calibrate(z: np.ndarray, core_p: float | None, final: tuple[float, float] | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(-log10 combined tail probability, core) with the tails fitted on all demos or on the robust core (and then,
+    with ``final``, refitted on the core through those percentiles)."""
     if core_p is None:
         return -scores.combined_log10(scores.tail_probabilities(z)), np.ones(len(z), bool)
-    saved = scores.CORE_P
+    saved = scores.CORE_P, scores.TAIL_QUANTILES
     scores.CORE_P = core_p
     try:
         log_p, core = scores.robust_tails(z)
+        if final is not None:
+            scores.TAIL_QUANTILES = final
+            log_p = scores.tail_probabilities(z, core)
     finally:
-        scores.CORE_P = saved
+        scores.CORE_P, scores.TAIL_QUANTILES = saved
     return -scores.combined_log10(log_p), core
+
+
+def show(name: str, s: np.ndarray, core: np.ndarray, labels: np.ndarray, kinds: list[str]) -> None:
+    """One variant's AUROC per kind and, at each fpr and rule, the clean demos flagged and each kind's recall."""
+    clean = labels == "clean"
+    au = aurocs(s, labels)
+    print(f"  {name:<38} AUROC " + " ".join(f"{au[k]:.3f}" for k in kinds)
+          + f" | {np.mean(list(au.values())):.3f}  core {core.mean():.2f}")
+    for fpr in FPRS:
+        for rule, p in (("model", 10.0 ** -s), ("conformal", scores.conformal_p(s, core))):
+            flagged = p <= fpr
+            expected = scores.expected_false_flags(core, fpr)
+            print(f"      fpr {fpr:<5g} {rule:<9} clean {flagged[clean].sum():3d} "
+                  f"({flagged[clean].mean():.2%}, expected {expected:5.1f})  recall "
+                  + " ".join(f"{flagged[labels == k].mean():.2f}" for k in kinds))
 
 
 def main() -> None:
@@ -88,19 +112,13 @@ def main() -> None:
                         continue  # neither choice touches the model-free scores
                     z = ranking(table, cons, log_unc, model_free)
                     for core_p in CORES:
-                        s, core = calibrate(z, core_p)
-                        au = aurocs(s, labels)
                         name = ("no model" if model_free else f"{form}{', log unc.' if log_unc else ''}") + \
                             f", core {'off' if core_p is None else f'{core_p:g}'}"
-                        print(f"  {name:<38} AUROC " + " ".join(f"{au[k]:.3f}" for k in kinds)
-                              + f" | {np.mean(list(au.values())):.3f}  core {core.mean():.2f}")
-                        for fpr in FPRS:
-                            for rule, p in (("model", 10.0 ** -s), ("conformal", scores.conformal_p(s, core))):
-                                flagged = p <= fpr
-                                expected = scores.expected_false_flags(core, fpr)
-                                print(f"      fpr {fpr:<5g} {rule:<9} clean {flagged[clean].sum():3d} "
-                                      f"({flagged[clean].mean():.2%}, expected {expected:5.1f})  recall "
-                                      + " ".join(f"{flagged[labels == k].mean():.2f}" for k in kinds))
+                        show(name, *calibrate(z, core_p), labels, kinds)
+                    if form == "scaled kNN" and (log_unc or model_free):  # the shipped choices
+                        for final in FINAL_FITS:
+                            show(f"{'no model' if model_free else 'shipped'}, final fit {final[0]:g}-{final[1]:g}",
+                                 *calibrate(z, scores.CORE_P, final), labels, kinds)
 
 
 if __name__ == "__main__":

@@ -44,7 +44,9 @@ Every score is one number per demo, higher = more suspect:
   asked for on scores that move together, ``tests/test_modelfree.py``).  Earlier choices: the tails against the
   largest robust z, other percentile pairs, ranks among the audited demos (they cannot tell how far beyond
   every clean demo a bad one lies), a reference of held-out training demos, a Weibull tail and refits on a
-  looser core were measured and not kept (the model card and README say how).
+  looser core were measured and not kept (the model card and README say how); so were, with the core, tails through
+  the core's upper percentiles (50-90, 75-95, 50-95: gave-up unchanged, no-objects 0.989 -> 0.968-0.984 on
+  push-v1-dev + probes, occluded 0.999 -> 0.982-0.990 on mw2-dev; ``benchmarks/calibration_choices.py``).
 - ``is_anomaly``: the demo's conformal p-value against the robust core (``conformal_p``: the share of the core
   at least as suspect) at most the false-positive rate asked for (``audit --fpr``, default ``DEFAULT_FPR``):
   if the core's demos are clean and a clean demo is like them, about that share of clean demos is flagged,
