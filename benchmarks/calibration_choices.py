@@ -66,15 +66,14 @@ def calibrate(z: np.ndarray, core_p: float | None, final: tuple[float, float] | 
     with ``final``, refitted on the core through those percentiles)."""
     if core_p is None:
         return -scores.combined_log10(scores.tail_probabilities(z)), np.ones(len(z), bool)
-    saved = scores.CORE_P, scores.TAIL_QUANTILES
-    scores.CORE_P = core_p
-    try:
-        log_p, core = scores.robust_tails(z)
-        if final is not None:
-            scores.TAIL_QUANTILES = final
+    log_p, core = scores.robust_tails(z, core_p)
+    if final is not None:
+        saved = scores.TAIL_QUANTILES
+        scores.TAIL_QUANTILES = final
+        try:
             log_p = scores.tail_probabilities(z, core)
-    finally:
-        scores.CORE_P, scores.TAIL_QUANTILES = saved
+        finally:
+            scores.TAIL_QUANTILES = saved
     return -scores.combined_log10(log_p), core
 
 

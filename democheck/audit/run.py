@@ -19,8 +19,8 @@ import pandas as pd
 from democheck import pool
 from democheck.audit import scorers as registry, shards
 from democheck.audit.scorers import Evidence, Scorer
-from democheck.audit.scores import (CORE_P, DEFAULT_FPR, conformal_p, exact_copies, expected_false_flags, flags,
-                                    ocsvm_margin, rank_order)
+from democheck.audit.scores import (CORE_P, DEFAULT_FPR, conformal_p, exact_copies, expected_false_flags, flag_level,
+                                    flags, ocsvm_margin, rank_order)
 from democheck.data.cache import dataset_fingerprint
 from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
@@ -172,7 +172,7 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
     suspicion = table["suspicion"].to_numpy(np.float64)
     table["p_value"] = 10.0 ** -suspicion
     # The reference the flags are calibrated on: the robust core the ranking's tails were fitted on.
-    table["reference"] = registry.combination(ev)[2] if "suspicion" in ev.scores else np.zeros(len(table), bool)
+    table["reference"] = ev.combination()[2] if "suspicion" in ev.scores else np.zeros(len(table), bool)
     table["p_reference"] = conformal_p(suspicion, table["reference"].to_numpy())
     table["reason"] = ev.reasons.get("suspicion", [""] * len(table))
     copies = exact_copies(table)
@@ -285,7 +285,7 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
                             "copy of another demo",
         # If the reference demos are clean and the others like them, about fpr of them are flagged.
         "expected_false_flags": round(expected_false_flags(reference, fpr), 2),
-        "p_value_at_level": _level(table, fpr),
+        "p_value_at_level": flag_level(table, fpr),
         "exact_copies": 0 if copies is None else int(copies.sum()),
         "reference": f"the audited demos' robust core ({int(reference.sum())} of {len(table)}): the demos whose "
                      f"combined tail probability is above {CORE_P:g} once each score's tail is fitted on them, "
@@ -307,12 +307,6 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
                                "recall": {k: round(float(flagged[labels == k].mean()), 3)
                                           for k in sorted(set(labels) - {"clean"})}}
     return out
-
-
-def _level(table: pd.DataFrame, fpr: float) -> float | None:
-    """The largest ``p_value`` flagged at ``fpr`` (what the conformal rule amounts to on this dataset)."""
-    flagged = table["p_reference"].to_numpy() <= fpr
-    return float(table["p_value"].to_numpy()[flagged].max()) if flagged.any() else None
 
 
 def warnings(table: pd.DataFrame, ckpt: Checkpoint | None) -> list[str]:

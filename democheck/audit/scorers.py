@@ -58,12 +58,23 @@ class Evidence:
     reasons: dict[str, list[str]] = field(default_factory=dict)
     seed: int = 0
     _z: np.ndarray | None = field(default=None, repr=False)
+    _combinations: dict[tuple, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def task_variables(self) -> np.ndarray:
         """``controller_z`` of every demo (what its actions are judged under), computed once."""
         if self._z is None:
             self._z = controller_z(self.posterior, self.tasks)
         return self._z
+
+    def combination(self, model_free: bool = False) -> tuple[list[str], np.ndarray, np.ndarray]:
+        """The ranking's scores (``ranked``), their tail probabilities (natural logs, [N, K]) fitted on the audited
+        demos' robust core (``scores.robust_tails``), and that core [N]: the reference the flags are calibrated
+        on.  Computed once for each set of scores (the ranking and the audit's flags both read it)."""
+        names = ranked(self.scores, self.tasks, model_free)
+        key = tuple(names)
+        if key not in self._combinations:
+            self._combinations[key] = robust_tails(ranking_z(self, names))
+        return (names, *self._combinations[key])
 
     @property
     def tasks(self) -> np.ndarray:
@@ -207,18 +218,10 @@ def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
 REASON_P = 0.05  # a score this surprising (tail probability) is named in the ranking's reason beside the first
 
 
-def combination(ev: Evidence, model_free: bool = False) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """The ranking's scores (``ranked``), their tail probabilities (natural logs, [N, K]) fitted on the audited
-    demos' robust core (``scores.robust_tails``), and that core [N]: the reference the flags are calibrated on."""
-    names = ranked(ev.scores, ev.tasks, model_free)
-    log_p, core = robust_tails(ranking_z(ev, names))
-    return names, log_p, core
-
-
 def _combination(ev: Evidence, model_free: bool = False) -> Scores:
     """-log10 of the combined tail probability of the ranking's scores (``scores.combined_log10``), and the
     score that drove it."""
-    names, log_p, _ = combination(ev, model_free)
+    names, log_p, _ = ev.combination(model_free)
     if not names:
         return np.full(len(ev.episodes), np.nan), None
     value = -combined_log10(log_p)

@@ -229,15 +229,15 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None) -> np.ndar
     return out
 
 
-def robust_tails(z: np.ndarray, rounds: int = CORE_ROUNDS) -> tuple[np.ndarray, np.ndarray]:
+def robust_tails(z: np.ndarray, core_p: float = CORE_P, rounds: int = CORE_ROUNDS) -> tuple[np.ndarray, np.ndarray]:
     """``tail_probabilities`` fitted on the audited demos' robust core, and the core [N] (bool): starting from
     every demo, the tails are fitted, combined (``combined_log10``), and the demos whose combined probability is
-    at most ``CORE_P`` left out of the next fit, until the core stops changing.  The core never shrinks below
+    at most ``core_p`` left out of the next fit, until the core stops changing.  The core never shrinks below
     half the demos (beyond that the bad demos would be the majority the calibration assumes they are not)."""
     core = np.ones(len(z), bool)
     log_p = tail_probabilities(z, core)
     for _ in range(rounds):
-        new = ~(10.0 ** combined_log10(log_p) <= CORE_P)
+        new = ~(10.0 ** combined_log10(log_p) <= core_p)
         if (new == core).all() or new.sum() < len(z) / 2:
             break
         core = new
@@ -336,6 +336,13 @@ def expected_false_flags(core: np.ndarray, fpr: float) -> float:
     """The false flags to expect at ``fpr``: that share of the demos believed clean, the core (``robust_tails``);
     the clean demos left out of it are too few to count (their combined tail probability is under ``CORE_P``)."""
     return float(fpr * np.asarray(core, bool).sum())
+
+
+def flag_level(table: pd.DataFrame, fpr: float) -> float | None:
+    """What the flags at ``fpr`` amount to on a score table: the largest ``p_value`` of a demo its ``p_reference``
+    flags (exact copies aside); None when none is."""
+    flagged = flags(table["p_reference"].to_numpy(), fpr)
+    return float(table["p_value"].to_numpy()[flagged].max()) if flagged.any() else None
 
 
 def flags(p_value: np.ndarray, fpr: float = DEFAULT_FPR, exact_copy: np.ndarray | None = None) -> np.ndarray:

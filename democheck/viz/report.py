@@ -35,6 +35,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from democheck.audit.scorers import SCORERS
+from democheck.audit.scores import flag_level
 from democheck.data.demo import Demo
 from democheck.data.video import VideoWriter
 from democheck.evaluate.meta_test import fmt_rate
@@ -212,8 +213,9 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
             values = np.log10(np.maximum(values, 1e-12))
         _histogram(rec, f"scores/{name}", values, flagged)
         what = name.replace("_", " ") + (" (log10)" if log10 else "")
-        if name == "suspicion" and fpr is not None and flagged.any():
-            what += f": flagged from {np.nanmin(np.where(np.isinf(values), np.nan, values)[flagged]):.3g} up (fpr {fpr:g})"
+        level = flag_level(table, fpr) if name == "suspicion" and fpr is not None else None
+        if level is not None:
+            what += f": flagged from {-np.log10(level):.3g} up (fpr {fpr:g})"
         hist_views.append(rrb.BarChartView(origin=f"scores/{name}", name=what, plot_legend=rrb.PlotLegend(visible=False)))
     sigma = np.stack(table["sigma"].to_numpy()) if len(table) and "sigma" in table else None
     typical = np.median(sigma[~flagged] if (~flagged).any() else sigma, axis=0) if sigma is not None else None
