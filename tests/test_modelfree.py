@@ -258,10 +258,10 @@ def test_a_minority_of_bad_demos_makes_the_tail_probabilities_conservative_and_m
 
 def test_the_robust_core_leaves_the_bad_demos_out_and_the_conformal_flags_keep_their_rate():
     """A fifth of the demos far out on one score of four: fitted on every demo, that score's tail is wider than
-    the clean demos' and fewer bad demos are flagged; fitted on the robust core it is the clean demos' own, the core holds the clean
-    demos but the few extreme ones, and the conformal flags take no more than the share of clean demos asked for
-    (the binomial interval's upper end; fewer where the bad demos left in the core take the top of it) and most
-    bad demos -- also where the clean tails are heavier than exponential (log-normal), where the combined
+    the clean demos' and fewer bad demos are flagged; fitted on the robust core it is the clean demos' own, the core
+    holds the clean demos but the few extreme ones, and the conformal flags take no more than the share of clean
+    demos asked for (the binomial interval's upper end; fewer where the bad demos left in the core take the top of
+    it) and most bad demos -- also where the clean tails are heavier than exponential (log-normal), where the combined
     probability's own level flags several times the rate asked for.  (A quarter or more, all on one score, hides
     itself: the core then keeps them all.)"""
     rng = np.random.default_rng(4)
