@@ -17,7 +17,15 @@ its task as ``democheck audit`` does, and then:
   core at least as suspect at most the fpr, ``scores.conformal_p``; the shipped rule);
 - ``final fit LO-HI`` (the shipped choices otherwise): once the core is found, each tail refitted through the
   core's LO and HI percentiles instead of ``TAIL_QUANTILES`` -- upper percentiles, which the core leaves to the
-  clean demos, for scores whose clean tail is lighter or heavier than the quartiles say.
+  clean demos, for scores whose clean tail is lighter or heavier than the quartiles say;
+- the shipped choices with one part changed (``VARIANTS``): ``Cauchy`` combines the tail probabilities by the
+  Cauchy combination test instead of Fisher-Brown; ``normal idle`` gives the idle share a normal tail (median
+  and IQR / 1.349 of the core) instead of the exponential; ``family by likelihood`` gives each score the normal
+  or the exponential tail, whichever fits the core's values above its median better (half-normal against
+  exponential likelihood); ``empirical`` takes, once the core is found, each score's p-value as its rank among
+  the core's values, the exponential carrying on beyond the core's largest; ``core-centred`` puts the scores in
+  robust SD within their task from the task's *core* demos' median (and the core's MAD), refitted with the
+  core at every round, so that a task's bad demos do not move the centre its clean demos are judged from.
 
 Printed per variant: the ranking's AUROC per kind and its mean; at each fpr the share of clean demos flagged
 against the number the audit states it expects (``scores.expected_false_flags``), and each kind's share
@@ -30,6 +38,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pandas as pd
 
 from democheck.audit import scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence, ranking_z
@@ -39,6 +48,8 @@ from suspicion_choices import aurocs, bench_tables
 FPRS = (0.01, 0.02)
 CORES = (None, 1e-3, 1e-4, 1e-5)
 FINAL_FITS = ((0.5, 0.9), (0.75, 0.95), (0.5, 0.95))
+VARIANTS = ("Cauchy", "normal idle", "family by likelihood", "empirical", "core-centred")
+CAUCHY_P_MAX = 0.9  # the Cauchy test needs p < 1: the exponential tails give p = 1 below their 25th percentile
 
 
 def product_consistency(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray) -> np.ndarray:
@@ -55,9 +66,113 @@ def ranking(table, consistency: np.ndarray, log_uncertainty: bool, model_free: b
     try:
         values = {c: table[c].to_numpy() for c in table if c in SCORERS} | {"consistency": consistency}
         ev = Evidence(episodes=table[["episode_index", "task"]], scores=values)
-        return ranking_z(ev, scorers.ranked(values, table["task"].to_numpy(), model_free))
+        return ranking_z(ev, ranked_names(values, table, model_free))
     finally:
         SCORERS["task_uncertainty"] = saved
+
+
+def ranked_names(values, table, model_free: bool) -> list[str]:
+    return scorers.ranked(values, table["task"].to_numpy(), model_free)
+
+
+def cauchy_log10(log_p: np.ndarray) -> np.ndarray:
+    """log10 of the Cauchy combination of each row's tail probabilities (natural logs; NaN left out): the mean of
+    tan((0.5 - p) pi), p at most ``CAUCHY_P_MAX``, against the standard Cauchy."""
+    p = np.minimum(np.exp(log_p), CAUCHY_P_MAX)
+    seen = ~np.isnan(log_p)
+    with np.errstate(all="ignore"):
+        t = np.where(p < 1e-15, 1.0 / (np.pi * p), np.tan((0.5 - p) * np.pi))  # far out: its leading term
+        stat = np.where(seen, t, 0.0).sum(1) / np.maximum(seen.sum(1), 1)
+        out = np.where(stat > 1e15, -np.log10(np.pi * stat), np.log10(0.5 - np.arctan(stat) / np.pi))
+    return np.where(np.isinf(stat), -np.inf, out)
+
+
+def normal_tail(x: np.ndarray, core: np.ndarray) -> np.ndarray:
+    """Natural log of a normal right tail through the core's median, its scale IQR / 1.349 (at least
+    ``scores.TAIL_MIN_SCALE``)."""
+    from scipy.stats import norm
+
+    q1, q2, q3 = np.quantile(x[np.isfinite(x) & core], [0.25, 0.5, 0.75])
+    return np.where(np.isnan(x), np.nan, norm.logsf((x - q2) / max((q3 - q1) / 1.349, scores.TAIL_MIN_SCALE)))
+
+
+def normal_fits_better(x: np.ndarray, core: np.ndarray) -> bool:
+    """Whether the core's values above their median are likelier half-normal than exponential."""
+    f = x[np.isfinite(x) & core]
+    e = f[f > np.median(f)] - np.median(f)
+    if len(e) < 10 or not e.any():
+        return False
+    return 0.5 * np.log(2 / np.pi) - 0.5 * np.log((e ** 2).mean()) - 0.5 > -(np.log(e.mean()) + 1)
+
+
+def empirical_tails(z: np.ndarray, core: np.ndarray) -> np.ndarray:
+    """Each column's p-value as its rank among the core's values, (1 + #{core >= x}) / (1 + n); beyond the core's
+    largest, the column's exponential tail (its scale as ``scores.tail_probabilities`` fits it) from 1 / (1 + n)."""
+    lo, hi = scores.TAIL_QUANTILES
+    out = scores.tail_probabilities(z, core)
+    for k in range(z.shape[1]):
+        x = z[:, k]
+        f = np.sort(x[np.isfinite(x) & core])
+        q_lo, q_hi = np.quantile(f, [lo, hi])
+        beta = max((q_hi - q_lo) / np.log((1 - lo) / (1 - hi)), scores.TAIL_MIN_SCALE)
+        with np.errstate(all="ignore"):
+            rank = np.log((1 + len(f) - np.searchsorted(f, x, side="left")) / (1 + len(f)))
+            beyond = -np.log(1 + len(f)) - (x - f[-1]) / beta
+        out[:, k] = np.where(np.isnan(x), np.nan, np.where(x == np.inf, -np.inf, np.where(x > f[-1], beyond, rank)))
+    return out
+
+
+def core_centred_z(table, values: dict, names: list[str], core: np.ndarray) -> np.ndarray:
+    """``ranking_z`` with each task's centre the median of its core demos (all its demos where none is in the
+    core) and the scale the core's MAD about those centres."""
+    tasks = table["task"].to_numpy()
+    cols = []
+    for n in names:
+        s, x = SCORERS[n], np.asarray(values[n], np.float64)
+        x = np.log(np.maximum(x, 1e-12)) if s.log_in_ranking else x
+        if s.in_robust_sd:
+            cols.append(x)
+            continue
+        x = np.where(np.isfinite(x), x, np.nan)
+        centre = pd.Series(np.where(core, x, np.nan)).groupby(tasks).transform("median").to_numpy()
+        centre = np.where(np.isnan(centre), pd.Series(x).groupby(tasks).transform("median").to_numpy(), centre)
+        resid = x - centre
+        scale = max(scores.robust_stats(resid[core])["scale"], s.ranking_min_scale)
+        cols.append(resid / scale)
+    return np.column_stack(cols)
+
+
+def variant(how: str, table, cons: np.ndarray, model_free: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(-log10 combined tail probability, core) of the shipped choices with one part changed (``VARIANTS``)."""
+    values = {c: table[c].to_numpy() for c in table if c in SCORERS} | {"consistency": cons}
+    names = ranked_names(values, table, model_free)
+    combine = cauchy_log10 if how == "Cauchy" else scores.combined_log10
+
+    def tails(z: np.ndarray, core: np.ndarray) -> np.ndarray:
+        log_p = scores.tail_probabilities(z, core)
+        for k, n in enumerate(names):
+            if (how == "normal idle" and n == "idle") or (how == "family by likelihood"
+                                                           and normal_fits_better(z[:, k], core)):
+                log_p[:, k] = normal_tail(z[:, k], core)
+        return log_p
+
+    def z_for(core: np.ndarray) -> np.ndarray:
+        return core_centred_z(table, values, names, core) if how == "core-centred" else \
+            ranking(table, cons, True, model_free)
+
+    core = np.ones(len(table), bool)
+    z = z_for(core)
+    log_p = tails(z, core)
+    for _ in range(scores.CORE_ROUNDS):  # as scores.robust_tails
+        new = ~(10.0 ** combine(log_p) <= scores.CORE_P)
+        if (new == core).all() or new.sum() < len(z) / 2:
+            break
+        core = new
+        z = z_for(core)
+        log_p = tails(z, core)
+    if how == "empirical":
+        log_p = empirical_tails(z, core)
+    return -combine(log_p), core
 
 
 def calibrate(z: np.ndarray, core_p: float | None, final: tuple[float, float] | None = None
@@ -115,9 +230,12 @@ def main() -> None:
                             f", core {'off' if core_p is None else f'{core_p:g}'}"
                         show(name, *calibrate(z, core_p), labels, kinds)
                     if form == "scaled kNN" and (log_unc or model_free):  # the shipped choices
+                        who = "no model" if model_free else "shipped"
                         for final in FINAL_FITS:
-                            show(f"{'no model' if model_free else 'shipped'}, final fit {final[0]:g}-{final[1]:g}",
-                                 *calibrate(z, scores.CORE_P, final), labels, kinds)
+                            show(f"{who}, final fit {final[0]:g}-{final[1]:g}", *calibrate(z, scores.CORE_P, final),
+                                 labels, kinds)
+                        for how in VARIANTS:
+                            show(f"{who}, {how}", *variant(how, table, cons, model_free), labels, kinds)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from democheck.audit import dynamics, modelfree
+from democheck.audit import dynamics
 from democheck.audit.scorers import SCORERS, Evidence, compute, select
 from democheck.audit.scores import (combined_log10, conformal_p, flags, robust_tails, sidak_log10,
                                     tail_probabilities)

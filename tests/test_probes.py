@@ -87,6 +87,27 @@ def test_each_probe_kind_differs_from_its_source_as_defined(probes):
             raise AssertionError(kind)
 
 
+def test_rendered_probes_go_through_the_sources_encoder(probes):
+    """A re-simulated probe's frames are its fresh render through the source's lossy encoder, not the render
+    itself: otherwise every such probe differs from every clean demo by the encoder's traces alone."""
+    from democheck.data.video import through_codec
+    from democheck.sim.probes import source_codec
+
+    root, out, summary = probes
+    codec, source_fps = source_codec(open_dataset(root)), open_dataset(root).fps
+    assert codec == (TINY.pix_fmt, TINY.crf)
+    assert summary["rendered_frames_through"] == {"pix_fmt": TINY.pix_fmt, "crf": TINY.crf}
+    envs = EnvCache(TINY.image_size)
+    for probe, source in _pairs(root, out):
+        if probe.label != "no-action":
+            continue
+        render = resimulate(envs, source.sim, "no-action", seed=probe.sim["probe"]["seed"])["frames"]
+        np.testing.assert_array_equal(probe.frames, through_codec(render, round(source_fps), *codec))
+        traces = np.abs(probe.frames.astype(int) - render).mean()
+        assert 0 < traces < 4  # the encoder's small errors, now like the source's own
+    assert source_codec(open_dataset(out)) is None  # the probes themselves are lossless
+
+
 def test_resimulating_a_clean_demo_reproduces_it_exactly(tiny_dataset):
     root, _ = tiny_dataset
     ds = open_dataset(root)

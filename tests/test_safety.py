@@ -1,12 +1,10 @@
 """Inputs are read-only, untrusted files never run code, and readers fail only with democheck's own error."""
 
 import hashlib
-import io
 import re
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st

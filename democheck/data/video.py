@@ -13,6 +13,7 @@ such as 125x125.  yuv420p stays available for players that need it.
 
 from __future__ import annotations
 
+import tempfile
 from fractions import Fraction
 from pathlib import Path
 
@@ -78,6 +79,18 @@ class VideoWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def through_codec(frames: np.ndarray, fps: int, pix_fmt: str = DEFAULT_PIX_FMT, crf: int = DEFAULT_CRF
+                  ) -> np.ndarray:
+    """``frames`` [T, H, W, 3] as a recording with these settings stores them: encoded by ``VideoWriter`` (a
+    keyframe first and every ``GOP`` frames) and decoded again, uint8 [T, H, W, 3] -- for frames rendered now that
+    must look like frames recorded before (a probe beside its lossy source)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "episode.mp4"
+        with VideoWriter(path, fps, frames.shape[1], pix_fmt, crf) as writer:
+            writer.write(frames)
+        return read_frames(path, np.arange(len(frames)), fps)
 
 
 def read_frames(path: str | Path, indices: list[int] | np.ndarray, fps: float) -> np.ndarray:

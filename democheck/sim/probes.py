@@ -10,10 +10,19 @@ to it (``source_episode``); its ``label`` is the probe kind:
   (needs the sim record);
 - ``hidden``: the source's frames with opaque squares over a large share of the
   view, the same squares all episode (works on any dataset).
+
+A re-simulated probe's frames are rendered now, and the source's were stored by a lossy video encoder, so
+they go through the same encoder (the source's pixel format and quality: ``source_codec``) before they are
+written: otherwise every re-simulated probe would differ from every clean demo by the encoder's traces alone,
+which any pixel statistic sees.  (Measured on push-v1-dev's probes: the size of the cue's two frames as PNG,
+smaller = more suspect, ranked no-action, random and no-objects probes above every clean demo, AUROC 1.00;
+through the encoder 0.73, 0.98, 0.88.  The task uncertainty did not lean on it: 0.985, 0.457, 0.411 without,
+0.982, 0.445, 0.413 with.)
 """
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -24,7 +33,8 @@ from democheck import pool
 from democheck.data import open_dataset
 from democheck.data.demo import Demo
 from democheck.data.lerobot_write import VideoOptions, write_meta, write_shard
-from democheck.data.video import DEFAULT_CRF, DEFAULT_PIX_FMT
+from democheck.data.lerobot import SUITE_PATH
+from democheck.data.video import DEFAULT_CRF, DEFAULT_PIX_FMT, through_codec
 from democheck.errors import DatasetError, DemocheckError
 from democheck.fsutil import atomic_output_dir
 from democheck.sim.env import ACTION_NAMES, ENV_STATE_DIM, ENV_STATE_NAMES, STATE_NAMES
@@ -71,6 +81,22 @@ def pick_sources(episodes: Any, kinds: list[str], per_kind: int, seed: int) -> l
     return picks
 
 
+def source_codec(ds: Any) -> tuple[str, int] | None:
+    """(pixel format, CRF) of the lossy H.264 a LeRobot dataset's camera was recorded with, for the frames a probe
+    renders anew (the CRF from a democheck suite's recipe, else democheck's default); None for lossless, other or
+    no video."""
+    root = Path(ds.root)
+    if not ds.format.startswith("lerobot") or not (root / "meta/info.json").is_file():
+        return None
+    feature = json.loads((root / "meta/info.json").read_text()).get("features", {}).get(ds.camera) or {}
+    info = feature.get("info") or {}
+    pix_fmt = info.get("video.pix_fmt")
+    if feature.get("dtype") != "video" or info.get("video.codec") != "h264" or pix_fmt not in ("yuv444p", "yuv420p"):
+        return None
+    recipe = json.loads((root / SUITE_PATH).read_text()).get("recipe") or {} if (root / SUITE_PATH).is_file() else {}
+    return pix_fmt, int(recipe.get("crf", DEFAULT_CRF))
+
+
 def _probe_init(source: str, camera: str | None, root: str, context: dict[str, Any]) -> None:
     ds = open_dataset(source, camera=camera)
     pool.state.update(ds=ds, root=Path(root), envs=EnvCache(ds.image_shape[0]), **context)
@@ -98,6 +124,8 @@ def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[
             rec = resimulate(w["envs"], source.sim, kind, seed=probe_seed,
                              actions=source.actions if kind == "no-objects" else None)
             frames, state, actions, env_state = rec["frames"], rec["state"], rec["actions"], rec["env_state"]
+            if w["source_codec"] is not None:
+                frames = through_codec(frames, w["fps"], *w["source_codec"])
             sim = {**source.sim, "policy": kind, "seed": probe_seed}
         if env_state is None:
             env_state = np.full((T, ENV_STATE_DIM), np.nan, np.float32)
@@ -118,7 +146,8 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
 
     ``kinds``: default, every kind the data allows (all four with sim records, ``IMAGE_PROBES`` without).
     The probes keep the source's camera name, and their video is lossless, so a probe's frames equal its
-    source's bit for bit wherever the probe does not change them."""
+    source's bit for bit wherever the probe does not change them; the frames a probe renders anew have been
+    through the source's encoder first (``source_codec``)."""
     ds = open_dataset(source, camera=camera)
     has_sim = "sim" in ds.episodes and bool(ds.episodes["sim"].fillna("").astype(str).str.len().gt(0).all())
     kinds = list(kinds or (PROBES if has_sim else IMAGE_PROBES))
@@ -145,6 +174,7 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
         frame += int(sum(lengths[src] for _, _, src, _ in chunk))
     tasks = sorted({str(ds.episodes.loc[src, "task"]) for _, src in picks})
     context = {"task_index": {t: i for i, t in enumerate(tasks)}, "fps": int(round(ds.fps)),
+               "source_codec": source_codec(ds),
                "video": VideoOptions(DEFAULT_PIX_FMT, DEFAULT_CRF, camera=ds.camera, lossless=True)}
     t0 = time.perf_counter()
     with atomic_output_dir(out, force=force) as tmp:
@@ -155,6 +185,8 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
         action_names = ACTION_NAMES if sim_layout else [f"action.{i}" for i in range(ds.action_dim)]
         summary = {"source": str(ds.root), "kinds": {k: sum(kk == k for kk, _ in picks) for k in kinds},
                    "per_kind": per_kind, "seed": seed, "episodes": len(episodes),
+                   "rendered_frames_through": (None if context["source_codec"] is None else
+                                               dict(zip(("pix_fmt", "crf"), context["source_codec"]))),
                    "wall_s": round(time.perf_counter() - t0, 3)}
         write_meta(tmp, rows, tasks, context["fps"], h, state_names, action_names, ENV_STATE_NAMES,
                    context["video"], suite={"probes": summary})

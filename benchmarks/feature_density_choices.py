@@ -1,0 +1,128 @@
+"""Can a density over PETNet's encoder features tell an empty or flailing cue from a real one?
+
+    python benchmarks/feature_density_choices.py --train data/push-v1 --sets data/push-v1-dev,data/push-v1-dev-probes
+
+The novelty part of the shipped task variance (``democheck/petnet/novelty.py``) is one Gaussian over the
+encoder's flattened conv features: a cue far from the training cues' mean is unfamiliar.  On the probe kinds it
+finds covered views and still arms, but not empty scenes (no-objects) or random arms.  This measures, with the
+model's own conv features and no training, the other densities out-of-distribution work proposes, each a
+score higher = less familiar:
+
+- ``global d2``: the shipped one, squared Mahalanobis distance from the model's fitted Gaussian;
+- ``typicality``: |log d2 - its median over the held-out (val) cues| in their MADs -- a cue *closer* to the
+  mean than real cues are is atypical too (the typical set of a high-dimensional Gaussian is a shell);
+- ``task min d2`` and ``task -logsumexp``: class-conditional Gaussians (deep deterministic uncertainty's GDA),
+  one mean per training task with a shared within-task covariance (Ledoit-Wolf): the distance to the nearest
+  task, or minus the mixture's log density -- an input between the tasks' clusters is far from all of them;
+- ``kNN10 whitened``, ``kNN10 cosine``: the mean distance to the 10 nearest training cues, in the whitened
+  feature space or by cosine similarity of the raw features (deep nearest neighbours);
+- ``shift spread``, ``brightness spread``: not a density -- how far the task mean mu moves when the cue is
+  shifted by one or two pixels or made brighter or darker (the mean variance of mu over those versions, in
+  units of the cue's own variance for shifts): a cue the encoder reads no task from might be read unsteadily.
+
+Prints the AUROC of each against the sets' clean demos for every labelled kind.  No kind is used to fit anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+from sklearn.covariance import LedoitWolf
+from sklearn.metrics import roc_auc_score
+
+from democheck.data import open_dataset
+from democheck.petnet.checkpoint import load_checkpoint
+from democheck.petnet.novelty import conv_features
+
+
+def features(encoder, path: str, split: str | None = None, limit: int | None = None, seed: int = 0,
+             with_cues: bool = False):
+    """(conv features [N, D] float64, tasks [N], labels [N]) of a dataset's cues (one split, at most ``limit``),
+    and the cues themselves with ``with_cues``."""
+    ds = open_dataset(path)
+    episodes = ds.episodes.reset_index()
+    if split is not None:
+        episodes = episodes[episodes["split"] == split]
+    if limit and len(episodes) > limit:
+        episodes = episodes.sample(limit, random_state=seed).sort_values("episode_index")
+    cues = ds.cue_frames_many(episodes["episode_index"].to_numpy())
+    f = conv_features(encoder, cues, torch.device("cpu"))[0]
+    labels = episodes["label"].fillna("clean") if "label" in episodes else np.full(len(episodes), "clean")
+    out = (f.astype(np.float64), episodes["task"].to_numpy(), np.asarray(labels))
+    return (*out, cues) if with_cues else out
+
+
+def test_time_spread(model, cues: np.ndarray) -> dict[str, np.ndarray]:
+    """How far mu moves over shifted and over brightened or darkened versions of each cue [N, 2, H, W, 3]."""
+    from democheck.petnet.model import encode
+
+    base = encode(model, cues)
+    shifted = np.stack([encode(model, np.roll(cues, (dy, dx), axis=(2, 3))).mu
+                        for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0), (2, 2), (-2, -2))])
+    lit = np.stack([encode(model, np.clip(cues.astype(np.int16) + d, 0, 255).astype(np.uint8)).mu
+                    for d in (-20, -10, 10, 20)])
+    return {"shift spread": (shifted.var(0) / base.var).mean(1), "brightness spread": lit.var(0).mean(1)}
+
+
+def mahalanobis(x: np.ndarray, mean: np.ndarray, precision: np.ndarray) -> np.ndarray:
+    d = x - mean
+    return np.einsum("ij,jk,ik->i", d, precision, d)
+
+
+def squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return (a ** 2).sum(1)[:, None] - 2.0 * a @ b.T + (b ** 2).sum(1)[None]
+
+
+def densities(encoder, train: np.ndarray, train_tasks: np.ndarray, val: np.ndarray, x: np.ndarray
+              ) -> dict[str, np.ndarray]:
+    mean = encoder.feature_mean.cpu().numpy().astype(np.float64)
+    precision = encoder.feature_precision.cpu().numpy().astype(np.float64)
+    out = {"global d2": mahalanobis(x, mean, precision)}
+    log_val = np.log(mahalanobis(val, mean, precision))
+    centre = np.median(log_val)
+    out["typicality"] = np.abs(np.log(out["global d2"]) - centre) / np.median(np.abs(log_val - centre))
+    names = np.unique(train_tasks)
+    means = np.stack([train[train_tasks == t].mean(0) for t in names])
+    within = LedoitWolf().fit(train - means[np.searchsorted(names, train_tasks)]).precision_
+    w = np.linalg.cholesky(within)
+    d = squared_distances(x @ w, means @ w)
+    out["task min d2"] = d.min(1)
+    out["task -logsumexp"] = -np.logaddexp.reduce(-d / 2.0, axis=1)
+    g = np.linalg.cholesky(precision)
+    out["kNN10 whitened"] = np.sort(squared_distances(x @ g, train @ g), 1)[:, :10].mean(1)
+    unit = lambda v: v / np.linalg.norm(v, axis=1, keepdims=True)  # noqa: E731
+    out["kNN10 cosine"] = -np.sort(unit(x) @ unit(train).T, 1)[:, -10:].mean(1)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", default=None, help="a PETNet model with a novelty density (default: the shipped one)")
+    ap.add_argument("--train", required=True, help="the model's training dataset (its train and val splits)")
+    ap.add_argument("--sets", required=True, help="comma-separated labelled datasets (a development set and probes)")
+    ap.add_argument("--train-cues", type=int, default=3000, help="training cues to fit the task Gaussians on")
+    args = ap.parse_args()
+
+    torch.set_num_threads(2)
+    model = load_checkpoint(args.model).model
+    encoder = model.encoder
+    if not hasattr(encoder, "feature_mean"):
+        raise SystemExit("the model has no novelty density (democheck fit-novelty gives it one)")
+    train, train_tasks, _ = features(encoder, args.train, "train", args.train_cues)
+    val = features(encoder, args.train, "val")[0]
+    parts = [features(encoder, p, with_cues=True) for p in args.sets.split(",")]
+    x, labels = np.concatenate([p[0] for p in parts]), np.concatenate([p[2] for p in parts])
+    cues = np.concatenate([p[3] for p in parts])
+    kinds = sorted(set(labels) - {"clean"})
+    print(f"{len(train)} training cues of {len(np.unique(train_tasks))} tasks, {len(val)} held-out, {len(x)} scored")
+    print(f"{'score':<18}" + "".join(f"{k[:12]:>13}" for k in kinds))
+    for name, s in (densities(encoder, train, train_tasks, val, x) | test_time_spread(model, cues)).items():
+        row = [roc_auc_score(labels[np.isin(labels, ["clean", k])] == k, s[np.isin(labels, ["clean", k])])
+               for k in kinds]
+        print(f"{name:<18}" + "".join(f"{r:13.3f}" for r in row))
+
+
+if __name__ == "__main__":
+    main()
