@@ -47,6 +47,15 @@ Every score is one number per demo, higher = more suspect:
   looser core were measured and not kept (the model card and README say how); so were, with the core, tails through
   the core's upper percentiles (50-90, 75-95, 50-95: gave-up unchanged, no-objects 0.989 -> 0.968-0.984 on
   push-v1-dev + probes, occluded 0.999 -> 0.982-0.990 on mw2-dev; ``benchmarks/calibration_choices.py``).
+  Also measured with the core and not kept (the same script; push-v1-dev + probes, push-v1-dev alone, mw2-dev):
+  the Cauchy combination test instead of Fisher-Brown (gave-up AUROC 0.999 -> 0.996, flagged 0.92 -> 0.42: a
+  demo that gave up half-way is moderately unusual on several scores, which a test ruled by its smallest p does
+  not add up); a normal tail for the idle share (gave-up 1.000, flagged 0.97, and 0.97 against 0.68 without a
+  model, but mw2-dev's clean demos flagged 3.5% against 2.5%, 4.0% without a model: Meta-World's resting demos
+  give the idle share a long tail); each score's tail family, normal or exponential, chosen by likelihood on the
+  core (7 clean demos of push-v1-dev flagged against 5, no-objects 0.988 -> 0.979); each score's rank among the
+  core, the exponential beyond its largest (no-objects 0.988 -> 0.967, flagged 0.34 -> 0.18); each task's centre
+  from its core demos alone (push-v1-dev alone: 9 clean flagged, 1.47%, against 5).
 - ``is_anomaly``: the demo's conformal p-value against the robust core (``conformal_p``: the share of the core
   at least as suspect) at most the false-positive rate asked for (``audit --fpr``, default ``DEFAULT_FPR``):
   if the core's demos are clean and a clean demo is like them, about that share of clean demos is flagged,

@@ -1,0 +1,227 @@
+"""Rung (b) of the controller's ladder: can a policy that *sees* clone the expert when it is told the task?
+
+    python benchmarks/visual_bc.py data/push-v2 --out runs/visual-bc [--steps 20000] [--aux 1] [--resume]
+        [--rollouts 200] [--device cpu|cuda]
+
+Behaviour cloning on the train split's clean demos: the current 64x64 frame, the robot state and the task given
+as an oracle code (the target's and the distractor's shape, colour and size, one-hot: which object to push is
+told, where it is must be seen).  The network is MIL's design for this: convolutions, then a spatial softmax that
+turns each of their channels into the expected image position of its activation (feature points, sub-pixel by
+construction), joined to the state and the task code, then a 3x256 MLP to the 7 torques.  ``--aux W`` adds W x
+the mean squared error of a linear read-out of the objects' positions (``observation.environment_state``: target
+and distractor x, y, normalised) from the feature points -- the supervision that should make them find the
+objects rather than the arm.  ``--shift N`` shifts every training frame by up to N pixels at random.
+
+Then closed loop: ``--rollouts`` episodes of 100 steps on train tasks, each on a layout no demo had (the same
+layouts for every run with the same ``--seed``), success rate with its 95% interval, against the scripted
+expert on the same layouts.  Checkpoints every ``--ckpt-every`` steps in ``--out`` (``--resume`` carries on from
+the last); ``results.json`` there holds the numbers.  The rung asks >= 85%.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from democheck.data import open_dataset
+from democheck.data.cache import build_cache
+from democheck.evaluate.meta_test import wilson
+from democheck.sim.catalog import COLOURS, OBJECTS, SHAPES, SIZES
+from democheck.sim.env import EPISODE_STEPS, PushEnv
+from democheck.sim.expert import MarkovianExpert
+
+OBJECT_XY = [0, 1, 3, 4]  # target x, y and distractor x, y in observation.environment_state
+
+
+def object_code(key: str) -> np.ndarray:
+    """One-hot shape, colour and size of a catalog object."""
+    o = OBJECTS[key]
+    return np.concatenate([np.eye(len(SHAPES))[list(SHAPES).index(o.shape)],
+                           np.eye(len(COLOURS))[list(COLOURS).index(o.colour)],
+                           np.eye(len(SIZES))[list(SIZES).index(o.size)]]).astype(np.float32)
+
+
+def task_code(target: str, distractor: str) -> np.ndarray:
+    return np.concatenate([object_code(target), object_code(distractor)])
+
+
+class SpatialSoftmax(nn.Module):
+    """[B, C, H, W] -> [B, 2C]: the expected (x, y) in [-1, 1] of each channel's softmax over the image."""
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        b, c, hh, ww = h.shape
+        p = torch.softmax(h.flatten(2), -1).view(b, c, hh, ww)
+        ys = torch.linspace(-1, 1, hh, device=h.device)
+        xs = torch.linspace(-1, 1, ww, device=h.device)
+        return torch.cat([(p.sum(2) * xs).sum(-1), (p.sum(3) * ys).sum(-1)], 1)
+
+
+class VisualPolicy(nn.Module):
+    def __init__(self, state_dim: int, code_dim: int, action_dim: int, channels: int = 32):
+        super().__init__()
+        self.conv = nn.Sequential(nn.Conv2d(3, channels, 5, stride=2, padding=2), nn.ReLU(),
+                                  nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(),
+                                  nn.Conv2d(channels, channels, 3, padding=1))
+        self.points = SpatialSoftmax()
+        self.mlp = nn.Sequential(nn.Linear(2 * channels + state_dim + code_dim, 256), nn.ReLU(),
+                                 nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU(),
+                                 nn.Linear(256, action_dim))
+        self.objects = nn.Linear(2 * channels, len(OBJECT_XY))
+
+    def forward(self, frames: torch.Tensor, state: torch.Tensor, code: torch.Tensor):
+        """frames uint8 [B, H, W, 3]; returns (normalised actions, normalised object positions)."""
+        x = frames.permute(0, 3, 1, 2).float() / 127.5 - 1.0
+        kp = self.points(self.conv(x))
+        return self.mlp(torch.cat([kp, state, code], 1)), self.objects(kp)
+
+
+def load(suite: Path):
+    """The train split's clean demos: frames (memmap), state, actions, object positions, task codes, per frame."""
+    import pandas as pd
+
+    ds = open_dataset(suite)
+    arrays = build_cache(ds)
+    eps = arrays.episodes
+    side = pd.read_parquet(suite / "meta/democheck/episodes.parquet").set_index("episode_index")
+    clean = side["label"].fillna("clean") == "clean"
+    keep = [i for i, e in enumerate(eps["episode_index"]) if side.loc[e, "split"] == "train" and clean[e]]
+    rows = np.concatenate([np.arange(arrays.offsets[i], arrays.offsets[i] + arrays.lengths[i]) for i in keep])
+    codes, objs = [], []
+    env_state = {}
+    for f in sorted((suite / "data").glob("*/*.parquet")):
+        t = pd.read_parquet(f, columns=["episode_index", "observation.environment_state"])
+        for e, g in t.groupby("episode_index"):
+            env_state[int(e)] = np.stack(g["observation.environment_state"].to_numpy())[:, OBJECT_XY]
+    for i in keep:
+        e = int(eps["episode_index"].iloc[i])
+        sim = json.loads(side.loc[e, "sim"])
+        codes.append(np.repeat(task_code(sim["target"], sim["distractor"])[None], arrays.lengths[i], 0))
+        objs.append(env_state[e])
+    return arrays, rows, np.concatenate(codes), np.concatenate(objs).astype(np.float32), side.iloc[keep]
+
+
+def rollouts(policy: VisualPolicy, norm: dict, tasks: list[tuple[str, str]], seeds: list[int], device, expert=False
+             ) -> list[bool]:
+    env, wins = None, []
+    for (target, distractor), seed in zip(tasks, seeds):
+        pair = (OBJECTS[target], OBJECTS[distractor])
+        if env is None:
+            env = PushEnv(pair, image_size=64)
+        else:
+            env.set_task(pair)
+        obs, info = env.reset(seed=seed)
+        code = torch.from_numpy(task_code(target, distractor))[None].to(device)
+        agent = MarkovianExpert(env) if expert else None
+        for _ in range(EPISODE_STEPS):
+            if expert:
+                a = agent.act()
+            else:
+                s = torch.from_numpy(((obs["state"] - norm["sm"]) / norm["ss"]).astype(np.float32))[None].to(device)
+                with torch.no_grad():
+                    y = policy(torch.from_numpy(obs["image"].copy())[None].to(device), s, code)[0][0].cpu().numpy()
+                a = np.clip(y * norm["as"] + norm["am"], -1.0, 1.0)
+            obs, _, _, _, info = env.step(a)
+        wins.append(bool(info["success"]))
+    return wins
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("suite", type=Path)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--steps", type=int, default=20_000)
+    ap.add_argument("--batch", type=int, default=256)
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--aux", type=float, default=1.0)
+    ap.add_argument("--shift", type=int, default=0)
+    ap.add_argument("--rollouts", type=int, default=200)
+    ap.add_argument("--ckpt-every", type=int, default=1000)
+    ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    arrays, rows, codes, objs, eps = load(args.suite)
+    state, actions = arrays.state[rows], arrays.actions[rows]
+    norm = {"sm": state.mean(0), "ss": state.std(0) + 1e-6, "am": actions.mean(0), "as": actions.std(0) + 1e-6,
+            "om": objs.mean(0), "os": objs.std(0) + 1e-6}
+    sn = torch.from_numpy((state - norm["sm"]) / norm["ss"])
+    an = torch.from_numpy((actions - norm["am"]) / norm["as"])
+    on = torch.from_numpy((objs - norm["om"]) / norm["os"])
+    cn = torch.from_numpy(codes)
+    torch.manual_seed(args.seed)
+    policy = VisualPolicy(state.shape[1], codes.shape[1], actions.shape[1]).to(device)
+    opt = torch.optim.Adam(policy.parameters(), args.lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.steps)
+    step, log = 0, []
+    ckpt = args.out / "checkpoint.pt"
+    if args.resume and ckpt.exists():
+        saved = torch.load(ckpt, weights_only=False)
+        policy.load_state_dict(saved["policy"])
+        opt.load_state_dict(saved["opt"])
+        sched.load_state_dict(saved["sched"])
+        step, log = saved["step"], saved["log"]
+        torch.set_rng_state(saved["torch_rng"])
+    rng = np.random.default_rng([args.seed, step])
+    print(f"{len(rows)} frames of {len(eps)} demos; training from step {step} to {args.steps}", flush=True)
+    t0, seen = time.perf_counter(), 0
+    while step < args.steps:
+        i = np.sort(rng.integers(0, len(rows), args.batch))
+        frames = torch.from_numpy(np.asarray(arrays.frames[rows[i]]))
+        if args.shift:
+            dy, dx = (int(v) for v in rng.integers(-args.shift, args.shift + 1, 2))
+            frames = torch.roll(frames, (dy, dx), (1, 2))
+        j = torch.from_numpy(i)
+        pred, where = policy(frames.to(device), sn[j].to(device), cn[j].to(device))
+        act_loss = ((pred - an[j].to(device)) ** 2).mean()
+        obj_loss = ((where - on[j].to(device)) ** 2).mean()
+        loss = act_loss + args.aux * obj_loss
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        step += 1
+        seen += len(i)
+        if step % 200 == 0:
+            rate = seen / (time.perf_counter() - t0)
+            log.append({"step": step, "action_mse": float(act_loss), "object_mse": float(obj_loss)})
+            print(f"step {step}: action mse {float(act_loss):.4f}, object mse {float(obj_loss):.4f} "
+                  f"({rate:.0f} samples/s)", flush=True)
+        if step % args.ckpt_every == 0 or step == args.steps:
+            tmp = ckpt.with_suffix(".tmp")
+            torch.save({"policy": policy.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                        "step": step, "log": log, "torch_rng": torch.get_rng_state()}, tmp)
+            tmp.replace(ckpt)
+    train_s = time.perf_counter() - t0
+
+    policy.eval()
+    draw = np.random.default_rng([args.seed, 0xE7A1])
+    picks = draw.choice(len(eps), size=args.rollouts, replace=True)
+    tasks = [(json.loads(eps.iloc[k]["sim"])["target"], json.loads(eps.iloc[k]["sim"])["distractor"]) for k in picks]
+    seeds = [int(s) for s in draw.integers(1 << 40, 1 << 41, args.rollouts)]  # layouts no demo was drawn from
+    t1 = time.perf_counter()
+    wins = rollouts(policy, norm, tasks, seeds, device)
+    expert = rollouts(policy, norm, tasks, seeds, device, expert=True)
+    res = {"suite": str(args.suite), "steps": args.steps, "aux": args.aux, "shift": args.shift, "batch": args.batch,
+           "frames": int(len(rows)), "train_s_this_run": round(train_s, 1), "rollouts": args.rollouts,
+           "success": float(np.mean(wins)), "success_ci95": wilson(sum(wins), len(wins)),
+           "expert_success": float(np.mean(expert)), "expert_ci95": wilson(sum(expert), len(expert)),
+           "rollout_s": round(time.perf_counter() - t1, 1), "log": log[-5:]}
+    (args.out / "results.json").write_text(json.dumps(res, indent=2))
+    lo, hi = res["success_ci95"]
+    print(f"visual cloning, task given: success {res['success']:.1%} [{lo:.1%}, {hi:.1%}] over {len(wins)} rollouts "
+          f"(expert on the same layouts {res['expert_success']:.1%}); results in {args.out / 'results.json'}")
+
+
+if __name__ == "__main__":
+    main()
