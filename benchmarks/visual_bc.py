@@ -10,11 +10,13 @@ turns each of their channels into the expected image position of its activation 
 construction), joined to the state and the task code, then a 3x256 MLP to the 7 torques.  ``--aux W`` adds W x
 the mean squared error of a linear read-out of the objects' positions (``observation.environment_state``: target
 and distractor x, y, normalised) from the feature points -- the supervision that should make them find the
-objects rather than the arm.  ``--shift N`` shifts every training frame by up to N pixels at random.
+objects rather than the arm.  ``--shift N`` shifts each training frame by its own random offset of up to N
+pixels (``petnet.batches.random_shift``).
 
 Then closed loop: ``--rollouts`` episodes of 100 steps on train tasks, each on a layout no demo had (the same
 layouts for every run with the same ``--seed``), success rate with its 95% interval, against the scripted
-expert on the same layouts.  Checkpoints every ``--ckpt-every`` steps in ``--out`` (``--resume`` carries on from
+expert the demos were recorded with on the same layouts.  (The rollouts' frames are raw renders; the training
+frames were decoded from the suite's H.264 video.)  Checkpoints every ``--ckpt-every`` steps in ``--out`` (``--resume`` carries on from
 the last); ``results.json`` there holds the numbers.  The rung asks >= 85%.
 """
 
@@ -32,9 +34,11 @@ from torch import nn
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache
 from democheck.evaluate.meta_test import wilson
+from democheck.petnet.batches import random_shift
+from democheck.petnet.model import SpatialSoftmax
 from democheck.sim.catalog import COLOURS, OBJECTS, SHAPES, SIZES
 from democheck.sim.env import EPISODE_STEPS, PushEnv
-from democheck.sim.expert import MarkovianExpert
+from democheck.sim.variants import make_expert, record_demo
 
 OBJECT_XY = [0, 1, 3, 4]  # target x, y and distractor x, y in observation.environment_state
 
@@ -49,17 +53,6 @@ def object_code(key: str) -> np.ndarray:
 
 def task_code(target: str, distractor: str) -> np.ndarray:
     return np.concatenate([object_code(target), object_code(distractor)])
-
-
-class SpatialSoftmax(nn.Module):
-    """[B, C, H, W] -> [B, 2C]: the expected (x, y) in [-1, 1] of each channel's softmax over the image."""
-
-    def forward(self, h: torch.Tensor) -> torch.Tensor:
-        b, c, hh, ww = h.shape
-        p = torch.softmax(h.flatten(2), -1).view(b, c, hh, ww)
-        ys = torch.linspace(-1, 1, hh, device=h.device)
-        xs = torch.linspace(-1, 1, ww, device=h.device)
-        return torch.cat([(p.sum(2) * xs).sum(-1), (p.sum(3) * ys).sum(-1)], 1)
 
 
 class VisualPolicy(nn.Module):
@@ -82,52 +75,53 @@ class VisualPolicy(nn.Module):
 
 
 def load(suite: Path):
-    """The train split's clean demos: frames (memmap), state, actions, object positions, task codes, per frame."""
+    """The train split's clean demos: frames (memmap), state, actions, object positions, task codes, per frame;
+    and those demos' rows of the episode table (with their sim records)."""
     import pandas as pd
 
     ds = open_dataset(suite)
     arrays = build_cache(ds)
-    eps = arrays.episodes
-    side = pd.read_parquet(suite / "meta/democheck/episodes.parquet").set_index("episode_index")
-    clean = side["label"].fillna("clean") == "clean"
-    keep = [i for i, e in enumerate(eps["episode_index"]) if side.loc[e, "split"] == "train" and clean[e]]
+    table = ds.episodes
+    clean = table["label"].fillna("clean") == "clean"
+    order = arrays.episodes["episode_index"].to_numpy()  # the cache's episodes, in its order
+    keep = [i for i, e in enumerate(order) if table.loc[e, "split"] == "train" and clean[e]]
     rows = np.concatenate([np.arange(arrays.offsets[i], arrays.offsets[i] + arrays.lengths[i]) for i in keep])
-    codes, objs = [], []
     env_state = {}
     for f in sorted((suite / "data").glob("*/*.parquet")):
         t = pd.read_parquet(f, columns=["episode_index", "observation.environment_state"])
         for e, g in t.groupby("episode_index"):
             env_state[int(e)] = np.stack(g["observation.environment_state"].to_numpy())[:, OBJECT_XY]
+    codes, objs = [], []
     for i in keep:
-        e = int(eps["episode_index"].iloc[i])
-        sim = json.loads(side.loc[e, "sim"])
+        sim = json.loads(table.loc[order[i], "sim"])
         codes.append(np.repeat(task_code(sim["target"], sim["distractor"])[None], arrays.lengths[i], 0))
-        objs.append(env_state[e])
-    return arrays, rows, np.concatenate(codes), np.concatenate(objs).astype(np.float32), side.iloc[keep]
+        objs.append(env_state[int(order[i])])
+    return arrays, rows, np.concatenate(codes), np.concatenate(objs).astype(np.float32), table.loc[order[keep]]
 
 
-def rollouts(policy: VisualPolicy, norm: dict, tasks: list[tuple[str, str]], seeds: list[int], device, expert=False
-             ) -> list[bool]:
+def rollouts(policy: VisualPolicy | None, norm: dict, tasks: list[tuple[str, str]], seeds: list[int], device,
+             image_size: int, expert: str) -> list[bool]:
+    """Success of the policy (None: the scripted ``expert`` the demos were recorded with) on each task, each on
+    the layout its seed draws."""
     env, wins = None, []
     for (target, distractor), seed in zip(tasks, seeds):
         pair = (OBJECTS[target], OBJECTS[distractor])
         if env is None:
-            env = PushEnv(pair, image_size=64)
+            env = PushEnv(pair, image_size=image_size)
         else:
             env.set_task(pair)
-        obs, info = env.reset(seed=seed)
-        code = torch.from_numpy(task_code(target, distractor))[None].to(device)
-        agent = MarkovianExpert(env) if expert else None
-        for _ in range(EPISODE_STEPS):
-            if expert:
-                a = agent.act()
-            else:
-                s = torch.from_numpy(((obs["state"] - norm["sm"]) / norm["ss"]).astype(np.float32))[None].to(device)
+        if policy is None:
+            act = make_expert(env, expert=expert).act
+        else:
+            code = torch.from_numpy(task_code(target, distractor))[None].to(device)
+
+            def act(env=env, code=code) -> np.ndarray:
+                obs = env.last_obs  # what the arm sees and feels now
+                s = torch.from_numpy(((obs["state"] - norm["sm"]) / norm["ss"]).astype(np.float32))[None]
                 with torch.no_grad():
-                    y = policy(torch.from_numpy(obs["image"].copy())[None].to(device), s, code)[0][0].cpu().numpy()
-                a = np.clip(y * norm["as"] + norm["am"], -1.0, 1.0)
-            obs, _, _, _, info = env.step(a)
-        wins.append(bool(info["success"]))
+                    y = policy(torch.from_numpy(obs["image"].copy())[None].to(device), s.to(device), code)[0]
+                return np.clip(y[0].cpu().numpy() * norm["as"] + norm["am"], -1.0, 1.0)
+        wins.append(record_demo(env, act, EPISODE_STEPS, seed=seed)["success"])
     return wins
 
 
@@ -166,21 +160,21 @@ def main() -> None:
     step, log = 0, []
     ckpt = args.out / "checkpoint.pt"
     if args.resume and ckpt.exists():
-        saved = torch.load(ckpt, weights_only=False)
+        saved = torch.load(ckpt, map_location=device, weights_only=False)
         policy.load_state_dict(saved["policy"])
         opt.load_state_dict(saved["opt"])
         sched.load_state_dict(saved["sched"])
+        sched.T_max = args.steps  # a longer run than the checkpoint's: the cosine stretched to the new end
         step, log = saved["step"], saved["log"]
         torch.set_rng_state(saved["torch_rng"])
-    rng = np.random.default_rng([args.seed, step])
+    rng = np.random.default_rng(args.seed)
+    if args.resume and ckpt.exists() and "batch_rng" in saved:
+        rng.bit_generator.state = saved["batch_rng"]
     print(f"{len(rows)} frames of {len(eps)} demos; training from step {step} to {args.steps}", flush=True)
     t0, seen = time.perf_counter(), 0
     while step < args.steps:
         i = np.sort(rng.integers(0, len(rows), args.batch))
-        frames = torch.from_numpy(np.asarray(arrays.frames[rows[i]]))
-        if args.shift:
-            dy, dx = (int(v) for v in rng.integers(-args.shift, args.shift + 1, 2))
-            frames = torch.roll(frames, (dy, dx), (1, 2))
+        frames = random_shift(torch.from_numpy(np.asarray(arrays.frames[rows[i]]))[:, None], args.shift)[:, 0]
         j = torch.from_numpy(i)
         pred, where = policy(frames.to(device), sn[j].to(device), cn[j].to(device))
         act_loss = ((pred - an[j].to(device)) ** 2).mean()
@@ -194,13 +188,14 @@ def main() -> None:
         seen += len(i)
         if step % 200 == 0:
             rate = seen / (time.perf_counter() - t0)
-            log.append({"step": step, "action_mse": float(act_loss), "object_mse": float(obj_loss)})
-            print(f"step {step}: action mse {float(act_loss):.4f}, object mse {float(obj_loss):.4f} "
+            log.append({"step": step, "action_mse": act_loss.item(), "object_mse": obj_loss.item()})
+            print(f"step {step}: action mse {act_loss.item():.4f}, object mse {obj_loss.item():.4f} "
                   f"({rate:.0f} samples/s)", flush=True)
         if step % args.ckpt_every == 0 or step == args.steps:
             tmp = ckpt.with_suffix(".tmp")
             torch.save({"policy": policy.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                        "step": step, "log": log, "torch_rng": torch.get_rng_state()}, tmp)
+                        "step": step, "log": log, "torch_rng": torch.get_rng_state(),
+                        "batch_rng": rng.bit_generator.state}, tmp)
             tmp.replace(ckpt)
     train_s = time.perf_counter() - t0
 
@@ -209,9 +204,11 @@ def main() -> None:
     picks = draw.choice(len(eps), size=args.rollouts, replace=True)
     tasks = [(json.loads(eps.iloc[k]["sim"])["target"], json.loads(eps.iloc[k]["sim"])["distractor"]) for k in picks]
     seeds = [int(s) for s in draw.integers(1 << 40, 1 << 41, args.rollouts)]  # layouts no demo was drawn from
+    first = json.loads(eps.iloc[0]["sim"])
+    image_size, expert_name = int(first["image_size"]), first.get("expert", "hysteresis")
     t1 = time.perf_counter()
-    wins = rollouts(policy, norm, tasks, seeds, device)
-    expert = rollouts(policy, norm, tasks, seeds, device, expert=True)
+    wins = rollouts(policy, norm, tasks, seeds, device, image_size, expert_name)
+    expert = rollouts(None, norm, tasks, seeds, device, image_size, expert_name)
     res = {"suite": str(args.suite), "steps": args.steps, "aux": args.aux, "shift": args.shift, "batch": args.batch,
            "frames": int(len(rows)), "train_s_this_run": round(train_s, 1), "rollouts": args.rollouts,
            "success": float(np.mean(wins)), "success_ci95": wilson(sum(wins), len(wins)),

@@ -22,7 +22,6 @@ through the encoder 0.73, 0.98, 0.88.  The task uncertainty did not lean on it: 
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -33,7 +32,7 @@ from democheck import pool
 from democheck.data import open_dataset
 from democheck.data.demo import Demo
 from democheck.data.lerobot_write import VideoOptions, write_meta, write_shard
-from democheck.data.lerobot import SUITE_PATH
+from democheck.data.lerobot import SUITE_PATH, _read_json
 from democheck.data.video import DEFAULT_CRF, DEFAULT_PIX_FMT, through_codec
 from democheck.errors import DatasetError, DemocheckError
 from democheck.fsutil import atomic_output_dir
@@ -82,18 +81,20 @@ def pick_sources(episodes: Any, kinds: list[str], per_kind: int, seed: int) -> l
 
 
 def source_codec(ds: Any) -> tuple[str, int] | None:
-    """(pixel format, CRF) of the lossy H.264 a LeRobot dataset's camera was recorded with, for the frames a probe
-    renders anew (the CRF from a democheck suite's recipe, else democheck's default); None for lossless, other or
-    no video."""
+    """(pixel format, CRF) of the H.264 a LeRobot dataset's camera was recorded with (democheck's own writer, the
+    one whose datasets carry the sim records re-simulated probes need), for the frames a probe renders anew: the
+    CRF from a democheck suite's recipe, else democheck's default.  None for lossless, image or other video."""
     root = Path(ds.root)
     if not ds.format.startswith("lerobot") or not (root / "meta/info.json").is_file():
         return None
-    feature = json.loads((root / "meta/info.json").read_text()).get("features", {}).get(ds.camera) or {}
+    info_json = _read_json(root / "meta/info.json")
+    feature = ((info_json.get("features") if isinstance(info_json, dict) else None) or {}).get(ds.camera) or {}
     info = feature.get("info") or {}
     pix_fmt = info.get("video.pix_fmt")
     if feature.get("dtype") != "video" or info.get("video.codec") != "h264" or pix_fmt not in ("yuv444p", "yuv420p"):
         return None
-    recipe = json.loads((root / SUITE_PATH).read_text()).get("recipe") or {} if (root / SUITE_PATH).is_file() else {}
+    suite = _read_json(root / SUITE_PATH) if (root / SUITE_PATH).is_file() else {}
+    recipe = (suite.get("recipe") if isinstance(suite, dict) else None) or {}
     return pix_fmt, int(recipe.get("crf", DEFAULT_CRF))
 
 
