@@ -54,7 +54,8 @@ INDEX_FEATURES = {
 }
 
 
-def _read_json(path: Path) -> Any:
+def read_json(path: Path) -> Any:
+    """A JSON file's content; a missing or unreadable file is a one-line DatasetError naming it."""
     try:
         return json.loads(path.read_text())
     except FileNotFoundError:
@@ -379,7 +380,7 @@ class LeRobotV3(LeRobotBase):
 
 def open_lerobot(root: Path, camera: str | None = None, state_key: str | None = None,
                  action_key: str | None = None) -> LeRobotBase:
-    info = _read_json(root / "meta" / "info.json")
+    info = read_json(root / "meta" / "info.json")
     if not isinstance(info, dict):
         raise DatasetError(f"{root / 'meta/info.json'}: not a JSON object")
     version = str(info.get("codebase_version", ""))

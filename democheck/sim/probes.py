@@ -32,7 +32,7 @@ from democheck import pool
 from democheck.data import open_dataset
 from democheck.data.demo import Demo
 from democheck.data.lerobot_write import VideoOptions, write_meta, write_shard
-from democheck.data.lerobot import SUITE_PATH, _read_json
+from democheck.data.lerobot import SUITE_PATH, read_json
 from democheck.data.video import DEFAULT_CRF, DEFAULT_PIX_FMT, through_codec
 from democheck.errors import DatasetError, DemocheckError
 from democheck.fsutil import atomic_output_dir
@@ -87,13 +87,13 @@ def source_codec(ds: Any) -> tuple[str, int] | None:
     root = Path(ds.root)
     if not ds.format.startswith("lerobot") or not (root / "meta/info.json").is_file():
         return None
-    info_json = _read_json(root / "meta/info.json")
+    info_json = read_json(root / "meta/info.json")
     feature = ((info_json.get("features") if isinstance(info_json, dict) else None) or {}).get(ds.camera) or {}
     info = feature.get("info") or {}
     pix_fmt = info.get("video.pix_fmt")
     if feature.get("dtype") != "video" or info.get("video.codec") != "h264" or pix_fmt not in ("yuv444p", "yuv420p"):
         return None
-    suite = _read_json(root / SUITE_PATH) if (root / SUITE_PATH).is_file() else {}
+    suite = read_json(root / SUITE_PATH) if (root / SUITE_PATH).is_file() else {}
     recipe = (suite.get("recipe") if isinstance(suite, dict) else None) or {}
     return pix_fmt, int(recipe.get("crf", DEFAULT_CRF))
 
