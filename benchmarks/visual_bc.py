@@ -160,7 +160,7 @@ def main() -> None:
     step, log = 0, []
     ckpt = args.out / "checkpoint.pt"
     if args.resume and ckpt.exists():
-        saved = torch.load(ckpt, map_location=device, weights_only=False)
+        saved = torch.load(ckpt, map_location=device, weights_only=True)  # tensors and plain values only
         policy.load_state_dict(saved["policy"])
         opt.load_state_dict(saved["opt"])
         sched.load_state_dict(saved["sched"])
