@@ -26,6 +26,8 @@ its task as ``democheck audit`` does, and then:
   the core's values, the exponential carrying on beyond the core's largest; ``core-centred`` puts the scores in
   robust SD within their task from the task's *core* demos' median (and the core's MAD), refitted with the
   core at every round, so that a task's bad demos do not move the centre its clean demos are judged from.
+  ``core-centred`` is the shipped calibration since the ``colours`` check joined the ranking
+  (``benchmarks/colour_choices.py``); every other row centres each task on all its demos, the choice before.
 
 Printed per variant: the ranking's AUROC per kind and its mean; at each fpr the share of clean demos flagged
 against the number the audit states it expects (``scores.expected_false_flags``), and each kind's share
@@ -38,7 +40,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import pandas as pd
 
 from democheck.audit import scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence, ranking_z
@@ -124,22 +125,8 @@ def empirical_tails(z: np.ndarray, core: np.ndarray) -> np.ndarray:
 
 def core_centred_z(table, values: dict, names: list[str], core: np.ndarray) -> np.ndarray:
     """``ranking_z`` with each task's centre the median of its core demos (all its demos where none is in the
-    core) and the scale the core's MAD about those centres."""
-    tasks = table["task"].to_numpy()
-    cols = []
-    for n in names:
-        s, x = SCORERS[n], np.asarray(values[n], np.float64)
-        x = np.log(np.maximum(x, 1e-12)) if s.log_in_ranking else x
-        if s.in_robust_sd:
-            cols.append(x)
-            continue
-        x = np.where(np.isfinite(x), x, np.nan)
-        centre = pd.Series(np.where(core, x, np.nan)).groupby(tasks).transform("median").to_numpy()
-        centre = np.where(np.isnan(centre), pd.Series(x).groupby(tasks).transform("median").to_numpy(), centre)
-        resid = x - centre
-        scale = max(scores.robust_stats(resid[core])["scale"], s.ranking_min_scale)
-        cols.append(resid / scale)
-    return np.column_stack(cols)
+    core) and the scale the core's MAD about those centres: the shipped calibration (``scores.calibrated``)."""
+    return ranking_z(Evidence(episodes=table[["episode_index", "task"]], scores=values), names, core)
 
 
 def variant(how: str, table, cons: np.ndarray, model_free: bool) -> tuple[np.ndarray, np.ndarray]:

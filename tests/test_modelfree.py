@@ -412,6 +412,23 @@ def test_view_ranks_the_covered_camera_first_and_says_where():
     assert int(np.argmax(ev.scores["view"])) == 17 and np.abs(np.delete(ev.scores["view"], 17)).max() < 3
 
 
+def test_colours_rank_the_demo_whose_object_is_missing_first_wherever_the_objects_lie():
+    rng = np.random.default_rng(5)
+    demos = []
+    for i in range(30):
+        frames = _scene(rng)
+        if i != 17:  # every other demo has a cyan block on the table, somewhere else each time
+            r, c = rng.integers(30, 42), rng.integers(0, 42)
+            frames[:, r:r + 5, c:c + 5] = (20, 220, 220)
+        demos.append(_demo(i, rng, frames=frames))
+    ev = _evidence(demos, ["colours", "view"])
+    z = ev.scores["colours"]
+    assert z[17] > 5 and np.abs(np.delete(z, 17)).max() < 2, np.sort(z)[-3:]
+    assert ev.reasons["colours"][17].startswith("less of the colour #20e0e0 than its task's other demos: 0% of")
+    # The block moves from demo to demo, so where the picture differs says little: view does not see it.
+    assert ev.scores["view"][17] < 3
+
+
 def test_the_ray_engine_gives_the_local_engines_scores(tmp_path, monkeypatch, tiny_model):
     """``--engine ray`` on a local 2-CPU Ray instance: the same cue and decoding shards run by Ray Data actors,
     every score as the local engine's in one process."""

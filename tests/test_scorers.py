@@ -28,6 +28,7 @@ MEANT_FOR = {
     "saturation": "random",  # model-free: random torques hit their limits
     "model_free": "idle",
     "view": "hidden",  # model-free: squares over most of the camera's view
+    "colours": "hidden",  # model-free: the squares' colours, which no clean demo shows
     "outcome": "wrong-object",  # model-free: the objects end up unlike the task's other demos
     "suspicion": "random",
     "ocsvm_flag": "occluded",

@@ -73,7 +73,7 @@ class Evidence:
         names = ranked(self.scores, self.tasks, model_free)
         key = tuple(names)
         if key not in self._combinations:
-            self._combinations[key] = robust_tails(ranking_z(self, names))
+            self._combinations[key] = robust_tails(lambda core: ranking_z(self, names, core))
         return (names, *self._combinations[key])
 
     @property
@@ -189,14 +189,15 @@ def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors
     return ActionErrors(ev.model, ev.task_variables()[rows], device)
 
 
-def ranking_z(ev: Evidence, names: list[str]) -> np.ndarray:
+def ranking_z(ev: Evidence, names: list[str], core: np.ndarray | None = None) -> np.ndarray:
     """[N, K]: the ranking's scores ``names`` in robust standard deviations within their task (a score on a log
-    scale first where its scorer says so; one that is a robust z already as it is)."""
+    scale first where its scorer says so; one that is a robust z already as it is), each task's centre and the
+    unit from the ``core`` demos (default: every demo; ``scores.calibrated``)."""
     cols = []
     for n in names:
         s, x = SCORERS[n], np.asarray(ev.scores[n], np.float64)
         x = np.log(np.maximum(x, 1e-12)) if s.log_in_ranking else x
-        cols.append(x if s.in_robust_sd else calibrated(x, ev.tasks, min_scale=s.ranking_min_scale))
+        cols.append(x if s.in_robust_sd else calibrated(x, ev.tasks, min_scale=s.ranking_min_scale, core=core))
     return np.column_stack(cols) if cols else np.zeros((len(ev.episodes), 0))
 
 
@@ -265,6 +266,10 @@ def _motion(ev: Evidence) -> Scores:
 
 def _view(ev: Evidence) -> Scores:
     return modelfree.view(ev.behaviour["view"], ev.tasks)
+
+
+def _colours(ev: Evidence) -> Scores:
+    return modelfree.colours(ev.behaviour["colours"], ev.tasks)
 
 
 def _idle(ev: Evidence) -> Scores:
@@ -385,17 +390,23 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            f"(over {modelfree.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
            "robust z within its task", ("demos",), _view, in_suspicion=True, in_robust_sd=True,
            decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
+    Scorer("colours", "model-free: how differently from its task's other demos the frames are coloured, wherever "
+           f"the colours are in the view (every {modelfree.VIEW_EVERY}th frame's pixels in "
+           f"{modelfree.COLOUR_LEVELS ** 3} colour bins, each bin's log share in robust SD within its task, RMS "
+           "over the colours shown): an object missing or another one, a covered camera; robust z within its "
+           "task", ("demos",), _colours, in_suspicion=True, in_robust_sd=True,
+           decode=lambda ev, rows, device: modelfree.ColourStats(), short="colour"),
     Scorer("outcome", "model-free: how differently from its task's other demos the demo left the world (the "
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "
            "z within its task)", ("demos",), _outcome, in_suspicion=True,
            decode=lambda ev, rows, device: outcome.OutcomeStats(), short="outc."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
-           "consistency, action error (log), motion, idle, view and outcome (one task: the last five), each in "
+           "consistency, action error (log), motion, idle, view, colours and outcome (one task: the last six), each in "
            "robust standard deviations within its task, the tails fitted on the robust core (2 = as unusual as 1 "
            "clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
-           "view, outcome): what democheck says with no model", ("scores",), _model_free, in_audit=False,
+           "view, colours, outcome): what democheck says with no model", ("scores",), _model_free, in_audit=False,
            short="no-model"),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),

@@ -32,7 +32,14 @@ Every score is one number per demo, higher = more suspect:
   clean demos' right tails are long), then turned into a tail probability by ``tail_probabilities``: an
   exponential right tail through the 25th and 75th percentiles of the audited demos' *robust core*
   (``robust_tails``): fitted on every demo, then again on those whose combined probability is above
-  ``CORE_P``, until the core stops changing.  Fitted on every demo, as before, a share of bad demos widened
+  ``CORE_P``, until the core stops changing; at every round each task's centre and the robust unit are taken
+  again from the core's demos alone (``calibrated`` with ``core``), so that a task's bad demos shift neither
+  the centre its clean demos are judged from nor the unit: with the probes pooled in, a task of 15 demos holds
+  5 bad ones, and the MAD over all the demos had the clean demos' largest action error at 1.4 robust SD and a
+  no-objects probe's at 1.9.  Chosen with the ``colours`` check (``benchmarks/colour_choices.py``): on
+  push-v1-dev + probes at --fpr 0.01 no-objects flagged 0.74 -> 0.88, gave-up 0.82 -> 0.95, 1 -> 4 of 614
+  clean demos (6.2 expected); push-v1-dev alone 7 -> 6 clean, every kind 0.97-1.00; Meta-World mw2-dev and
+  mw2-one-dev unchanged.  Fitted on every demo, as before, a share of bad demos widened
   every tail they sat in: with 37% of the demos bad (push-v1-dev + its probes) no clean demo and few bad ones
   were flagged (gave-up 0.66, no-objects 0.08), and a score that alone saw a kind was diluted by the others
   in the ranking.  The tail probabilities are combined by Fisher's method with Brown's correction
@@ -55,7 +62,8 @@ Every score is one number per demo, higher = more suspect:
   give the idle share a long tail); each score's tail family, normal or exponential, chosen by likelihood on the
   core (7 clean demos of push-v1-dev flagged against 5, no-objects 0.988 -> 0.979); each score's rank among the
   core, the exponential beyond its largest (no-objects 0.988 -> 0.967, flagged 0.34 -> 0.18); each task's centre
-  from its core demos alone (push-v1-dev alone: 9 clean flagged, 1.47%, against 5).
+  from its core demos alone, without the ``colours`` check (push-v1-dev alone: 9 clean flagged, 1.47%, against
+  5, by the combined probability's own level; kept since, with the conformal flags below).
 - ``is_anomaly``: the demo's conformal p-value against the robust core (``conformal_p``: the share of the core
   at least as suspect) at most the false-positive rate asked for (``audit --fpr``, default ``DEFAULT_FPR``):
   if the core's demos are clean and a clean demo is like them, about that share of clean demos is flagged,
@@ -76,7 +84,7 @@ Every score is one number per demo, higher = more suspect:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -165,21 +173,29 @@ CALIBRATION = "task"
 CALIBRATIONS = ("all", "task")
 
 
-def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, how: str = CALIBRATION, min_scale: float = 0.0
-               ) -> np.ndarray:
+def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, how: str = CALIBRATION, min_scale: float = 0.0,
+               core: np.ndarray | None = None) -> np.ndarray:
     """``x`` in robust standard deviations (median, 1.4826 x MAD): of all demos, or within each demo's task.
 
     ``min_scale``: the least spread a standard deviation stands for, in ``x``'s units -- for a measurement that
     scripted or very regular demos repeat almost exactly, where a MAD near zero would call any small difference
-    many standard deviations."""
+    many standard deviations.  ``core`` (bool [N]): the medians and the MAD of the demos believed clean alone
+    (``robust_tails``; a task with none of them in the core keeps the median of all its demos), so that a
+    task's bad demos move neither the centre its clean demos are judged from nor the unit."""
+    x = np.asarray(x, np.float64)
+    core = np.ones(len(x), bool) if core is None else np.asarray(core, bool)
     if how == "all" or tasks is None or len(np.unique(tasks)) < 2:
-        stats = robust_stats(x)
+        stats = robust_stats(x[core] if core.any() else x)
         return standardise(x, {**stats, "scale": max(stats["scale"], min_scale)})
     if how not in CALIBRATIONS:
         raise ValueError(f"calibration {how!r}; one of {', '.join(CALIBRATIONS)}")
     finite = np.where(np.isfinite(x), x, np.nan)
-    resid = finite - pd.Series(finite).groupby(np.asarray(tasks)).transform("median").to_numpy()
-    return standardise(resid, {"median": 0.0, "scale": max(robust_stats(resid)["scale"], min_scale)})
+    tasks = np.asarray(tasks)
+    every = pd.Series(finite).groupby(tasks).transform("median").to_numpy()
+    centre = pd.Series(np.where(core, finite, np.nan)).groupby(tasks).transform("median").to_numpy()
+    resid = finite - np.where(np.isnan(centre), every, centre)
+    scale = robust_stats(resid[core] if core.any() else resid)["scale"]
+    return standardise(resid, {"median": 0.0, "scale": max(scale, min_scale)})
 
 
 
@@ -238,19 +254,27 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None) -> np.ndar
     return out
 
 
-def robust_tails(z: np.ndarray, core_p: float = CORE_P, rounds: int = CORE_ROUNDS) -> tuple[np.ndarray, np.ndarray]:
+def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: float = CORE_P,
+                 rounds: int = CORE_ROUNDS) -> tuple[np.ndarray, np.ndarray]:
     """``tail_probabilities`` fitted on the audited demos' robust core, and the core [N] (bool): starting from
     every demo, the tails are fitted, combined (``combined_log10``), and the demos whose combined probability is
     at most ``core_p`` left out of the next fit, until the core stops changing.  The core never shrinks below
-    half the demos (beyond that the bad demos would be the majority the calibration assumes they are not)."""
-    core = np.ones(len(z), bool)
-    log_p = tail_probabilities(z, core)
+    half the demos (beyond that the bad demos would be the majority the calibration assumes they are not).
+
+    ``z``: the [N, K] scores in robust SD, or a function of the core (None: every demo) that computes them (the
+    ranking's: each task's centre and the unit from the core's demos, ``calibrated``), called again at every
+    round."""
+    z_of = z if callable(z) else (lambda core: z)
+    zc = z_of(None)  # every demo
+    core = np.ones(len(zc), bool)
+    log_p = tail_probabilities(zc, core)
     for _ in range(rounds):
         new = ~(10.0 ** combined_log10(log_p) <= core_p)
-        if (new == core).all() or new.sum() < len(z) / 2:
+        if (new == core).all() or new.sum() < len(zc) / 2:
             break
         core = new
-        log_p = tail_probabilities(z, core)
+        zc = z_of(core)
+        log_p = tail_probabilities(zc, core)
     return log_p, core
 
 
