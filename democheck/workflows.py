@@ -47,7 +47,8 @@ def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: b
                 camera: str | None = None, cache_dir: Path | None = None, recipe: dict[str, Any] | None = None,
                 on_decode: Callable[[int, int], None] | None = None,
                 on_step: Callable[[int, int, dict], None] | None = None,
-                stop_after: int | None = None) -> TrainResult | None:
+                stop_after: int | None = None,
+                on_novelty: Callable[[int, int], None] | None = None) -> TrainResult | None:
     """Open ``dataset``, decode it into the frame cache, train, and write the model folder ``out``.
 
     ``recipe``: the resolved training recipe ``tc`` came from (``petnet.recipe.load_recipe``), recorded in the
@@ -69,7 +70,7 @@ def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: b
         meta["recipe"] = recipe
     return train(arrays, Path(out), tc, resume=resume, force=force, meta=meta, on_progress=on_step,
                  card=lambda m: model_card(Path(out).name, m), stop_after=stop_after, reference=reference,
-                 task_groups=object_pair_groups(ds))
+                 task_groups=object_pair_groups(ds), on_novelty=on_novelty)
 
 
 def train_from_recipe(dataset: str | Path, out: str | Path, recipe: str | Path = DEFAULT_RECIPE,
@@ -83,7 +84,8 @@ def train_from_recipe(dataset: str | Path, out: str | Path, recipe: str | Path =
 
 def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camera: str | None = None,
                   cache_dir: Path | None = None, device: str = "auto", force: bool = False,
-                  trim: float | None = None, on_decode: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                  trim: float | None = None, on_decode: Callable[[int, int], None] | None = None,
+                  on_novelty: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Fit (or refit) a trained PETNet model's novelty density on ``dataset`` -- its training data -- and write
     the model, weights unchanged, to ``out`` with the card's numbers and the audit's reference redone.
     ``trim``: the share of training cues the density leaves out as outliers (default: the model's recipe's)."""
@@ -102,11 +104,13 @@ def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camer
     if not train_rows:
         raise DemocheckError(f"{ds.root}: no training tasks with two or more demos")
     held = np.concatenate(list(val_rows.values())) if val_rows else None
-    trim = training_config(ckpt.meta.get("training", {})).novelty_trim if trim is None else trim
+    recipe = training_config(ckpt.meta.get("training", {}))
+    trim = recipe.novelty_trim if trim is None else trim
     if not 0.0 <= trim < 0.5:
         raise DemocheckError(f"--trim is a share of the training cues below 0.5, not {trim}")
     extra = finish_petnet(ckpt.model, arrays, np.concatenate(list(train_rows.values())), held, seed, dev,
-                          novelty=True, novelty_trim=trim, reference=reference)
+                          novelty=True, novelty_trim=trim, reference=reference,
+                          autoencoder=None if recipe.novelty_autoencoder else 0, on_novelty=on_novelty)
     meta = dict(ckpt.meta)
     meta["metrics"] = {**meta.get("metrics", {}), "task_sigma": extra.pop("task_sigma")}
     meta.update(extra)

@@ -144,7 +144,8 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
 
     enc = load_checkpoint(tiny_model).model.encoder
     ds = open_dataset(root)
-    feats = conv_features(enc, ds.cue_frames_many(table["episode_index"].tolist()), torch.device("cpu"))[0]
+    feats = conv_features(enc, ds.cue_frames_many(table["episode_index"].tolist()), torch.device("cpu"),
+                          novelty=True)[0]
     want = (enc.distance2(torch.from_numpy(feats)) / enc.novelty_ref).numpy()
     np.testing.assert_allclose(table["novelty"].to_numpy(), want, rtol=1e-4)
     csv = pd.read_csv(tmp_path / "r" / "scores.csv")

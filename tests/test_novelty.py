@@ -35,14 +35,34 @@ def _cues(n: int, seed: int = 0, size: int = 16) -> np.ndarray:
     return coarse.repeat(4, axis=2).repeat(4, axis=3).astype(np.uint8)
 
 
-def test_novelty_adds_variance_far_from_the_training_cues_and_nothing_else():
+def _scenes(n: int, seed: int, size: int = 32) -> np.ndarray:
+    """Cues of one fixed textured table with an arm (a bright bar) and a cyan block somewhere else in every
+    frame, and sensor noise: like a fixed camera's demos, which share their background."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size]
+    table = np.stack([110 + 40 * np.sin(xx / 3.0), 100 + 30 * np.cos(yy / 4.0), 80 + 2 * xx], -1)
+    out = np.repeat(np.repeat(table[None, None], n, 0), 2, 1) + rng.normal(0, 3, (n, 2, size, size, 3))
+    for i in range(n):
+        for f in range(2):
+            r = rng.integers(0, size - 4)
+            out[i, f, r:r + 4, :rng.integers(size // 3, size)] = 235
+            r, c = rng.integers(0, size - 5, 2)
+            out[i, f, r:r + 5, c:c + 5] = (20, 220, 220)
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("autoencoder", [None, 0])
+def test_novelty_adds_variance_far_from_the_training_cues_and_nothing_else(autoencoder):
     torch.manual_seed(0)
-    model = build_model(ModelConfig(image_size=16)).eval()
-    train_cues, held = _cues(300, seed=1), _cues(60, seed=2)
+    model = build_model(ModelConfig(image_size=32)).eval()
+    train_cues, held = _scenes(300, seed=1), _scenes(60, seed=2)
     with torch.no_grad():
         before = model.encoder(cue_input(torch.from_numpy(held)))
-    stats = fit_novelty(model, train_cues, held, CPU)
+    stats = fit_novelty(model, train_cues, held, CPU, autoencoder=autoencoder)
     assert model.cfg.novelty and stats["train_cues"] == 300 and stats["held_out_cues"] == 60
+    # Forty passes over the training cues by default (300 cues, batches of 64: 188 steps), or none.
+    assert model.cfg.novelty_autoencoder == (autoencoder is None)
+    assert stats["autoencoder"]["steps"] == (188 if autoencoder is None else 0)
     black = np.zeros_like(held)
     with torch.no_grad():
         mu, var_task, var_novel = model.encoder.parts(cue_input(torch.from_numpy(held)))
@@ -55,19 +75,23 @@ def test_novelty_adds_variance_far_from_the_training_cues_and_nothing_else():
     ratio = (var_novel / model.encoder.prior_var).mean(1)
     assert (ratio <= 1 + 1e-5).float().mean().item() == pytest.approx(QUANTILE, abs=0.02)
     # A black cue is far from anything seen: many times the novelty of any held-out cue.
-    assert (novel_b / model.encoder.prior_var).mean(1).min() > 10 * ratio.max()
+    assert (novel_b / model.encoder.prior_var).mean(1).min() > 5 * ratio.max()
     assert torch.equal(var_b, model.encoder.parts(cue_input(torch.from_numpy(black)))[1] + novel_b)
     assert var_b.sqrt().mean() > 2 * (var_task + var_novel).sqrt().mean()
 
 
-def test_distance_is_sklearn_mahalanobis_and_prior_is_the_variance_of_z():
+@pytest.mark.parametrize("autoencoder", [20, 0])
+def test_distance_is_sklearn_mahalanobis_and_prior_is_the_variance_of_z(autoencoder):
     torch.manual_seed(1)
     model = build_model(ModelConfig(image_size=16)).eval()
     train_cues, held = _cues(200, seed=3), _cues(40, seed=4)
-    stats = fit_novelty(model, train_cues, held, CPU)
-    feats, mus, var_task = conv_features(model.encoder, train_cues, CPU)
+    stats = fit_novelty(model, train_cues, held, CPU, autoencoder=autoencoder)
+    # The density is over the autoencoder's features where there is one, else the task encoder's own.
+    feats, mus, var_task = conv_features(model.encoder, train_cues, CPU, novelty=True)
+    own = conv_features(model.encoder, train_cues, CPU)[0]
+    assert np.array_equal(feats, own) == (autoencoder == 0)
     lw = LedoitWolf().fit(feats.astype(np.float64))
-    held_feats = conv_features(model.encoder, held, CPU)[0]
+    held_feats = conv_features(model.encoder, held, CPU, novelty=True)[0]
     want = lw.mahalanobis(held_feats.astype(np.float64))
     got = model.encoder.distance2(torch.from_numpy(held_feats)).numpy()
     np.testing.assert_allclose(got, want, rtol=1e-3)

@@ -50,7 +50,8 @@ def train(
             result = train_from_recipe(dataset, out, recipe, set_, steps=steps, seed=seed, device=device,
                                        image_size=image_size,
                                        resume=resume, force=force, camera=camera, cache_dir=cache_dir,
-                                       on_decode=bar.callback("decode frames"), on_step=on_step)
+                                       on_decode=bar.callback("decode frames"), on_step=on_step,
+                                       on_novelty=bar.callback("novelty autoencoder"))
     table = Table(title=f"{result.config.model_type} -> {out}", show_header=False)
     final = result.metrics["final"]
     for key in ("train_mse", "val_mse", "val_task_matching", "val_tecnet_hinge"):
@@ -75,14 +76,14 @@ def fit_novelty(
 ) -> None:
     """Give a trained PETNet model the epistemic part of its task variance, without retraining.
 
-    A Gaussian fitted to the encoder's conv features of the training cues; a cue far from them gets a wider task posterior. democheck train fits it itself; this is for models trained with --set model.novelty=false or before it existed.
+    A cue autoencoder trained on the training cues, and a Gaussian fitted to its encoder's features of them; a cue far from them gets a wider task posterior. democheck train fits it itself; this is for models trained with --set model.novelty=false or before it existed.
     """
     with user_errors():
         from democheck.workflows import refit_novelty
 
         with Bar("decode frames", "episodes") as bar:
             meta = refit_novelty(model, data, out, camera=camera, cache_dir=cache_dir, device=device, force=force,
-                                 trim=trim, on_decode=bar.callback())
+                                 trim=trim, on_decode=bar.callback(), on_novelty=bar.callback("novelty autoencoder"))
     table = Table(title=f"{model} + novelty -> {out}", show_header=False)
     nov = meta["novelty"]
     table.add_row("reference d2", f"{nov['d2_ref']:.1f} ({nov['quantile']:.0%} of {nov['held_out_cues']} held-out cues)")

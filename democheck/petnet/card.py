@@ -26,10 +26,14 @@ def novelty_lines(nov: dict[str, Any] | None) -> list[str]:
     """The card's account of the novelty density (``democheck.petnet.novelty``), if the model has one."""
     if not nov:
         return ["- no novelty density: the task variance is the paper's head alone"]
-    lines = [f"- novelty density (the epistemic part of the task variance): a Gaussian over the encoder's "
-             f"{nov['feature_dim']} conv features of {nov['train_cues']} training cues (Ledoit-Wolf shrinkage "
-             f"{nov['shrinkage']:.3f}); reference distance d2 = {nov['d2_ref']:.1f}, the "
-             f"{nov['quantile']:.0%} quantile of {nov['held_out_cues']} held-out cues"]
+    ae = nov.get("autoencoder") or {}
+    features = (f"the {nov['feature_dim']} features of a cue autoencoder's encoder (trained to reconstruct the "
+                f"training cues: {ae['steps']} steps, final loss {ae.get('loss', float('nan')):.4f})"
+                if ae.get("steps") else f"the encoder's {nov['feature_dim']} conv features")
+    lines = [f"- novelty density (the epistemic part of the task variance): a Gaussian over {features} of "
+             f"{nov['train_cues']} training cues (Ledoit-Wolf shrinkage {nov['shrinkage']:.3f}); reference "
+             f"distance d2 = {nov['d2_ref']:.1f}, the {nov['quantile']:.0%} quantile of {nov['held_out_cues']} "
+             "held-out cues"]
     if nov.get("command"):
         lines.append(f"- novelty density fitted afterwards, weights unchanged: `{nov['command']}` (commit "
                      f"`{nov.get('commit', 'unknown')}`)")

@@ -27,18 +27,21 @@ def mean_sigma(model: torch.nn.Module, cues: np.ndarray, device: torch.device) -
 
 def finish_petnet(model, arrays: EpisodeArrays, train_rows: np.ndarray, held_rows: np.ndarray | None, seed: int,
                   device: torch.device, novelty: bool = True, novelty_trim: float = 0.0,
-                  reference: Callable[[TaskPosterior, np.ndarray], dict[str, Any]] | None = None
+                  reference: Callable[[TaskPosterior, np.ndarray], dict[str, Any]] | None = None,
+                  autoencoder: int | None = None, on_novelty: Callable[[int, int], None] | None = None
                   ) -> dict[str, Any]:
     """What a trained PETNet model carries beside its weights, from its training cues (``train_rows``) and
     held-out real cues (``held_rows``, the val split; None: none): the novelty density (``novelty``, fitted in
     place), the mean task sigma of held-out and nonsense cues (``task_sigma``), and the audit's reference on the
-    training demos (``reference``).  Also how an existing model gets its novelty density refitted."""
+    training demos (``reference``).  Also how an existing model gets its novelty density refitted.
+    ``autoencoder``, ``on_novelty``: the cue autoencoder's steps and progress (``novelty.fit_novelty``)."""
     out: dict[str, Any] = {}
     if novelty:
         # Without held-out tasks the reference distance comes from the training cues themselves (a little low).
         out["novelty"] = fit_novelty(model, arrays.cue(train_rows),
                                      arrays.cue(held_rows if held_rows is not None else train_rows), device,
-                                     trim=novelty_trim)
+                                     trim=novelty_trim, autoencoder=autoencoder, seed=seed,
+                                     on_progress=on_novelty)
     real = arrays.cue(held_rows if held_rows is not None else train_rows[:500])
     sig = {"val demos" if held_rows is not None else "train demos": mean_sigma(model, real, device)}
     for name, cues in nonsense_cues(real[:200], np.random.default_rng(seed)).items():

@@ -50,6 +50,10 @@ class ModelConfig:
     # PETNet encoder only: the task variance has a second, epistemic part that grows with the distance of the
     # cue's conv features from the training cues' (``TaskEncoder``); fitted after training, ``petnet.novelty``.
     novelty: bool = False
+    # The novelty density on the features of a cue autoencoder's encoder (``novelty_conv``, trained to
+    # reconstruct the training cues) instead of the task encoder's own conv features, which the task loss makes
+    # blind to what the task does not need -- an empty scene lies inside them (``petnet.novelty``).
+    novelty_autoencoder: bool = False
 
     @property
     def embed_dim(self) -> int:
@@ -130,8 +134,10 @@ class TaskEncoder(nn.Module):
     on real cues and says nothing sure about others (a black image can get a
     smaller variance than any demo).  ``var_novel`` (``cfg.novelty``) is the
     part the training data cannot vouch for: prior_var * d2 / d2_ref, where
-    d2 is the cue's squared Mahalanobis distance from the training cues' conv
-    features, d2_ref a reference distance of held-out real cues and prior_var
+    d2 is the cue's squared Mahalanobis distance from the training cues' features
+    (those of a cue autoencoder's encoder, ``novelty_features``; in models
+    fitted before it, the task encoder's own conv features), d2_ref a
+    reference distance of held-out real cues and prior_var
     the variance of z over the training cues, per dimension -- an unfamiliar
     cue's posterior widens in proportion to how unfamiliar it is, in task-space
     units.  Fitted after training (``democheck.petnet.novelty``), zero until
@@ -147,14 +153,24 @@ class TaskEncoder(nn.Module):
             self.add_novelty()
 
     def add_novelty(self) -> None:
-        """Register the (zero) buffers of the feature density; ``petnet.novelty.fit_novelty`` fills them."""
-        if hasattr(self, "feature_mean"):
-            return
-        d = conv_out_dim(self.cfg)
-        self.register_buffer("feature_mean", torch.zeros(d))
-        self.register_buffer("feature_precision", torch.zeros(d, d))
-        self.register_buffer("novelty_ref", torch.ones(()))
-        self.register_buffer("prior_var", torch.zeros(self.cfg.z_dim))
+        """Register the (zero) buffers of the feature density, and with ``cfg.novelty_autoencoder`` the
+        autoencoder's conv stack it is fitted on; ``petnet.novelty.fit_novelty`` fills them."""
+        if not hasattr(self, "feature_mean"):
+            d = conv_out_dim(self.cfg)
+            self.register_buffer("feature_mean", torch.zeros(d))
+            self.register_buffer("feature_precision", torch.zeros(d, d))
+            self.register_buffer("novelty_ref", torch.ones(()))
+            self.register_buffer("prior_var", torch.zeros(self.cfg.z_dim))
+        if self.cfg.novelty_autoencoder and not hasattr(self, "novelty_conv"):
+            self.novelty_conv = conv_stack(6, self.cfg).to(self.feature_mean.device,
+                                                             memory_format=torch.channels_last)
+
+    def novelty_features(self, cue: torch.Tensor, h: torch.Tensor | None = None) -> torch.Tensor:
+        """The features the novelty density is over: the autoencoder's (``novelty_conv``) where the model has
+        one, else the task encoder's own conv features ``h`` (computed from ``cue`` when not given)."""
+        if self.cfg.novelty_autoencoder:
+            return self.novelty_conv(cue)
+        return self.conv(cue) if h is None else h
 
     def distance2(self, features: torch.Tensor) -> torch.Tensor:
         """Squared Mahalanobis distance of conv features [B, D] from the training cues': [B]."""
@@ -172,7 +188,8 @@ class TaskEncoder(nn.Module):
         mu, var_task = self.head_posterior(h)
         if not self.cfg.novelty:
             return mu, var_task, torch.zeros_like(var_task)
-        return mu, var_task, self.prior_var * (self.distance2(h) / self.novelty_ref)[:, None]
+        d2 = self.distance2(self.novelty_features(cue, h))
+        return mu, var_task, self.prior_var * (d2 / self.novelty_ref)[:, None]
 
     def forward(self, cue: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mu, var_task, var_novel = self.parts(cue)

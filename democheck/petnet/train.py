@@ -65,6 +65,9 @@ class TrainConfig:
     # Of the training cues, the share the novelty density leaves out as outliers (``novelty.fit_novelty``): for
     # a user's own data, which may hold the bad demos the audit is to find.
     novelty_trim: float = 0.0
+    # The novelty density over a cue autoencoder's features (``novelty.train_cue_autoencoder``), trained after
+    # the model on its training cues; off: over the task encoder's own conv features, as models before it.
+    novelty_autoencoder: bool = True
     # Start from this model folder's weights and normalisation instead of a fresh network (same architecture).
     init: str | None = None
     # TecNets' own objective: hinge margin, and the hinge's weight.  At 1 the unit-norm embedding collapses at
@@ -161,7 +164,8 @@ def _start_from(model: torch.nn.Module, cfg: ModelConfig, folder: str) -> Normal
     """Load ``folder``'s weights into ``model`` (which must have its architecture); returns its normalisation."""
     start = load_checkpoint(folder)
     # The novelty density belongs to the trained weights; training changes them, so it is dropped and refitted.
-    diff = sorted(k for k, v in cfg.to_dict().items() if start.config.to_dict().get(k) != v and k != "novelty")
+    diff = sorted(k for k, v in cfg.to_dict().items()
+                  if start.config.to_dict().get(k) != v and k not in ("novelty", "novelty_autoencoder"))
     if diff:
         raise DemocheckError(f"init {folder}: its architecture differs from this run's ({', '.join(diff)})")
     own = model.state_dict().keys()
@@ -173,7 +177,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
           meta: dict[str, Any] | None = None, on_progress: Callable[[int, int, dict[str, float]], None] | None = None,
           card: Callable[[dict[str, Any]], str] | None = None, stop_after: int | None = None,
           reference: Callable[[TaskPosterior, np.ndarray], dict[str, Any]] | None = None,
-          task_groups: dict[str, str] | None = None) -> TrainResult | None:
+          task_groups: dict[str, str] | None = None,
+          on_novelty: Callable[[int, int], None] | None = None) -> TrainResult | None:
     """Train and write the checkpoint folder ``out`` (atomically).
 
     ``reference(posterior, tasks)`` of the training demos, when given, is stored in the checkpoint (the audit
@@ -268,7 +273,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
             all_train, held = np.concatenate(list(every.values())), None
         else:
             held = np.concatenate(list(val_rows.values())) if val_rows else None
-        extra = finish_petnet(model, arrays, all_train, held, tc.seed, device, tc.novelty, tc.novelty_trim, reference)
+        extra = finish_petnet(model, arrays, all_train, held, tc.seed, device, tc.novelty, tc.novelty_trim, reference,
+                              autoencoder=None if tc.novelty_autoencoder else 0, on_novelty=on_novelty)
         metrics["task_sigma"] = extra.pop("task_sigma")
         meta.update(extra)
     # Which tasks the model learnt: the audit warns about the others, the card names them.
