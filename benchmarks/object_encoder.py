@@ -126,7 +126,8 @@ def main() -> None:
     train_cues = arrays.cue(np.concatenate(list(train.values())))
     val_cues = arrays.cue(np.concatenate(list(val.values())))
     encoder.eval()
-    report = fit_novelty(model, train_cues, val_cues, torch.device("cpu"))
+    # Over the trained encoder's own conv features: what this experiment asks about (not a cue autoencoder's).
+    report = fit_novelty(model, train_cues, val_cues, torch.device("cpu"), autoencoder=0)
     print("novelty:", json.dumps({k: report[k] for k in ("d2_ref", "shrinkage", "held_out_d2")}))
     args.out.mkdir(parents=True, exist_ok=True)
     torch.save({"encoder": encoder.state_dict(), "readout": readout.state_dict(), "args": vars(args)},

@@ -281,6 +281,37 @@ def test_the_robust_core_leaves_the_bad_demos_out_and_the_conformal_flags_keep_t
     assert (model[:n_clean] <= 0.01).sum() > 2 * stats.binom.interval(0.999, n_clean, 0.01)[1]
 
 
+def test_the_core_sets_each_tasks_centre_and_unit_and_the_tails_refit_them_each_round():
+    from democheck.audit.scores import calibrated
+
+    rng = np.random.default_rng(4)
+    tasks = np.repeat(["a", "b"], 30)
+    x = np.concatenate([rng.normal(0, 1, 30), rng.normal(5, 1, 30)])
+    bad = np.zeros(60, bool)
+    bad[[3, 7, 11, 15, 19, 23, 27, 33, 37, 41, 45, 49, 53, 57]] = True  # 7 of each task's 30, far up
+    x[bad] += 30
+    core = ~bad
+    z = calibrated(x, tasks, core=core)
+    # Each task's centre is its core demos' median, the unit the core's MAD about those centres.
+    centre = np.where(tasks == "a", np.median(x[core & (tasks == "a")]), np.median(x[core & (tasks == "b")]))
+    resid = x - centre
+    unit = 1.4826 * np.median(np.abs(resid[core] - np.median(resid[core])))
+    np.testing.assert_allclose(z, resid / unit)
+    # A task's own bad demos no longer shift its centre and widen the unit: they stand further out.
+    assert z[bad].min() > calibrated(x, tasks)[bad].max() + 2
+    # The tails refit the z at every round: called first with None (every demo), then with the core found.
+    seen = []
+
+    def z_of(c):
+        seen.append(None if c is None else c.copy())
+        return calibrated(x, tasks, core=c)[:, None]
+
+    log_p, found = robust_tails(z_of)
+    assert seen[0] is None and len(seen) >= 2 and not found[bad].any() and found[core].mean() > 0.9
+    np.testing.assert_array_equal(seen[-1], found)  # the last z were those of the core returned
+    assert np.isfinite(log_p).all() and log_p[bad].max() < log_p[found].min()
+
+
 def test_conformal_p_counts_the_other_core_demos_and_carries_on_beyond_them():
     s = np.array([0.1, 0.5, 1.0, 2.0, 5.0, 3.0])
     core = np.array([True, True, True, True, False, False])

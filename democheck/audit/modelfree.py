@@ -452,7 +452,14 @@ def colour_z(shares: np.ndarray, pixel: np.ndarray, tasks: np.ndarray) -> tuple[
     x = np.log(shares + pixel[:, None])
     z, median = task_z(x, tasks, COLOUR_FLOOR, VIEW_MIN_DEMOS, small="all")
     shown = (median > np.log(2.0 * pixel[:, None])) | (shares > pixel[:, None])
-    return np.where(shown, z, np.nan), shown, np.exp(median) - pixel[:, None]
+    typical = np.exp(median) - pixel[:, None]
+    return np.where(shown, z, np.nan), shown, np.where(typical < 0.5 * pixel[:, None], 0.0, typical)
+
+
+def _percent(share: float) -> str:
+    """A share of the view as a percentage: '35%', '0.85%', '0.012%', '0%'."""
+    p = 100 * float(share)
+    return "0%" if p == 0 else f"{p:.0f}%" if p >= 10 else f"{p:.2g}%"
 
 
 def colour_hex(bin_index: int) -> str:
@@ -481,8 +488,11 @@ def colours(stats: ColourStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str
             reasons.append("no frames to compare")
             continue
         j = int(np.nanargmax(z[i]))
+        if z[i, j] < 1:
+            reasons.append("coloured like its task's other demos")
+            continue
         more = shares[i, j] > median[i, j]
         reasons.append(f"{'more' if more else 'less'} of the colour {colour_hex(j)} than its task's other demos: "
-                       f"{100 * shares[i, j]:.2g}% of the view against their median {100 * median[i, j]:.2g}% "
+                       f"{_percent(shares[i, j])} of the view against their median {_percent(median[i, j])} "
                        f"({z[i, j]:.0f} robust SD)")
     return calibrated(rms, tasks, min_scale=COLOUR_MIN_SCALE), reasons

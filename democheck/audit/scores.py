@@ -33,7 +33,8 @@ Every score is one number per demo, higher = more suspect:
   exponential right tail through the 25th and 75th percentiles of the audited demos' *robust core*
   (``robust_tails``): fitted on every demo, then again on those whose combined probability is above
   ``CORE_P``, until the core stops changing; at every round each task's centre and the robust unit are taken
-  again from the core's demos alone (``calibrated`` with ``core``), so that a task's bad demos shift neither
+  again from the core's demos alone (``calibrated`` with ``core``; motion, view and colours, robust z within
+  their task already, keep the centre of all the task's demos), so that a task's bad demos shift neither
   the centre its clean demos are judged from nor the unit: with the probes pooled in, a task of 15 demos holds
   5 bad ones, and the MAD over all the demos had the clean demos' largest action error at 1.4 robust SD and a
   no-objects probe's at 1.9.  Chosen with the ``colours`` check (``benchmarks/colour_choices.py``): on

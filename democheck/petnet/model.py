@@ -155,15 +155,15 @@ class TaskEncoder(nn.Module):
     def add_novelty(self) -> None:
         """Register the (zero) buffers of the feature density, and with ``cfg.novelty_autoencoder`` the
         autoencoder's conv stack it is fitted on; ``petnet.novelty.fit_novelty`` fills them."""
+        device = next(self.conv.parameters()).device  # where the model is (a GPU after training there)
         if not hasattr(self, "feature_mean"):
             d = conv_out_dim(self.cfg)
-            self.register_buffer("feature_mean", torch.zeros(d))
-            self.register_buffer("feature_precision", torch.zeros(d, d))
-            self.register_buffer("novelty_ref", torch.ones(()))
-            self.register_buffer("prior_var", torch.zeros(self.cfg.z_dim))
+            self.register_buffer("feature_mean", torch.zeros(d, device=device))
+            self.register_buffer("feature_precision", torch.zeros(d, d, device=device))
+            self.register_buffer("novelty_ref", torch.ones((), device=device))
+            self.register_buffer("prior_var", torch.zeros(self.cfg.z_dim, device=device))
         if self.cfg.novelty_autoencoder and not hasattr(self, "novelty_conv"):
-            self.novelty_conv = conv_stack(6, self.cfg).to(self.feature_mean.device,
-                                                             memory_format=torch.channels_last)
+            self.novelty_conv = conv_stack(6, self.cfg).to(device, memory_format=torch.channels_last)
 
     def novelty_features(self, cue: torch.Tensor, h: torch.Tensor | None = None) -> torch.Tensor:
         """The features the novelty density is over: the autoencoder's (``novelty_conv``) where the model has

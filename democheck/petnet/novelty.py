@@ -79,6 +79,14 @@ def conv_features(encoder: torch.nn.Module, cues: np.ndarray, device: torch.devi
     return np.concatenate(feats), np.concatenate(mus), np.concatenate(var_task)
 
 
+@torch.no_grad()
+def _features(conv: nn.Module, cues: np.ndarray, device: torch.device, chunk: int = 256) -> np.ndarray:
+    """A conv stack's flattened features [N, D] of uint8 cues [N, 2, H, W, 3]."""
+    out = [conv(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device))).float().cpu().numpy()
+           for s in range(0, len(cues), chunk)]
+    return np.concatenate(out) if out else np.zeros((0, 0), np.float32)
+
+
 def autoencoder_steps(n_cues: int, cap: int | None = None) -> int:
     """Steps of ``train_cue_autoencoder`` for ``n_cues`` training cues: ``AUTOENCODER_EPOCHS`` passes over them,
     at most ``cap`` (default ``AUTOENCODER_STEPS``), at least one."""
@@ -149,7 +157,8 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
 
     ``trim``: fit, leave out that share of the training cues farthest from the fit, and fit again -- for
     training data that may hold the very demos an audit is to find (a user's own dataset): a covered camera
-    seen in 3% of the training cues would otherwise be familiar.
+    seen in 3% of the training cues would otherwise be familiar.  (The cue autoencoder learns from every training
+    cue; the trim leaves the outliers out of the density only.)
 
     Returns what the model card reports: the counts, the reference distance and held-out d2 quantiles.
     """
@@ -164,28 +173,28 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     encoder = model.encoder
     steps = autoencoder_steps(len(train_cues)) if autoencoder is None else int(autoencoder)
     ae: dict[str, Any] = {"steps": steps}
+    own, mus, var_task = conv_features(encoder, train_cues, device)
     if steps > 0:
         conv, ae["loss"] = train_cue_autoencoder(train_cues, model.cfg, device, steps, seed, on_progress)
-        model.cfg.novelty_autoencoder = True
-        encoder.add_novelty()
-        encoder.novelty_conv.load_state_dict(conv.state_dict())
+        feats, held = _features(conv, train_cues, device), _features(conv, held_out_cues, device)
     else:
-        model.cfg.novelty_autoencoder = False
-        if hasattr(encoder, "novelty_conv"):
-            del encoder.novelty_conv
-    feats, mus, var_task = conv_features(encoder, train_cues, device, novelty=True)
+        conv, feats, held = None, own, conv_features(encoder, held_out_cues, device)[0]
     density = LedoitWolf().fit(feats.astype(np.float64))
     if trim > 0:
         d2 = density.mahalanobis(feats.astype(np.float64))
         keep = d2 <= np.quantile(d2, 1.0 - trim)
         density = LedoitWolf().fit(feats[keep].astype(np.float64))
-    held = conv_features(encoder, held_out_cues, device, novelty=True)[0]
     d2_held = density.mahalanobis(held.astype(np.float64))
     ref = float(np.quantile(d2_held, quantile))
     if not np.isfinite(ref) or ref <= 0:
         raise DemocheckError(f"the held-out cues' feature distances are degenerate (reference {ref})")
-    model.cfg.novelty = True
-    encoder.add_novelty()  # the density's buffers (the autoencoder's conv stack is in place already)
+    # Only now is the model changed: a fit that fails leaves it as it was.
+    model.cfg.novelty, model.cfg.novelty_autoencoder = True, conv is not None
+    if conv is None and hasattr(encoder, "novelty_conv"):
+        del encoder.novelty_conv
+    encoder.add_novelty()
+    if conv is not None:
+        encoder.novelty_conv.load_state_dict(conv.state_dict())
     as_t = lambda x: torch.as_tensor(np.asarray(x, np.float32), device=encoder.feature_mean.device)  # noqa: E731
     encoder.feature_mean.copy_(as_t(density.location_))
     encoder.feature_precision.copy_(as_t(density.precision_))

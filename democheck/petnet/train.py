@@ -227,7 +227,9 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     step, history, wall_before = 0, [], 0.0
     if resume:
         step, rng, doc = load_state(work, model, opt)
-        if doc.get("train_config", {}) != {**asdict(tc), "steps": doc["train_config"]["steps"]}:
+        # Options added since the run was saved count as their defaults (what the run was made with).
+        saved = {**asdict(TrainConfig()), **doc.get("train_config", {})}
+        if saved != {**asdict(tc), "steps": saved["steps"]}:
             raise DemocheckError(f"{work}: saved with other training options; resume with the same options")
         if doc.get("fingerprint") != arrays.fingerprint:
             raise DemocheckError(f"{work}: saved from another dataset; resume on the same dataset")
