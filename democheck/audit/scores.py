@@ -39,8 +39,11 @@ Every score is one number per demo, higher = more suspect:
   5 bad ones, and the MAD over all the demos had the clean demos' largest action error at 1.4 robust SD and a
   no-objects probe's at 1.9.  Chosen with the ``colours`` check (``benchmarks/colour_choices.py``): on
   push-v1-dev + probes at --fpr 0.01 no-objects flagged 0.74 -> 0.88, gave-up 0.82 -> 0.95, 1 -> 4 of 614
-  clean demos (6.2 expected); push-v1-dev alone 7 -> 6 clean, every kind 0.97-1.00; Meta-World mw2-dev and
-  mw2-one-dev unchanged.  Fitted on every demo, as before, a share of bad demos widened
+  clean demos (6.2 expected); Meta-World mw2-dev and mw2-one-dev unchanged.  push-v1-dev audited alone
+  (``democheck audit data/push-v1-dev``; the sweep's ``--only`` rows keep the scores the pooled bench computed
+  with the probes among each task's demos, which an audit of the set alone does not see): 10 of 614 clean
+  demos flagged before, 11 with both (the audit expected 6.1), every bad demo either way -- mostly clean demos
+  whose object ended 10-18 robust SD past their task's other demos.  Fitted on every demo, as before, a share of bad demos widened
   every tail they sat in: with 37% of the demos bad (push-v1-dev + its probes) no clean demo and few bad ones
   were flagged (gave-up 0.66, no-objects 0.08), and a score that alone saw a kind was diluted by the others
   in the ranking.  The tail probabilities are combined by Fisher's method with Brown's correction
