@@ -28,12 +28,12 @@ no-objects and random probes at AUROC 0.42 and 0.64 (below chance for the
 empty scenes), and neither other densities over them, an ensemble of
 encoders, nor an encoder trained to read out the objects' positions did
 better (the model card).  Features trained to reconstruct the cue keep what
-is in it: the same Gaussian over them ranked no-objects 0.994, random 0.986,
-no-action 1.000, hidden 1.000, occluded 0.999 (each kind's mean 8 to 1,500
-clean standard deviations above the clean demos'), after 3,000 steps; 6,000
-steps gave the same (0.993, 0.986, 0.998, 1.000, 0.999).  The reconstruction
-error itself does not (no-objects 0.50, random 0.36: an emptier scene is
-easier to draw).  Before, the conv features had been chosen over the fully
+is in it: the same Gaussian over them ranked no-objects 0.996, random 0.990,
+no-action 0.998, hidden 1.000, occluded 0.997 (each kind's mean 10 to 1,000
+clean standard deviations above the clean demos') after 3,000 steps; 6,000
+steps, twice the time, gave 0.995, 0.993, 0.999, 1.000, 0.999.  The
+reconstruction error itself does not (no-objects 0.54, random 0.43: an
+emptier scene is easier to draw).  ``benchmarks/novelty_features.py``.  Before, the conv features had been chosen over the fully
 connected layers' (their d2 ranked idle and covered cues above real ones,
 AUROC 0.99, 1.00, where the last hidden layer's did not, 0.53, 1.00).
 """
@@ -95,16 +95,18 @@ def autoencoder_steps(n_cues: int, cap: int | None = None) -> int:
 
 
 def train_cue_autoencoder(cues: np.ndarray, cfg: Any, device: torch.device, steps: int, seed: int = 0,
-                          on_progress: Callable[[int, int], None] | None = None) -> tuple[nn.Module, float]:
+                          on_progress: Callable[[int, int], None] | None = None, decoder: nn.Module | None = None
+                          ) -> tuple[nn.Module, float]:
     """A conv stack shaped like the task encoder's (``model.conv_stack``) trained with a decoder of transposed
     convolutions to reconstruct uint8 cues [N, 2, H, W, 3] (mean squared error on the network's input scale,
     Adam, batches of ``AUTOENCODER_BATCH`` drawn by ``seed``); the encoder in eval mode, and the last
-    ``AUTOENCODER_BATCH`` steps' mean loss.  Only the encoder is kept: its features carry the novelty density."""
+    ``AUTOENCODER_BATCH`` steps' mean loss.  Only the encoder is kept: its features carry the novelty density
+    (``decoder``: train this one, e.g. ``_decoder(cfg)``, to keep it; default a new one)."""
     rng = np.random.default_rng([seed, 0xAE])
     with torch.random.fork_rng():
         torch.manual_seed(seed)
         enc = conv_stack(6, cfg).to(device, memory_format=torch.channels_last)
-        dec = _decoder(cfg).to(device)
+        dec = (_decoder(cfg) if decoder is None else decoder).to(device)
     opt = torch.optim.Adam(list(enc.parameters()) + list(dec.parameters()), lr=AUTOENCODER_LR)
     recent: list[float] = []
     with torch.enable_grad():  # a caller may hold no_grad (evaluation code fits densities too)

@@ -1,0 +1,77 @@
+"""Which features should the novelty density be over?  The measurement behind the cue autoencoder
+(``democheck/petnet/novelty.py``).
+
+    python benchmarks/novelty_features.py --train data/push-v1 --sets data/push-v1-dev,data/push-v1-dev-probes \
+        [--steps 3000] [--model petnet-push-v1]
+
+Trains the cue autoencoder on the training split's cues (``novelty.train_cue_autoencoder``, ``--steps``), fits one
+Gaussian (Ledoit-Wolf) over its encoder's features of those cues and one over the model's own conv features, each
+referenced to the val split's cues at ``novelty.QUANTILE``, and prints, on the ``--sets`` datasets pooled (their
+cues; no kind is fitted on), the AUROC of each labelled kind against the clean demos and how many clean standard
+deviations its mean lies above the clean mean, for: the autoencoder's d2, the model's own conv features' d2, and the
+autoencoder's reconstruction error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from sklearn.covariance import LedoitWolf
+
+from democheck.data import open_dataset
+from democheck.data.cache import build_cache
+from democheck.petnet.batches import task_rows
+from democheck.petnet.checkpoint import load_checkpoint
+from democheck.petnet.model import cue_input
+from democheck.petnet.novelty import QUANTILE, _decoder, _features, conv_features, train_cue_autoencoder
+from object_encoder import auroc_table
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--train", required=True)
+    ap.add_argument("--sets", required=True, help="comma-separated labelled datasets to report on, pooled")
+    ap.add_argument("--steps", type=int, default=3000)
+    ap.add_argument("--model", default="petnet-push-v1")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    cpu = torch.device("cpu")
+    ckpt = load_checkpoint(args.model)
+    arrays = build_cache(open_dataset(args.train, image_size=ckpt.config.image_size))
+    seed = int(ckpt.meta.get("training", {}).get("seed", 0))
+    train = arrays.cue(np.concatenate(list(task_rows(arrays, "train", seed).values())))
+    val = arrays.cue(np.concatenate(list(task_rows(arrays, "val", seed).values())))
+    t0 = time.perf_counter()
+    torch.manual_seed(args.seed)
+    decoder = _decoder(ckpt.config)  # trained beside the encoder; kept here for the reconstruction error
+    conv, loss = train_cue_autoencoder(train, ckpt.config, cpu, args.steps, args.seed, decoder=decoder)
+    print(f"cue autoencoder: {args.steps} steps, final loss {loss:.4f}, {time.perf_counter() - t0:.0f} s")
+    own = lambda cues: conv_features(ckpt.model.encoder, cues, cpu)[0]  # noqa: E731
+    ae = lambda cues: _features(conv, cues, cpu)  # noqa: E731
+    fits = {}
+    for name, feats in (("autoencoder d2", ae), ("own conv d2", own)):
+        density = LedoitWolf().fit(feats(train).astype(np.float64))
+        ref = float(np.quantile(density.mahalanobis(feats(val).astype(np.float64)), QUANTILE))
+        fits[name] = (feats, density, ref)
+    cues, labels = [], []
+    for path in args.sets.split(","):
+        ds = open_dataset(path, image_size=ckpt.config.image_size)
+        cues.append(ds.cue_frames_many(ds.episode_indices))
+        eps = ds.episodes
+        labels.append(eps["label"].fillna("clean").to_numpy() if "label" in eps else np.full(len(eps), "clean"))
+    x, lab = np.concatenate(cues), np.concatenate(labels)
+    values = {name: density.mahalanobis(feats(x).astype(np.float64)) / ref for name, (feats, density, ref) in fits.items()}
+    with torch.no_grad():
+        err = []
+        for s in range(0, len(x), 256):
+            inp = cue_input(torch.from_numpy(x[s:s + 256]))
+            err.append(((decoder(conv(inp)) - inp) ** 2).mean((1, 2, 3)).numpy())
+    values["reconstruction error"] = np.concatenate(err)
+    auroc_table(args.sets, values, lab)
+
+
+if __name__ == "__main__":
+    main()
