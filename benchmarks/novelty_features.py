@@ -26,7 +26,7 @@ from democheck.data.cache import build_cache
 from democheck.petnet.batches import task_rows
 from democheck.petnet.checkpoint import load_checkpoint
 from democheck.petnet.model import cue_input
-from democheck.petnet.novelty import QUANTILE, _decoder, _features, conv_features, train_cue_autoencoder
+from democheck.petnet.novelty import QUANTILE, conv_features, cue_decoder, stack_features, train_cue_autoencoder
 from object_encoder import auroc_table
 
 
@@ -46,11 +46,11 @@ def main() -> None:
     val = arrays.cue(np.concatenate(list(task_rows(arrays, "val", seed).values())))
     t0 = time.perf_counter()
     torch.manual_seed(args.seed)
-    decoder = _decoder(ckpt.config)  # trained beside the encoder; kept here for the reconstruction error
+    decoder = cue_decoder(ckpt.config)  # trained beside the encoder; kept here for the reconstruction error
     conv, loss = train_cue_autoencoder(train, ckpt.config, cpu, args.steps, args.seed, decoder=decoder)
     print(f"cue autoencoder: {args.steps} steps, final loss {loss:.4f}, {time.perf_counter() - t0:.0f} s")
     own = lambda cues: conv_features(ckpt.model.encoder, cues, cpu)[0]  # noqa: E731
-    ae = lambda cues: _features(conv, cues, cpu)  # noqa: E731
+    ae = lambda cues: stack_features(conv, cues, cpu)  # noqa: E731
     fits = {}
     for name, feats in (("autoencoder d2", ae), ("own conv d2", own)):
         density = LedoitWolf().fit(feats(train).astype(np.float64))

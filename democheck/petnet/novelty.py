@@ -33,9 +33,10 @@ no-action 0.998, hidden 1.000, occluded 0.997 (each kind's mean 10 to 1,000
 clean standard deviations above the clean demos') after 3,000 steps; 6,000
 steps, twice the time, gave 0.995, 0.993, 0.999, 1.000, 0.999.  The
 reconstruction error itself does not (no-objects 0.54, random 0.43: an
-emptier scene is easier to draw).  ``benchmarks/novelty_features.py``.  Before, the conv features had been chosen over the fully
-connected layers' (their d2 ranked idle and covered cues above real ones,
-AUROC 0.99, 1.00, where the last hidden layer's did not, 0.53, 1.00).
+emptier scene is easier to draw).  ``benchmarks/novelty_features.py``.
+Before, the conv features had been chosen over the fully connected layers'
+(their d2 ranked idle and covered cues above real ones, AUROC 0.99, 1.00,
+where the last hidden layer's did not, 0.53, 1.00).
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ def conv_features(encoder: torch.nn.Module, cues: np.ndarray, device: torch.devi
 
 
 @torch.no_grad()
-def _features(conv: nn.Module, cues: np.ndarray, device: torch.device, chunk: int = 256) -> np.ndarray:
+def stack_features(conv: nn.Module, cues: np.ndarray, device: torch.device, chunk: int = 256) -> np.ndarray:
     """A conv stack's flattened features [N, D] of uint8 cues [N, 2, H, W, 3]."""
     out = [conv(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device))).float().cpu().numpy()
            for s in range(0, len(cues), chunk)]
@@ -101,12 +102,12 @@ def train_cue_autoencoder(cues: np.ndarray, cfg: Any, device: torch.device, step
     convolutions to reconstruct uint8 cues [N, 2, H, W, 3] (mean squared error on the network's input scale,
     Adam, batches of ``AUTOENCODER_BATCH`` drawn by ``seed``); the encoder in eval mode, and the last
     ``AUTOENCODER_BATCH`` steps' mean loss.  Only the encoder is kept: its features carry the novelty density
-    (``decoder``: train this one, e.g. ``_decoder(cfg)``, to keep it; default a new one)."""
+    (``decoder``: train this one, e.g. ``cue_decoder(cfg)``, to keep it; default a new one)."""
     rng = np.random.default_rng([seed, 0xAE])
     with torch.random.fork_rng():
         torch.manual_seed(seed)
         enc = conv_stack(6, cfg).to(device, memory_format=torch.channels_last)
-        dec = (_decoder(cfg) if decoder is None else decoder).to(device)
+        dec = (cue_decoder(cfg) if decoder is None else decoder).to(device)
     opt = torch.optim.Adam(list(enc.parameters()) + list(dec.parameters()), lr=AUTOENCODER_LR)
     recent: list[float] = []
     with torch.enable_grad():  # a caller may hold no_grad (evaluation code fits densities too)
@@ -134,7 +135,7 @@ def _fit(enc: nn.Module, dec: nn.Module, opt: torch.optim.Optimizer, cues: np.nd
             on_progress(step, steps)
 
 
-def _decoder(cfg: Any) -> nn.Sequential:
+def cue_decoder(cfg: Any) -> nn.Sequential:
     """From the conv stack's flattened [C * s * s] features back to a [6, H, W] cue: one 4x4 transposed
     convolution that doubles the side per conv layer, ReLU between them."""
     side = int(round((conv_out_dim(cfg) / cfg.conv_channels) ** 0.5))
@@ -178,7 +179,7 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     own, mus, var_task = conv_features(encoder, train_cues, device)
     if steps > 0:
         conv, ae["loss"] = train_cue_autoencoder(train_cues, model.cfg, device, steps, seed, on_progress)
-        feats, held = _features(conv, train_cues, device), _features(conv, held_out_cues, device)
+        feats, held = stack_features(conv, train_cues, device), stack_features(conv, held_out_cues, device)
     else:
         conv, feats, held = None, own, conv_features(encoder, held_out_cues, device)[0]
     density = LedoitWolf().fit(feats.astype(np.float64))
