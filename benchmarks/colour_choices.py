@@ -1,4 +1,4 @@
-"""The development-set sweep behind the ``colours`` check (``democheck.audit.modelfree``) and the ranking's
+"""The development-set sweep behind the ``colours`` check (``democheck.audit.colours``) and the ranking's
 core-centred calibration (``scores.calibrated`` with ``core``).
 
     python benchmarks/colour_choices.py BENCH_DIR [BENCH_DIR ...] [--only DATASET]
@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 from suspicion_choices import aurocs, bench_tables
 
-from democheck.audit import modelfree, scorers, scores
+from democheck.audit import colours, scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence, ranking_z
 from democheck.data import open_dataset
 
@@ -34,29 +34,29 @@ MODES = ("add", "max", "replace")
 
 def colour_shares(table: pd.DataFrame, levels: int) -> tuple[np.ndarray, np.ndarray]:
     """([N, levels ** 3] colour shares, [N] one pixel's share) of every row, as ``ColourStats`` makes them."""
-    old, modelfree.COLOUR_LEVELS = modelfree.COLOUR_LEVELS, levels
+    old, colours.COLOUR_LEVELS = colours.COLOUR_LEVELS, levels
     try:
         shares, pixel = np.zeros((len(table), levels ** 3)), np.zeros(len(table))
         for path, rows in table.groupby("dataset").groups.items():
-            ds, stats = open_dataset(path), modelfree.ColourStats()
+            ds, stats = open_dataset(path), colours.ColourStats()
             for i in rows:
                 stats.add(ds[int(table.at[i, "source_index"])])
             shares[np.asarray(rows)], pixel[np.asarray(rows)] = stats.arrays()
         return shares, pixel
     finally:
-        modelfree.COLOUR_LEVELS = old
+        colours.COLOUR_LEVELS = old
 
 
 def colour_score(shares: np.ndarray, pixel: np.ndarray, tasks: np.ndarray, floor: float, form: str) -> np.ndarray:
-    """The colour score with this floor and form, in robust SD within the task (as ``modelfree.colours``)."""
-    old, modelfree.COLOUR_FLOOR = modelfree.COLOUR_FLOOR, floor
+    """The colour score with this floor and form, in robust SD within the task (as ``colours.colours``)."""
+    old, colours.COLOUR_FLOOR = colours.COLOUR_FLOOR, floor
     try:
-        z = modelfree.colour_z(shares, pixel, tasks)[0]
+        z = colours.colour_z(shares, pixel, tasks)[0]
     finally:
-        modelfree.COLOUR_FLOOR = old
+        colours.COLOUR_FLOOR = old
     with np.errstate(all="ignore"):
         raw = np.sqrt(np.nanmean(z ** 2, axis=1)) if form == "rms" else np.nanmax(z, axis=1)
-    return scores.calibrated(raw, tasks, min_scale=modelfree.COLOUR_MIN_SCALE)
+    return scores.calibrated(raw, tasks, min_scale=colours.COLOUR_MIN_SCALE)
 
 
 def judged(table: pd.DataFrame, colour: np.ndarray | None, mode: str, centring: str, model_free: bool) -> str:

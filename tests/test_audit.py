@@ -140,12 +140,12 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
     # The model has a novelty density: each demo's d2 / d2_ref, which scales the novelty part of its variance.
     from democheck.data import open_dataset
     from democheck.petnet.checkpoint import load_checkpoint
-    from democheck.petnet.novelty import conv_features
+    from democheck.petnet.novelty import stack_features
 
     enc = load_checkpoint(tiny_model).model.encoder
     ds = open_dataset(root)
-    feats = conv_features(enc, ds.cue_frames_many(table["episode_index"].tolist()), torch.device("cpu"),
-                          novelty=True)[0]
+    assert enc.cfg.novelty_autoencoder  # democheck train's default: the density is over its autoencoder's features
+    feats = stack_features(enc.novelty_conv, ds.cue_frames_many(table["episode_index"].tolist()), torch.device("cpu"))
     want = (enc.distance2(torch.from_numpy(feats)) / enc.novelty_ref).numpy()
     np.testing.assert_allclose(table["novelty"].to_numpy(), want, rtol=1e-4)
     csv = pd.read_csv(tmp_path / "r" / "scores.csv")

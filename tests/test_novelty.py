@@ -15,7 +15,7 @@ from democheck.errors import DemocheckError
 from democheck.petnet.card import model_card
 from democheck.petnet.checkpoint import load_checkpoint
 from democheck.petnet.model import ModelConfig, build_model, cue_input
-from democheck.petnet.novelty import QUANTILE, conv_features, fit_novelty
+from democheck.petnet.novelty import QUANTILE, conv_features, fit_novelty, stack_features
 from democheck.petnet.finish import nonsense_cues
 from democheck.petnet.train import TrainConfig, train
 
@@ -87,11 +87,13 @@ def test_distance_is_sklearn_mahalanobis_and_prior_is_the_variance_of_z(autoenco
     train_cues, held = _cues(200, seed=3), _cues(40, seed=4)
     stats = fit_novelty(model, train_cues, held, CPU, autoencoder=autoencoder)
     # The density is over the autoencoder's features where there is one, else the task encoder's own.
-    feats, mus, var_task = conv_features(model.encoder, train_cues, CPU, novelty=True)
-    own = conv_features(model.encoder, train_cues, CPU)[0]
+    own, mus, var_task = conv_features(model.encoder, train_cues, CPU)
+    assert hasattr(model.encoder, "novelty_conv") == (autoencoder != 0)
+    conv = model.encoder.novelty_conv if autoencoder else model.encoder.conv
+    feats = stack_features(conv, train_cues, CPU)
     assert np.array_equal(feats, own) == (autoencoder == 0)
     lw = LedoitWolf().fit(feats.astype(np.float64))
-    held_feats = conv_features(model.encoder, held, CPU, novelty=True)[0]
+    held_feats = stack_features(conv, held, CPU)
     want = lw.mahalanobis(held_feats.astype(np.float64))
     got = model.encoder.distance2(torch.from_numpy(held_feats)).numpy()
     np.testing.assert_allclose(got, want, rtol=1e-3)

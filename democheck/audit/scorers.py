@@ -25,7 +25,7 @@ import pandas as pd
 
 from democheck.audit.baselines import (HEURISTIC_FEATURES, heuristic_z, knn_same_task, motion_features, random_score,
                                        summarise_motion)
-from democheck.audit import dynamics, modelfree, outcome
+from democheck.audit import colours, dynamics, modelfree, outcome
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_parts, ocsvm_margin,
                                     rank_order, robust_tails)
@@ -269,7 +269,7 @@ def _view(ev: Evidence) -> Scores:
 
 
 def _colours(ev: Evidence) -> Scores:
-    return modelfree.colours(ev.behaviour["colours"], ev.tasks)
+    return colours.colours(ev.behaviour["colours"], ev.tasks)
 
 
 def _idle(ev: Evidence) -> Scores:
@@ -392,10 +392,10 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
     Scorer("colours", "model-free: how differently from its task's other demos the frames are coloured, wherever "
            f"the colours are in the view (every {modelfree.VIEW_EVERY}th frame's pixels in "
-           f"{modelfree.COLOUR_LEVELS ** 3} colour bins, each bin's log share in robust SD within its task, RMS "
+           f"{colours.COLOUR_LEVELS ** 3} colour bins, each bin's log share in robust SD within its task, RMS "
            "over the colours shown): an object missing or another one, a covered camera; robust z within its "
            "task", ("demos",), _colours, in_suspicion=True, in_robust_sd=True,
-           decode=lambda ev, rows, device: modelfree.ColourStats(), short="colour"),
+           decode=lambda ev, rows, device: colours.ColourStats(), short="colour"),
     Scorer("outcome", "model-free: how differently from its task's other demos the demo left the world (the "
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "
            "z within its task)", ("demos",), _outcome, in_suspicion=True,

@@ -41,6 +41,7 @@ where the last hidden layer's did not, 0.53, 1.00).
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any, Callable
 
 import numpy as np
@@ -65,15 +66,13 @@ AUTOENCODER_LR = 1e-3
 
 
 @torch.no_grad()
-def conv_features(encoder: torch.nn.Module, cues: np.ndarray, device: torch.device, chunk: int = 256,
-                  novelty: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(flattened conv features [N, D], the head's task means and variances [N, z]) of uint8 cues [N, 2, H, W, 3];
-    with ``novelty``, the features the novelty density is over (``TaskEncoder.novelty_features``)."""
+def conv_features(encoder: torch.nn.Module, cues: np.ndarray, device: torch.device, chunk: int = 256
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(flattened conv features [N, D], the head's task means and variances [N, z]) of uint8 cues [N, 2, H, W, 3]."""
     feats, mus, var_task = [], [], []
     for s in range(0, len(cues), chunk):
-        x = cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device))
-        h = encoder.conv(x)
-        feats.append((encoder.novelty_features(x, h) if novelty else h).float().cpu().numpy())
+        h = encoder.conv(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device)))
+        feats.append(h.float().cpu().numpy())
         mu, var = encoder.head_posterior(h)
         mus.append(mu.cpu().numpy())
         var_task.append(var.cpu().numpy())
@@ -109,30 +108,22 @@ def train_cue_autoencoder(cues: np.ndarray, cfg: Any, device: torch.device, step
         enc = conv_stack(6, cfg).to(device, memory_format=torch.channels_last)
         dec = (cue_decoder(cfg) if decoder is None else decoder).to(device)
     opt = torch.optim.Adam(list(enc.parameters()) + list(dec.parameters()), lr=AUTOENCODER_LR)
-    recent: list[float] = []
+    recent: deque[float] = deque(maxlen=AUTOENCODER_BATCH)  # the last steps' losses
     with torch.enable_grad():  # a caller may hold no_grad (evaluation code fits densities too)
-        _fit(enc, dec, opt, cues, rng, device, steps, recent, on_progress)
+        for step in range(1, steps + 1):
+            rows = rng.integers(0, len(cues), size=min(AUTOENCODER_BATCH, len(cues)))
+            x = cue_input(torch.from_numpy(np.ascontiguousarray(cues[np.sort(rows)])).to(device))
+            out = dec(enc(x))
+            if out.shape[-2:] != x.shape[-2:]:  # an image side that halving and doubling do not give back
+                out = F.interpolate(out, size=x.shape[-2:], mode="bilinear", align_corners=False)
+            loss = F.mse_loss(out, x)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            recent.append(float(loss.detach()))
+            if on_progress is not None:
+                on_progress(step, steps)
     return enc.eval(), float(np.mean(recent)) if recent else float("nan")
-
-
-def _fit(enc: nn.Module, dec: nn.Module, opt: torch.optim.Optimizer, cues: np.ndarray, rng: np.random.Generator,
-         device: torch.device, steps: int, recent: list[float], on_progress: Callable[[int, int], None] | None
-         ) -> None:
-    """``train_cue_autoencoder``'s loop; the last ``AUTOENCODER_BATCH`` losses land in ``recent``."""
-    for step in range(1, steps + 1):
-        rows = rng.integers(0, len(cues), size=min(AUTOENCODER_BATCH, len(cues)))
-        x = cue_input(torch.from_numpy(np.ascontiguousarray(cues[np.sort(rows)])).to(device))
-        out = dec(enc(x))
-        if out.shape[-2:] != x.shape[-2:]:  # an image side that halving and doubling do not give back
-            out = F.interpolate(out, size=x.shape[-2:], mode="bilinear", align_corners=False)
-        loss = F.mse_loss(out, x)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        recent.append(float(loss.detach()))
-        del recent[:-AUTOENCODER_BATCH]
-        if on_progress is not None:
-            on_progress(step, steps)
 
 
 def cue_decoder(cfg: Any) -> nn.Sequential:
@@ -181,7 +172,7 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
         conv, ae["loss"] = train_cue_autoencoder(train_cues, model.cfg, device, steps, seed, on_progress)
         feats, held = stack_features(conv, train_cues, device), stack_features(conv, held_out_cues, device)
     else:
-        conv, feats, held = None, own, conv_features(encoder, held_out_cues, device)[0]
+        conv, feats, held = None, own, stack_features(encoder.conv, held_out_cues, device)
     density = LedoitWolf().fit(feats.astype(np.float64))
     if trim > 0:
         d2 = density.mahalanobis(feats.astype(np.float64))
