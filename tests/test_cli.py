@@ -55,3 +55,12 @@ def test_info_cli(tiny_dataset, tmp_path):
     assert res.exit_code == 0 and "lerobot-v3.0" in res.output and "clean: 12" in res.output
     res = runner.invoke(app, ["info", str(tmp_path / "missing")])
     assert res.exit_code == 2 and "no such file" in res.output
+
+
+def test_brackets_survive_help_and_errors(tmp_path, monkeypatch):
+    """Rich reads [word] as markup: the install hint 'democheck[ray]' and a path with brackets must print as written."""
+    for command in ("audit", "synth", "probe"):
+        res = runner.invoke(app, [command, "--help"], env={"COLUMNS": "400"})
+        assert res.exit_code == 0 and "'democheck[ray]'" in res.output, command
+    res = runner.invoke(app, ["info", str(tmp_path / "run[2]")])
+    assert res.exit_code == 2 and "run[2]" in res.output

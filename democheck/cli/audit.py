@@ -37,7 +37,7 @@ def audit(
     keep_list: Annotated[Optional[Path], typer.Option(help="Also write the unflagged episode indices to this file as [0, 2, 5] (what a dataset-editing tool takes).")] = None,
     drop_list: Annotated[Optional[Path], typer.Option(help="Also write the flagged episode indices to this file as [0, 2, 5], e.g. for lerobot-edit-dataset --operation.type delete_episodes --operation.episode_indices \"$(cat FILE)\".")] = None,
     workers: Annotated[Optional[int], typer.Option(help="Processes for the cue pass and the pass that decodes every demo, started once for both (default: the machine's cores; small datasets stay in one). The scores are the same for any number.")] = None,
-    engine: Annotated[str, typer.Option(help="Who reads the cues and decodes the demos: local (worker processes on this machine) or ray (Ray Data actors, one CPU each, --workers of them: a local Ray instance, or the cluster at --ray-address; every node needs democheck and the dataset at the same path). Needs pip install 'democheck[ray]'. The scores are the same.")] = "local",
+    engine: Annotated[str, typer.Option(help="Who reads the cues and decodes the demos: local (worker processes on this machine) or ray (Ray Data actors, one CPU each, --workers of them: a local Ray instance, or the cluster at --ray-address; every node needs democheck and the dataset at the same path). Needs pip install 'democheck\\[ray]'. The scores are the same.")] = "local",
     ray_address: Annotated[Optional[str], typer.Option(help="With --engine ray: the Ray cluster's address (e.g. ray://head:10001 or auto); default: start a local instance.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:

@@ -8,6 +8,7 @@ from typing import Callable, Iterator
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from democheck.errors import DemocheckError
 
@@ -28,7 +29,7 @@ def user_errors() -> Iterator[None]:
     try:
         yield
     except DemocheckError as exc:
-        err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         raise typer.Exit(2) from None
     except KeyboardInterrupt:
         err_console.print("interrupted; nothing was written")

@@ -15,7 +15,7 @@ from democheck.errors import DemocheckError
 ENGINE_HELP = ("Who renders the episodes: local (worker processes on this machine) or ray (Ray Data actors, one CPU "
                "each, --workers of them: a local Ray instance, or the cluster at --ray-address; every node needs "
                "democheck, the input and the output folder's parent at the same path). Needs pip install "
-               "'democheck[ray]'. The files are the same.")
+               "'democheck\\[ray]'. The files are the same.")
 RAY_ADDRESS_HELP = ("With --engine ray: the Ray cluster's address (e.g. ray://head:10001 or auto); default: start a "
                     "local instance.")
 
