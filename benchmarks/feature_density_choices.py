@@ -1,12 +1,12 @@
-"""Can a density over PETNet's encoder features tell an empty or flailing cue from a real one?
+"""Which density over the features the novelty part is fitted on tells an empty or flailing cue from a real one?
 
     python benchmarks/feature_density_choices.py --train data/push-v1 --sets data/push-v1-dev,data/push-v1-dev-probes
 
-The novelty part of the shipped task variance (``democheck/petnet/novelty.py``) is one Gaussian over the
-encoder's flattened conv features: a cue far from the training cues' mean is unfamiliar.  On the probe kinds it
-finds covered views and still arms, but not empty scenes (no-objects) or random arms.  This measures, with the
-model's own conv features and no training, the other densities out-of-distribution work proposes, each a
-score higher = less familiar:
+The novelty part of the task variance (``democheck/petnet/novelty.py``) is one Gaussian over a model's novelty
+features (``TaskEncoder.novelty_features``: its cue autoencoder's, or the task encoder's own conv features for a
+model fitted before the autoencoder): a cue far from the training cues' mean is unfamiliar.  This measures, on the
+same features and with no training, the other densities out-of-distribution work proposes, each a score higher =
+less familiar:
 
 - ``global d2``: the shipped one, squared Mahalanobis distance from the model's fitted Gaussian;
 - ``typicality``: |log d2 - its median over the held-out (val) cues| in their MADs -- a cue *closer* to the
@@ -16,6 +16,9 @@ score higher = less familiar:
   task, or minus the mixture's log density -- an input between the tasks' clusters is far from all of them;
 - ``kNN10 whitened``, ``kNN10 cosine``: the mean distance to the 10 nearest training cues, in the whitened
   feature space or by cosine similarity of the raw features (deep nearest neighbours);
+- ``location max d2``: one Gaussian per position of the feature map (PaDiM), the largest of the positions' d2;
+- ``task uncertainty with D``: the whole task uncertainty (the head's variance plus the novelty part) with the
+  density D's score in place of the shipped d2, each referenced to the held-out cues' ``QUANTILE`` as d2 is;
 - ``shift spread``, ``brightness spread``: not a density -- how far the task mean mu moves when the cue is
   shifted by one or two pixels or made brighter or darker (the mean variance of mu over those versions, in
   units of the cue's own variance for shifts): a cue the encoder reads no task from might be read unsteadily.
@@ -34,13 +37,13 @@ from sklearn.metrics import roc_auc_score
 
 from democheck.data import open_dataset
 from democheck.petnet.checkpoint import load_checkpoint
-from democheck.petnet.novelty import conv_features
+from democheck.petnet.novelty import QUANTILE, conv_features, stack_features
 
 
 def features(encoder, path: str, split: str | None = None, limit: int | None = None, seed: int = 0,
              with_cues: bool = False):
-    """(conv features [N, D] float64, tasks [N], labels [N]) of a dataset's cues (one split, at most ``limit``),
-    and the cues themselves with ``with_cues``."""
+    """(novelty features [N, D] float64, tasks [N], labels [N], the head's variances [N, z]) of a dataset's cues
+    (one split, at most ``limit``), and the cues themselves with ``with_cues``."""
     ds = open_dataset(path)
     episodes = ds.episodes.reset_index()
     if split is not None:
@@ -48,9 +51,11 @@ def features(encoder, path: str, split: str | None = None, limit: int | None = N
     if limit and len(episodes) > limit:
         episodes = episodes.sample(limit, random_state=seed).sort_values("episode_index")
     cues = ds.cue_frames_many(episodes["episode_index"].to_numpy())
-    f = conv_features(encoder, cues, torch.device("cpu"))[0]
+    cpu = torch.device("cpu")
+    f = stack_features(encoder.novelty_features, cues, cpu)
+    var_task = conv_features(encoder, cues, cpu)[2]
     labels = episodes["label"].fillna("clean") if "label" in episodes else np.full(len(episodes), "clean")
-    out = (f.astype(np.float64), episodes["task"].to_numpy(), np.asarray(labels))
+    out = (f.astype(np.float64), episodes["task"].to_numpy(), np.asarray(labels), var_task)
     return (*out, cues) if with_cues else out
 
 
@@ -75,8 +80,8 @@ def squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a ** 2).sum(1)[:, None] - 2.0 * a @ b.T + (b ** 2).sum(1)[None]
 
 
-def densities(encoder, train: np.ndarray, train_tasks: np.ndarray, val: np.ndarray, x: np.ndarray
-              ) -> dict[str, np.ndarray]:
+def densities(encoder, train: np.ndarray, train_tasks: np.ndarray, val: np.ndarray, x: np.ndarray,
+              channels: int) -> dict[str, np.ndarray]:
     mean = encoder.feature_mean.cpu().numpy().astype(np.float64)
     precision = encoder.feature_precision.cpu().numpy().astype(np.float64)
     out = {"global d2": mahalanobis(x, mean, precision)}
@@ -91,10 +96,26 @@ def densities(encoder, train: np.ndarray, train_tasks: np.ndarray, val: np.ndarr
     out["task min d2"] = d.min(1)
     out["task -logsumexp"] = -np.logaddexp.reduce(-d / 2.0, axis=1)
     g = np.linalg.cholesky(precision)
-    out["kNN10 whitened"] = np.sort(squared_distances(x @ g, train @ g), 1)[:, :10].mean(1)
+    near = np.sort(squared_distances(x @ g, train @ g), 1)
+    for k in (1, 10, 50):
+        out[f"kNN{k} whitened"] = near[:, :k].mean(1)
     unit = lambda v: v / np.linalg.norm(v, axis=1, keepdims=True)  # noqa: E731
-    out["kNN10 cosine"] = -np.sort(unit(x) @ unit(train).T, 1)[:, -10:].mean(1)
+    out["kNN10 cosine"] = 1.0 - np.sort(unit(x) @ unit(train).T, 1)[:, -10:].mean(1)
+    out["location max d2"] = location_d2(train, val, x, channels)
     return out
+
+
+def location_d2(train: np.ndarray, val: np.ndarray, x: np.ndarray, channels: int) -> np.ndarray:
+    """PaDiM's image score (Defard et al. 2020): one Gaussian per position of the [channels, s, s] feature map, fitted
+    on the training cues; each position's d2 in units of its held-out cues' ``QUANTILE``; the largest over the
+    positions -- a small thing missing or added somewhere is not averaged away over the whole map."""
+    maps = [f.reshape(len(f), channels, -1) for f in (train, val, x)]
+    per_position = []
+    for pos in range(maps[0].shape[2]):
+        fit = LedoitWolf().fit(maps[0][:, :, pos])
+        ref = np.quantile(fit.mahalanobis(maps[1][:, :, pos]), QUANTILE)
+        per_position.append(fit.mahalanobis(maps[2][:, :, pos]) / ref)
+    return np.max(per_position, axis=0)
 
 
 def main() -> None:
@@ -110,18 +131,25 @@ def main() -> None:
     encoder = model.encoder
     if not hasattr(encoder, "feature_mean"):
         raise SystemExit("the model has no novelty density (democheck fit-novelty gives it one)")
-    train, train_tasks, _ = features(encoder, args.train, "train", args.train_cues)
+    train, train_tasks, _, _ = features(encoder, args.train, "train", args.train_cues)
     val = features(encoder, args.train, "val")[0]
     parts = [features(encoder, p, with_cues=True) for p in args.sets.split(",")]
     x, labels = np.concatenate([p[0] for p in parts]), np.concatenate([p[2] for p in parts])
-    cues = np.concatenate([p[3] for p in parts])
+    var_task, cues = np.concatenate([p[3] for p in parts]), np.concatenate([p[4] for p in parts])
+    prior_var = encoder.prior_var.cpu().numpy().astype(np.float64)
     kinds = sorted(set(labels) - {"clean"})
     print(f"{len(train)} training cues of {len(np.unique(train_tasks))} tasks, {len(val)} held-out, {len(x)} scored")
-    print(f"{'score':<18}" + "".join(f"{k[:12]:>13}" for k in kinds))
-    for name, s in (densities(encoder, train, train_tasks, val, x) | test_time_spread(model, cues)).items():
+    print(f"{'score':<40}" + "".join(f"{k[:12]:>13}" for k in kinds))
+    channels = model.cfg.conv_channels
+    scored = densities(encoder, train, train_tasks, val, x, channels)
+    held = densities(encoder, train, train_tasks, val, val, channels)
+    for name in list(scored):
+        ref = np.quantile(held[name], QUANTILE)  # as the novelty part is referenced (``fit_novelty``)
+        scored[f"task uncertainty with {name}"] = np.sqrt(var_task + prior_var * (scored[name] / ref)[:, None]).mean(1)
+    for name, s in (scored | test_time_spread(model, cues)).items():
         row = [roc_auc_score(labels[np.isin(labels, ["clean", k])] == k, s[np.isin(labels, ["clean", k])])
                for k in kinds]
-        print(f"{name:<18}" + "".join(f"{r:13.3f}" for r in row))
+        print(f"{name:<40}" + "".join(f"{r:13.3f}" for r in row))
 
 
 if __name__ == "__main__":

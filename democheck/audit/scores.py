@@ -81,7 +81,22 @@ Every score is one number per demo, higher = more suspect:
   copies and demos that end where their task's others do not), every bad demo.  Bad demos left in the core
   (a kind only weakly seen) take its top ranks: the flags are then fewer than asked for, never more -- without
   a model, push-v1-dev's gave-up demos are flagged 0.66 (0.92 by the combined probability's level, which
-  there flags 0.98% of the clean demos).  Exact copies of another demo are flagged too.  The paper's linear
+  there flags 0.98% of the clean demos).  How much that varies from draw to draw (``benchmarks/flag_choices.py``
+  on benches of push-v1-dev's recipe at seeds 2, 3 and 4 with their probes pooled in, and on audits of each set
+  alone): gave-up flagged 1.00, 0.97, 1.00 pooled (the core holding 4, 8, 3 bad demos) and 1.00, 0.97, 1.00
+  alone; no-objects 1.00, 0.96, 1.00; 5, 5, 8 clean demos flagged pooled and 11, 7, 8 alone (6.1-6.2
+  expected); the fresh draw no choice was made on (seed 29, its core holding 15 bad demos) 0.84 and 2.  Measured
+  there and not kept: the flag level extrapolated from the core's bulk instead of read off its top (log10 of
+  its survival function fitted as a line between two of its quantiles -- bad demos left in the core sit at its
+  top, the bulk is clean): between the 90th and 98th percentiles every bad demo of every push draw flagged, but
+  7-10 clean demos pooled and 9 alone (up to 1.6%), and Meta-World mw2-dev's clean demos 3.5% against 2.5%
+  (the clean tail beyond the bulk is heavier than the line); lower quantile pairs flagged more.  And each
+  score's tail above its core's 80th, 90th or 95th percentile refitted by peaks over threshold (an exponential
+  whose scale is the core's mean excess, so that a score with a light clean tail -- the idle share of a
+  scripted expert, where a gave-up demo sits 4.6-6.6 robust SD out and the clean demos at most 3.8 -- is not
+  valued by the heavy tail its quartiles imply): the lighter tails put a third of the demos under ``CORE_P``,
+  the core fell back to every demo, and the flags collapsed (90th: push-v1-dev pooled gave-up 0.24,
+  no-objects 0.00; 95th: 0.97 and 0.98 there, but 0.84 and 0.72 on seed 3).  Exact copies of another demo are flagged too.  The paper's linear
   one-class SVM stays a column (``ocsvm_margin``) and a bench scorer (``ocsvm_flag``): fitted on the training
   demos' precisions 1/sigma^2, it sees sigma only, which barely moves for an idle or flailing arm.
 """
