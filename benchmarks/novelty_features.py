@@ -2,7 +2,7 @@
 (``democheck/petnet/novelty.py``).
 
     python benchmarks/novelty_features.py --train data/push-v1 --sets data/push-v1-dev,data/push-v1-dev-probes \
-        [--steps 3000] [--model petnet-push-v1] [--seed 0] [--ensemble 1,2] [--frames 20000]
+        [--steps 3000] [--model petnet-push-v1] [--seed 0] [--ensemble 1,2] [--frames 20000] [--partial 0.5,3]
 
 Trains the cue autoencoder on the training split's cues (``novelty.train_cue_autoencoder``, ``--steps``), fits one
 Gaussian (Ledoit-Wolf) over its encoder's features of those cues and one over the model's own conv features, each
@@ -15,7 +15,9 @@ autoencoder's accidents see more?).  ``--frames N``: a *frame* autoencoder too, 
 step of the training split's demos (each fed as a cue of that frame twice, so the same code trains it), its
 Gaussian over their features; a cue scored by the d2 of its first frame, of its last, their larger, and that
 added to or maxed with the cue autoencoder's d2 -- the arm in every pose a demo passes through is familiar, an
-arm-less or empty picture is not.
+arm-less or empty picture is not.  ``--partial FROM,PER``: a cue autoencoder trained on the training cues and PER
+partial cues of each training demo (its first frame and a frame drawn from the last 1 - FROM of it), its Gaussian
+fitted on the true cues: the arm stretched mid-push becomes familiar in the last frame's place.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--ensemble", default="", help="comma-separated seeds of more autoencoders, averaged with --seed's")
     ap.add_argument("--frames", type=int, default=0, help="also a frame autoencoder on this many training frames")
+    ap.add_argument("--partial", default="", help="FROM,PER: also a cue autoencoder trained with partial cues too")
     args = ap.parse_args()
     cpu = torch.device("cpu")
     ckpt = load_checkpoint(args.model)
@@ -60,6 +63,14 @@ def main() -> None:
     own = lambda cues: conv_features(ckpt.model.encoder, cues, cpu)[0]  # noqa: E731
     ae = lambda cues: stack_features(conv, cues, cpu)  # noqa: E731
     members = []
+    if args.partial:
+        start, per = float(args.partial.split(",")[0]), int(args.partial.split(",")[1])
+        rows = np.repeat(np.concatenate(list(task_rows(arrays, "train", seed).values())), per)
+        rng = np.random.default_rng(args.seed)
+        end = ((start + (1 - start) * rng.random(len(rows))) * (arrays.lengths[rows] - 1)).astype(np.int64)
+        conv_p = train_cue_autoencoder(np.concatenate([train, arrays.cue(rows, end)]), ckpt.config, cpu, args.steps,
+                                       args.seed)[0]
+        members.append((f"autoencoder d2, partial cues {args.partial}", lambda cues: stack_features(conv_p, cues, cpu)))
     for seed_m in [int(v) for v in args.ensemble.split(",") if v]:
         conv_m = train_cue_autoencoder(train, ckpt.config, cpu, args.steps, seed_m)[0]
         members.append((f"autoencoder d2, seed {seed_m}", lambda cues, c=conv_m: stack_features(c, cues, cpu)))
@@ -76,8 +87,9 @@ def main() -> None:
         labels.append(eps["label"].fillna("clean").to_numpy() if "label" in eps else np.full(len(eps), "clean"))
     x, lab = np.concatenate(cues), np.concatenate(labels)
     values = {name: density.mahalanobis(feats(x).astype(np.float64)) / ref for name, (feats, density, ref) in fits.items()}
-    if members:
-        values["ensemble mean d2"] = np.mean([values["autoencoder d2"]] + [values[n] for n, _ in members], axis=0)
+    seeds = [n for n, _ in members if ", seed " in n]
+    if seeds:
+        values["ensemble mean d2"] = np.mean([values["autoencoder d2"]] + [values[n] for n in seeds], axis=0)
     with torch.no_grad():
         err = []
         for s in range(0, len(x), 256):
