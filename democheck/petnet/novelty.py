@@ -33,10 +33,13 @@ no-action 0.998, hidden 1.000, occluded 0.997 (each kind's mean 10 to 1,000
 clean standard deviations above the clean demos') after 3,000 steps; 6,000
 steps, twice the time, gave 0.995, 0.993, 0.999, 1.000, 0.999.  The
 reconstruction error itself does not (no-objects 0.54, random 0.43: an
-emptier scene is easier to draw).  ``benchmarks/novelty_features.py``.  Over the autoencoder's features, other
-densities (per task, nearest neighbours, per position), an ensemble of three autoencoders, a frame autoencoder
-trained on every step of the demos and one trained on partial cues too read random probes no higher (0.95-0.99 on three development draws; the model
-card): a flung arm's cue is about as unusual to them as the most unusual clean cues of new tasks.
+emptier scene is easier to draw).  ``benchmarks/novelty_features.py``.  Over the
+autoencoder's features, other densities (per task, nearest neighbours, per
+position), an ensemble of three autoencoders, a frame autoencoder trained on
+every step of the demos and one trained on partial cues too read random
+probes no higher (0.95-0.99 on three development draws; the model card): a
+flung arm's cue is about as unusual to them as the most unusual clean cues of
+new tasks.
 Before, the conv features had been chosen over the fully connected layers'
 (their d2 ranked idle and covered cues above real ones, AUROC 0.99, 1.00,
 where the last hidden layer's did not, 0.53, 1.00).
