@@ -96,7 +96,12 @@ Every score is one number per demo, higher = more suspect:
   scripted expert, where a gave-up demo sits 4.6-6.6 robust SD out and the clean demos at most 3.8 -- is not
   valued by the heavy tail its quartiles imply): the lighter tails put a third of the demos under ``CORE_P``,
   the core fell back to every demo, and the flags collapsed (90th: push-v1-dev pooled gave-up 0.24,
-  no-objects 0.00; 95th: 0.97 and 0.98 there, but 0.84 and 0.72 on seed 3).  Exact copies of another demo are flagged too.  The paper's linear
+  no-objects 0.00; 95th: 0.97 and 0.98 there, but 0.84 and 0.72 on seed 3).  Nor, the core found as now, each
+  score's tail probability taken again as its rank among the core's values (an exponential beyond the core's
+  largest): with a model the flags moved by one demo either way (seed 3 alone gave-up 0.97 -> 1.00; seed 2
+  pooled wrong-object 1.00 -> 0.95, 7 clean against 5), without one the ranking lost no-objects (0.96 ->
+  0.87 pooled): ranks among a core that holds the bad demos a kind is not seen by value them as the core does.
+  Exact copies of another demo are flagged too.  The paper's linear
   one-class SVM stays a column (``ocsvm_margin``) and a bench scorer (``ocsvm_flag``): fitted on the training
   demos' precisions 1/sigma^2, it sees sigma only, which barely moves for an idle or flailing arm.
 """
