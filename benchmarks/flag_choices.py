@@ -18,10 +18,10 @@ kind's share flagged; the ``nm`` rows rank the model-free scores alone.  The var
   exponential whose scale is the core's mean excess over u (its maximum-likelihood fit), spliced to the shipped
   tail at u -- so that a score whose clean tail is light (the idle share of a scripted expert) is not valued by
   the heavy tail its quartiles imply.  (The ranking, the core and the flags change.)
-- ``empirical, B``: the core found as shipped, then each score's tail probability its rank among the core's
-  values, and beyond the core's largest an exponential whose scale is the shipped one (B = quartiles) or the core's
-  mean excess over its 90th percentile (B = top decile): every score valued by what the core's demos actually
-  show, as far as they reach.  (The ranking and the flags change; the core does not.)
+- ``empirical``: the core found as shipped, then each score's tail probability its rank among the core's values,
+  and beyond the core's largest the shipped exponential's fall (``calibration_choices.empirical_tails``): every
+  score valued by what the core's demos actually show, as far as they reach.  (The ranking and the flags change;
+  the core does not.)
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ import pandas as pd
 
 from democheck.audit import scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence, ranking_z
+from calibration_choices import empirical_tails
 from suspicion_choices import aurocs
 
 FPR = 0.01
@@ -66,35 +67,10 @@ def pot_tails(q: float):
     return tails
 
 
-def empirical_tails(z: np.ndarray, core: np.ndarray, beyond: str) -> np.ndarray:
-    """Each column's tail probability as its rank among the core's values, (1 + #{core >= x}) / (1 + n); beyond the
-    core's largest an exponential from 1 / (1 + n), its scale the shipped one through the quartiles (``beyond``
-    "quartiles") or the core's mean excess over its 90th percentile ("top decile")."""
-    out = SHIPPED_TAILS(z, core)
-    lo, hi = scores.TAIL_QUANTILES
-    for k in range(z.shape[1]):
-        x = z[:, k]
-        f = np.sort(x[np.isfinite(x) & core])
-        if len(f) < 20:
-            continue
-        if beyond == "quartiles":
-            q_lo, q_hi = np.quantile(f, [lo, hi])
-            beta = (q_hi - q_lo) / np.log((1 - lo) / (1 - hi))
-        else:
-            u = np.quantile(f, 0.9)
-            beta = float((f[f > u] - u).mean()) if (f > u).any() else 0.0
-        beta = max(beta, scores.TAIL_MIN_SCALE)
-        with np.errstate(all="ignore"):
-            rank = np.log((1 + len(f) - np.searchsorted(f, x, side="left")) / (1 + len(f)))
-            far = -np.log(1 + len(f)) - (x - f[-1]) / beta
-        out[:, k] = np.where(np.isnan(x), np.nan, np.where(x == np.inf, -np.inf, np.where(x > f[-1], far, rank)))
-    return out
-
-
-def combined(table: pd.DataFrame, model_free: bool, tails=SHIPPED_TAILS, final: str | None = None
+def combined(table: pd.DataFrame, model_free: bool, tails=SHIPPED_TAILS, empirical: bool = False
              ) -> tuple[np.ndarray, np.ndarray]:
     """(suspicion, robust core) of a score table, as the audit computes them, with ``tails`` for the tails; with
-    ``final``, the core found so, then the tails taken again from it by ``empirical_tails`` (``beyond=final``)."""
+    ``empirical``, the core found so, then the tails taken again from it by ``calibration_choices.empirical_tails``."""
     values = {c: table[c].to_numpy(float) for c in table if c in SCORERS}
     names = scorers.ranked(values, table["task"].to_numpy(), model_free)
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=values)
@@ -103,8 +79,8 @@ def combined(table: pd.DataFrame, model_free: bool, tails=SHIPPED_TAILS, final: 
         log_p, core = scores.robust_tails(lambda c: ranking_z(ev, names, c))
     finally:
         scores.tail_probabilities = SHIPPED_TAILS
-    if final is not None:
-        log_p = empirical_tails(ranking_z(ev, names, core), core, final)
+    if empirical:
+        log_p = empirical_tails(ranking_z(ev, names, core), core)
     return -scores.combined_log10(log_p), core
 
 
@@ -147,9 +123,8 @@ def main() -> None:
             for q in POT_QUANTILES:
                 s_q, core_q = combined(table, model_free, pot_tails(q))
                 show(f"{who}tail POT {q:g}", s_q, core_q, scores.conformal_p(s_q, core_q) <= FPR)
-            for beyond in ("quartiles", "top decile"):
-                s_e, core_e = combined(table, model_free, final=beyond)
-                show(f"{who}empirical, {beyond}", s_e, core_e, scores.conformal_p(s_e, core_e) <= FPR)
+            s_e, core_e = combined(table, model_free, empirical=True)
+            show(f"{who}empirical", s_e, core_e, scores.conformal_p(s_e, core_e) <= FPR)
 
 
 if __name__ == "__main__":
