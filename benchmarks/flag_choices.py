@@ -45,7 +45,6 @@ SHIPPED_TAILS = scores.tail_probabilities
 
 def pot_tails(q: float):
     """``scores.tail_probabilities`` with each column's tail above its core's ``q`` quantile refitted (see above)."""
-    lo, hi = scores.TAIL_QUANTILES
 
     def tails(z: np.ndarray, core: np.ndarray | None = None) -> np.ndarray:
         out = SHIPPED_TAILS(z, core)
@@ -58,9 +57,8 @@ def pot_tails(q: float):
             u = np.quantile(f, q)
             excess = f[f > u] - u
             beta = max(float(excess.mean()) if len(excess) else 0.0, scores.TAIL_MIN_SCALE)
-            q_lo, q_hi = np.quantile(f, [lo, hi])
-            beta0 = max((q_hi - q_lo) / np.log((1 - lo) / (1 - hi)), scores.TAIL_MIN_SCALE)
-            at_u = min(np.log(1 - lo) - (u - q_lo) / beta0, 0.0)  # the shipped tail's value at u
+            # The shipped tail's value at u: u as one more row, outside the core it is fitted on.
+            at_u = SHIPPED_TAILS(np.append(x, u)[:, None], np.append(core, False))[-1, 0]
             with np.errstate(invalid="ignore"):
                 out[:, k] = np.where(x > u, np.minimum(at_u - (x - u) / beta, 0.0), out[:, k])
         return out

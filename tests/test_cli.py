@@ -57,7 +57,7 @@ def test_info_cli(tiny_dataset, tmp_path):
     assert res.exit_code == 2 and "no such file" in res.output
 
 
-def test_brackets_survive_help_and_errors(tmp_path, monkeypatch):
+def test_brackets_survive_help_and_errors(tmp_path):
     """Rich reads [word] as markup: the install hint 'democheck[ray]' and a path with brackets must print as written."""
     for command in ("audit", "synth", "probe"):
         res = runner.invoke(app, [command, "--help"], env={"COLUMNS": "400"})
