@@ -19,6 +19,11 @@ less familiar:
 - ``location max d2``: one Gaussian per position of the feature map (PaDiM), the largest of the positions' d2;
 - ``task uncertainty with D``: the whole task uncertainty (the head's variance plus the novelty part) with the
   density D's score in place of the shipped d2, each referenced to the held-out cues' ``QUANTILE`` as d2 is;
+- ``view V d2``: the Gaussian refitted on the features (the autoencoder's, or the task encoder's) of what view V
+  reads of each training cue -- ``cue`` (first, last), ``last`` (the last frame in both places: the shipped
+  ``NOVELTY_VIEW``), ``first`` (first, first), ``swapped`` (last, first) -- and ``last | first d2``, the last
+  frame's given the first's: one Gaussian over both views' features, less the first view's own d2 under it (a
+  likelihood ratio against the start, which a held-out object makes as unfamiliar as the end);
 - ``shift spread``, ``brightness spread``: not a density -- how far the task mean mu moves when the cue is
   shifted by one or two pixels or made brighter or darker (the mean variance of mu over those versions, in
   units of the cue's own variance for shifts): a cue the encoder reads no task from might be read unsteadily.
@@ -118,6 +123,24 @@ def location_d2(train: np.ndarray, val: np.ndarray, x: np.ndarray, channels: int
     return np.max(per_position, axis=0)
 
 
+VIEWS = {"cue": [0, 1], "last": [1, 1], "first": [0, 0], "swapped": [1, 0]}
+
+
+def view_densities(conv, train_cues: np.ndarray, cues: np.ndarray) -> dict[str, np.ndarray]:
+    """d2 of ``cues`` [N, 2, H, W, 3] under a Gaussian fitted on each view (``VIEWS``) of ``train_cues``, as
+    ``fit_novelty`` fits it, and the last view's given the first's (see the module docstring)."""
+    cpu = torch.device("cpu")
+    feats = lambda c, view: stack_features(conv, c[:, VIEWS[view]], cpu).astype(np.float64)  # noqa: E731
+    fits = {view: LedoitWolf().fit(feats(train_cues, view)) for view in VIEWS}
+    out = {f"view {view} d2": fits[view].mahalanobis(feats(cues, view)) for view in VIEWS}
+    both = LedoitWolf().fit(np.concatenate([feats(train_cues, "first"), feats(train_cues, "last")], 1))
+    d = fits["first"].location_.shape[0]
+    first = feats(cues, "first")
+    marginal = mahalanobis(first, both.location_[:d], np.linalg.inv(both.covariance_[:d, :d]))
+    out["last | first d2"] = both.mahalanobis(np.concatenate([first, feats(cues, "last")], 1)) - marginal
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", default=None, help="a PETNet model with a novelty density (default: the shipped one)")
@@ -131,8 +154,8 @@ def main() -> None:
     encoder = model.encoder
     if not hasattr(encoder, "feature_mean"):
         raise SystemExit("the model has no novelty density (democheck fit-novelty gives it one)")
-    train, train_tasks, _, _ = features(encoder, args.train, "train", args.train_cues)
-    val = features(encoder, args.train, "val")[0]
+    train, train_tasks, _, _, train_cues = features(encoder, args.train, "train", args.train_cues, with_cues=True)
+    val, _, _, _, val_cues = features(encoder, args.train, "val", with_cues=True)
     parts = [features(encoder, p, with_cues=True) for p in args.sets.split(",")]
     x, labels = np.concatenate([p[0] for p in parts]), np.concatenate([p[2] for p in parts])
     var_task, cues = np.concatenate([p[3] for p in parts]), np.concatenate([p[4] for p in parts])
@@ -143,6 +166,9 @@ def main() -> None:
     channels = model.cfg.conv_channels
     scored = densities(encoder, train, train_tasks, val, x, channels)
     held = densities(encoder, train, train_tasks, val, val, channels)
+    conv = encoder.novelty_conv if model.cfg.novelty_autoencoder else encoder.conv
+    scored |= view_densities(conv, train_cues, cues)
+    held |= view_densities(conv, train_cues, val_cues)
     for name in list(scored):
         ref = np.quantile(held[name], QUANTILE)  # as the novelty part is referenced (``fit_novelty``)
         scored[f"task uncertainty with {name}"] = np.sqrt(var_task + prior_var * (scored[name] / ref)[:, None]).mean(1)

@@ -145,7 +145,8 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
     enc = load_checkpoint(tiny_model).model.encoder
     ds = open_dataset(root)
     assert enc.cfg.novelty_autoencoder  # democheck train's default: the density is over its autoencoder's features
-    feats = stack_features(enc.novelty_conv, ds.cue_frames_many(table["episode_index"].tolist()), torch.device("cpu"))
+    feats = stack_features(enc.novelty_conv, ds.cue_frames_many(table["episode_index"].tolist()), torch.device("cpu"),
+                           view=enc.cfg.novelty_view)
     want = (enc.distance2(torch.from_numpy(feats)) / enc.novelty_ref).numpy()
     np.testing.assert_allclose(table["novelty"].to_numpy(), want, rtol=1e-4)
     csv = pd.read_csv(tmp_path / "r" / "scores.csv")

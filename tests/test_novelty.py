@@ -80,26 +80,53 @@ def test_novelty_adds_variance_far_from_the_training_cues_and_nothing_else(autoe
     assert var_b.sqrt().mean() > 2 * (var_task + var_novel).sqrt().mean()
 
 
-@pytest.mark.parametrize("autoencoder", [20, 0])
-def test_distance_is_sklearn_mahalanobis_and_prior_is_the_variance_of_z(autoencoder):
+@pytest.mark.parametrize("autoencoder,view", [(20, "last"), (20, "cue"), (0, "last"), (0, "cue")])
+def test_distance_is_sklearn_mahalanobis_and_prior_is_the_variance_of_z(autoencoder, view):
     torch.manual_seed(1)
     model = build_model(ModelConfig(image_size=16)).eval()
     train_cues, held = _cues(200, seed=3), _cues(40, seed=4)
-    stats = fit_novelty(model, train_cues, held, CPU, autoencoder=autoencoder)
-    # The density is over the autoencoder's features where there is one, else the task encoder's own.
+    stats = fit_novelty(model, train_cues, held, CPU, autoencoder=autoencoder, view=view)
+    assert model.cfg.novelty_view == view and stats["view"] == view
+    # The density is over the autoencoder's features where there is one, else the task encoder's own; of the
+    # last frame in both places ("last") or of the cue as it is ("cue").
     own, mus, var_task = conv_features(model.encoder, train_cues, CPU)
     assert hasattr(model.encoder, "novelty_conv") == (autoencoder != 0)
     conv = model.encoder.novelty_conv if autoencoder else model.encoder.conv
-    feats = stack_features(conv, train_cues, CPU)
-    assert np.array_equal(feats, own) == (autoencoder == 0)
+    read = train_cues[:, [1, 1]] if view == "last" else train_cues
+    feats = stack_features(conv, read, CPU)
+    np.testing.assert_array_equal(feats, stack_features(conv, train_cues, CPU, view=view))
+    assert np.array_equal(feats, own) == (autoencoder == 0 and view == "cue")
     lw = LedoitWolf().fit(feats.astype(np.float64))
-    held_feats = stack_features(conv, held, CPU)
+    held_feats = stack_features(conv, held[:, [1, 1]] if view == "last" else held, CPU)
     want = lw.mahalanobis(held_feats.astype(np.float64))
     got = model.encoder.distance2(torch.from_numpy(held_feats)).numpy()
     np.testing.assert_allclose(got, want, rtol=1e-3)
     assert stats["d2_ref"] == pytest.approx(float(np.quantile(want, QUANTILE)))
+    # The encoder reads the same view at scoring time: a cue's novelty part is its d2 over the reference.
+    with torch.no_grad():
+        _, _, var_novel = model.encoder.parts(cue_input(torch.from_numpy(held)))
+    np.testing.assert_allclose((var_novel / model.encoder.prior_var).mean(1).numpy(), want / stats["d2_ref"],
+                               rtol=1e-3)
     # The prior is z's variance over the training cues: the spread of their means plus their mean variance.
     np.testing.assert_allclose(model.encoder.prior_var.numpy(), mus.var(0) + var_task.mean(0), rtol=1e-5)
+
+
+def test_the_last_view_reads_the_end_alone_and_old_models_the_cue():
+    torch.manual_seed(2)
+    model = build_model(ModelConfig(image_size=16)).eval()
+    train_cues = _cues(120, seed=5)
+    fit_novelty(model, train_cues, _cues(30, seed=6), CPU, autoencoder=10)
+    cues = _cues(8, seed=7)
+    other_start = cues.copy()
+    other_start[:, 0] = _cues(8, seed=8)[:, 0]
+    with torch.no_grad():
+        novel = lambda c: model.encoder.parts(cue_input(torch.from_numpy(c)))[2]  # noqa: E731
+        assert torch.equal(novel(cues), novel(other_start))  # the first frame does not count
+        model.cfg.novelty_view = "cue"  # a model fitted before the view was a choice reads the whole cue
+        assert not torch.equal(novel(cues), novel(other_start))
+    assert ModelConfig().novelty_view == "cue"  # what a config.json without the field means
+    with pytest.raises(DemocheckError, match="unknown novelty view"):
+        fit_novelty(model, train_cues, train_cues, CPU, autoencoder=0, view="first")
 
 
 def test_fit_refuses_a_tecnet_and_too_few_cues():

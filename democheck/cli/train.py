@@ -76,7 +76,7 @@ def fit_novelty(
 ) -> None:
     """Give a trained PETNet model the epistemic part of its task variance, without retraining.
 
-    A cue autoencoder trained on the training cues, and a Gaussian fitted to its encoder's features of them; a cue far from them gets a wider task posterior. democheck train fits it itself; this is for models trained with --set model.novelty=false or before it existed.
+    A cue autoencoder trained on the training cues, and a Gaussian fitted to its encoder's features of their last frames; a cue whose end is far from theirs gets a wider task posterior. democheck train fits it itself; this is for models trained with --set model.novelty=false or before it existed, and to refit an older model's density (over the whole cue) on the last frame.
     """
     with user_errors():
         from democheck.workflows import refit_novelty

@@ -54,6 +54,9 @@ class ModelConfig:
     # reconstruct the training cues) instead of the task encoder's own conv features, which the task loss makes
     # blind to what the task does not need -- an empty scene lies inside them (``petnet.novelty``).
     novelty_autoencoder: bool = False
+    # What of the cue the novelty density reads (``novelty_input``): "last", its last frame in both places -- how
+    # familiar the demo's end looks; "cue", the cue as it is (models fitted before "last").  ``petnet.novelty``.
+    novelty_view: str = "cue"
 
     @property
     def embed_dim(self) -> int:
@@ -124,6 +127,19 @@ def cue_input(cues: torch.Tensor) -> torch.Tensor:
     return x.contiguous(memory_format=torch.channels_last)
 
 
+NOVELTY_VIEWS = ("cue", "last")
+
+
+def novelty_input(x: torch.Tensor, view: str) -> torch.Tensor:
+    """What the novelty density reads of a cue input [B, 6, H, W] (``cue_input``): the cue itself (``view``
+    "cue") or its last frame in both places ("last")."""
+    if view == "cue":
+        return x
+    if view == "last":
+        return torch.cat([x[:, 3:], x[:, 3:]], 1).contiguous(memory_format=torch.channels_last)
+    raise ValueError(f"unknown novelty view {view!r}; views: {', '.join(NOVELTY_VIEWS)}")
+
+
 class TaskEncoder(nn.Module):
     """Cue -> (mu, var) of a diagonal Gaussian over task space.
 
@@ -136,7 +152,9 @@ class TaskEncoder(nn.Module):
     part the training data cannot vouch for: prior_var * d2 / d2_ref, where
     d2 is the cue's squared Mahalanobis distance from the training cues' features
     (those of a cue autoencoder's encoder, ``novelty_features``; in models
-    fitted before it, the task encoder's own conv features), d2_ref a
+    fitted before it, the task encoder's own conv features) of what
+    ``cfg.novelty_view`` reads of a cue (its last frame; the whole cue in
+    models fitted before), d2_ref a
     reference distance of held-out real cues and prior_var
     the variance of z over the training cues, per dimension -- an unfamiliar
     cue's posterior widens in proportion to how unfamiliar it is, in task-space
@@ -167,10 +185,12 @@ class TaskEncoder(nn.Module):
 
     def novelty_features(self, cue: torch.Tensor, h: torch.Tensor | None = None) -> torch.Tensor:
         """The features the novelty density is over: the autoencoder's (``novelty_conv``) where the model has
-        one, else the task encoder's own conv features ``h`` (computed from ``cue`` when not given)."""
+        one, else the task encoder's own conv features (``h``, when given, are those of the cue as it is); both of
+        what ``cfg.novelty_view`` reads of the cue (``novelty_input``)."""
+        x = novelty_input(cue, self.cfg.novelty_view)
         if self.cfg.novelty_autoencoder:
-            return self.novelty_conv(cue)
-        return self.conv(cue) if h is None else h
+            return self.novelty_conv(x)
+        return self.conv(x) if h is None or x is not cue else h
 
     def distance2(self, features: torch.Tensor) -> torch.Tensor:
         """Squared Mahalanobis distance of conv features [B, D] from the training cues': [B]."""

@@ -40,6 +40,17 @@ every step of the demos and one trained on partial cues too read random
 probes no higher (0.95-0.99 on three development draws; the model card): a
 flung arm's cue is about as unusual to them as the most unusual clean cues of
 new tasks.
+What the density reads of a cue (``NOVELTY_VIEW``, the model's ``novelty_view``): its *last frame*, shown to
+the autoencoder in both places -- how familiar the demo's end looks.  Every demo's first frame is an ordinary
+start (objects at rest, the arm at home), and in the whole cue that familiar half dilutes an unusual end, while
+a held-out object makes the start as unfamiliar as the end: that is how the clean demos of new tasks reached as
+far as a flung arm.  The same autoencoder and Gaussian over the last frame, on three development draws pooled
+(push-v1-dev, -dev3, -dev4 with their probes; ``benchmarks/feature_density_choices.py``), d2 alone random /
+no-objects: the whole cue 0.981 / 0.991, the last frame 0.988 / 0.993, the first frame 0.680 / 0.212 (an empty
+start is *more* familiar), the last frame's given the first's (a likelihood ratio against the start) 0.987 /
+0.993; the whole task uncertainty of the shipped model refitted so, benched on each draw: random 0.970, 0.956,
+0.964 -> 0.986, 0.974, 0.986, no-objects and no-action the same or higher, occluded 1.000 -> 0.999 at worst
+(the model card).  The autoencoder learns from the cues as they are.
 Before, the conv features had been chosen over the fully connected layers'
 (their d2 ranked idle and covered cues above real ones, AUROC 0.99, 1.00,
 where the last hidden layer's did not, 0.53, 1.00).
@@ -56,7 +67,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from democheck.errors import DemocheckError
-from democheck.petnet.model import conv_out_dim, conv_stack, cue_input
+from democheck.petnet.model import NOVELTY_VIEWS, conv_out_dim, conv_stack, cue_input, novelty_input
 
 # Of the held-out cues' d2: the reference distance.  On the development set (push-v1-dev + probes, shipped
 # model), quantiles 0.5 / 0.9 / 0.99 gave sigma AUROC over all kinds 0.741 / 0.738 / 0.720 (no-action 0.987 /
@@ -65,6 +76,7 @@ QUANTILE = 0.9
 # The cue autoencoder: Adam at AUTOENCODER_LR on batches of AUTOENCODER_BATCH cues for AUTOENCODER_EPOCHS passes
 # over the training cues, at most AUTOENCODER_STEPS steps (push-v1's 4,800 training cues: 3,000 steps, 2.5 min
 # on 2 cores; a dataset of 100 cues: 63 steps).
+NOVELTY_VIEW = "last"  # see the module docstring
 AUTOENCODER_STEPS = 3000
 AUTOENCODER_EPOCHS = 40
 AUTOENCODER_BATCH = 64
@@ -86,10 +98,12 @@ def conv_features(encoder: torch.nn.Module, cues: np.ndarray, device: torch.devi
 
 
 @torch.no_grad()
-def stack_features(conv: nn.Module, cues: np.ndarray, device: torch.device, chunk: int = 256) -> np.ndarray:
-    """A conv stack's flattened features [N, D] of uint8 cues [N, 2, H, W, 3]."""
-    out = [conv(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device))).float().cpu().numpy()
-           for s in range(0, len(cues), chunk)]
+def stack_features(conv: nn.Module, cues: np.ndarray, device: torch.device, chunk: int = 256, view: str = "cue"
+                   ) -> np.ndarray:
+    """A conv stack's flattened features [N, D] of what ``view`` reads (``model.novelty_input``) of uint8 cues
+    [N, 2, H, W, 3]."""
+    out = [conv(novelty_input(cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device)), view))
+           .float().cpu().numpy() for s in range(0, len(cues), chunk)]
     return np.concatenate(out) if out else np.zeros((0, 0), np.float32)
 
 
@@ -147,13 +161,14 @@ def cue_decoder(cfg: Any) -> nn.Sequential:
 
 def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: np.ndarray, device: torch.device,
                 quantile: float = QUANTILE, trim: float = 0.0, autoencoder: int | None = None, seed: int = 0,
-                on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                on_progress: Callable[[int, int], None] | None = None, view: str = NOVELTY_VIEW) -> dict[str, Any]:
     """Fit the feature density of a PETNet model's encoder on ``train_cues`` and its reference distance on
     ``held_out_cues`` (real cues of tasks it was not fitted on), in place; sets ``model.cfg.novelty``.
 
     ``autoencoder``: the steps of the cue autoencoder whose encoder's features the density is over
     (``train_cue_autoencoder``; None: ``autoencoder_steps`` of the training cues; 0: none, the density over the
-    task encoder's own conv features, as models before it).
+    task encoder's own conv features, as models before it).  ``view``: what of each cue they are features of
+    (``NOVELTY_VIEW``); the autoencoder learns from the cues as they are either way.
 
     ``trim``: fit, leave out that share of the training cues farthest from the fit, and fit again -- for
     training data that may hold the very demos an audit is to find (a user's own dataset): a covered camera
@@ -167,18 +182,21 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     if getattr(model.cfg, "model_type", None) != "petnet":
         raise DemocheckError("only a PETNet model has a task variance to widen")
     dim = model.encoder.head[0].in_features
+    if view not in NOVELTY_VIEWS:
+        raise DemocheckError(f"unknown novelty view {view!r}; views: {', '.join(NOVELTY_VIEWS)}")
     if len(train_cues) < 2 or len(held_out_cues) < 1:
         raise DemocheckError(f"fitting the novelty density needs at least 2 training cues and 1 held-out cue "
                              f"(got {len(train_cues)} and {len(held_out_cues)})")
     encoder = model.encoder
     steps = autoencoder_steps(len(train_cues)) if autoencoder is None else int(autoencoder)
     ae: dict[str, Any] = {"steps": steps}
-    own, mus, var_task = conv_features(encoder, train_cues, device)
+    _, mus, var_task = conv_features(encoder, train_cues, device)
     if steps > 0:
         conv, ae["loss"] = train_cue_autoencoder(train_cues, model.cfg, device, steps, seed, on_progress)
-        feats, held = stack_features(conv, train_cues, device), stack_features(conv, held_out_cues, device)
     else:
-        conv, feats, held = None, own, stack_features(encoder.conv, held_out_cues, device)
+        conv = None
+    reader = encoder.conv if conv is None else conv
+    feats, held = (stack_features(reader, c, device, view=view) for c in (train_cues, held_out_cues))
     density = LedoitWolf().fit(feats.astype(np.float64))
     if trim > 0:
         d2 = density.mahalanobis(feats.astype(np.float64))
@@ -189,7 +207,7 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     if not np.isfinite(ref) or ref <= 0:
         raise DemocheckError(f"the held-out cues' feature distances are degenerate (reference {ref})")
     # Only now is the model changed: a fit that fails leaves it as it was.
-    model.cfg.novelty, model.cfg.novelty_autoencoder = True, conv is not None
+    model.cfg.novelty, model.cfg.novelty_autoencoder, model.cfg.novelty_view = True, conv is not None, view
     if conv is None and hasattr(encoder, "novelty_conv"):
         del encoder.novelty_conv
     encoder.add_novelty()
@@ -202,7 +220,7 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     prior_var = mus.var(0) + var_task.mean(0)  # the spread of z over the training cues (law of total variance)
     encoder.prior_var.copy_(as_t(prior_var))
     return {"train_cues": len(train_cues), "held_out_cues": len(held_out_cues), "feature_dim": dim, "trim": trim,
-            "features": "cue autoencoder" if steps > 0 else "task encoder", "autoencoder": ae,
+            "features": "cue autoencoder" if steps > 0 else "task encoder", "view": view, "autoencoder": ae,
             "quantile": quantile, "d2_ref": ref, "shrinkage": float(density.shrinkage_),
             "held_out_d2": {f"q{int(q * 100)}": float(np.quantile(d2_held, q)) for q in (0.05, 0.5, 0.95, 0.99)},
             "prior_sd": np.sqrt(prior_var).round(4).tolist()}

@@ -165,7 +165,7 @@ def _start_from(model: torch.nn.Module, cfg: ModelConfig, folder: str) -> Normal
     start = load_checkpoint(folder)
     # The novelty density belongs to the trained weights; training changes them, so it is dropped and refitted.
     diff = sorted(k for k, v in cfg.to_dict().items()
-                  if start.config.to_dict().get(k) != v and k not in ("novelty", "novelty_autoencoder"))
+                  if start.config.to_dict().get(k) != v and not k.startswith("novelty"))
     if diff:
         raise DemocheckError(f"init {folder}: its architecture differs from this run's ({', '.join(diff)})")
     own = model.state_dict().keys()
