@@ -17,7 +17,11 @@ Gaussian over their features; a cue scored by the d2 of its first frame, of its 
 added to or maxed with the cue autoencoder's d2 -- the arm in every pose a demo passes through is familiar, an
 arm-less or empty picture is not.  ``--partial FROM,PER``: a cue autoencoder trained on the training cues and PER
 partial cues of each training demo (its first frame and a frame drawn from the last 1 - FROM of it), its Gaussian
-fitted on the true cues: the arm stretched mid-push becomes familiar in the last frame's place.
+fitted on the true cues: the arm stretched mid-push becomes familiar in the last frame's place.  ``--ends``: an
+autoencoder trained on the training cues' last frames alone (each as a cue of that frame twice), its Gaussian over
+their features: familiar with how demos end and nothing else.  Every autoencoder's row reads the cue as it is
+(``view`` "cue"); ``autoencoder d2, last frame`` reads the first one's features of the last frame in both places,
+as ``democheck train`` now fits the density (``novelty.NOVELTY_VIEW``).
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ def main() -> None:
     ap.add_argument("--ensemble", default="", help="comma-separated seeds of more autoencoders, averaged with --seed's")
     ap.add_argument("--frames", type=int, default=0, help="also a frame autoencoder on this many training frames")
     ap.add_argument("--partial", default="", help="FROM,PER: also a cue autoencoder trained with partial cues too")
+    ap.add_argument("--ends", action="store_true", help="also an autoencoder trained on the cues' last frames alone")
     args = ap.parse_args()
     cpu = torch.device("cpu")
     ckpt = load_checkpoint(args.model)
@@ -62,7 +67,10 @@ def main() -> None:
     print(f"cue autoencoder: {args.steps} steps, final loss {loss:.4f}, {time.perf_counter() - t0:.0f} s")
     own = lambda cues: conv_features(ckpt.model.encoder, cues, cpu)[0]  # noqa: E731
     ae = lambda cues: stack_features(conv, cues, cpu)  # noqa: E731
-    members = []
+    members = [("autoencoder d2, last frame", lambda cues: stack_features(conv, cues, cpu, view="last"))]
+    if args.ends:
+        conv_e = train_cue_autoencoder(train[:, [1, 1]], ckpt.config, cpu, args.steps, args.seed)[0]
+        members.append(("end autoencoder d2", lambda cues: stack_features(conv_e, cues, cpu, view="last")))
     if args.partial:
         start, per = float(args.partial.split(",")[0]), int(args.partial.split(",")[1])
         rows = np.repeat(np.concatenate(list(task_rows(arrays, "train", seed).values())), per)
