@@ -6,8 +6,13 @@ BENCH_DIR is a ``democheck bench`` output (scores.parquet).  Every dataset the b
 for each demo's first and last recorded environment state (or state: ``OutcomeStats``); then for each floor
 (``OUTCOME_FLOOR``: the least robust SD of a dimension, as a share of its spread over all the demos) and each
 way of putting a demo's dimensions together (``FORMS``: the RMS raw or on a log scale, the RMS of z capped at
-5, 10 or 20, the share of dimensions over 3, 5 or 10 robust SD) the outcome score replaces the bench's
-``outcome`` column and the ranking is combined as ``democheck audit`` combines it.  Printed per variant: the
+5, 10 or 20, the share of dimensions over 3, 5 or 10 robust SD, the largest z, the RMS of the two or three
+largest) the outcome score replaces the bench's ``outcome`` column and the ranking is combined as ``democheck
+audit`` combines it.  Then, at the shipped floor and form, each other way of measuring a dimension against its
+task (``REFERENCES``): one robust SD per dimension for every task (the MAD of all the demos' distances from their
+task's median, as the ranking's ``calibrated`` puts scores in units), or each task's median and robust SD taken
+again from its demos within 3 or 5 robust SD of the first (one reweighting step: a task's own bad demos -- three
+or four of a dozen -- widen its MAD, and a gave-up demo that stopped near the goal then reads 2-3 robust SD).  Printed per variant: the
 outcome score's own AUROC per kind, then the ranking's AUROC per kind, the share of clean demos flagged at
 ``--fpr 0.01`` and each kind's share flagged; the first row is the ranking without the outcome check.
 ``--only`` keeps the rows of one of the bench's datasets (the demos an audit of that dataset alone would see).
@@ -15,10 +20,12 @@ outcome score's own AUROC per kind, then the ranking's AUROC per kind, the share
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pandas as pd
 
-from democheck.audit import outcome, scores
+from democheck.audit import modelfree, outcome, scores
 from democheck.data import open_dataset
 from suspicion_choices import aurocs, bench_tables
 from view_choices import judged
@@ -39,6 +46,54 @@ def _share_over(k: float):
 FORMS = {"rms": (outcome.rms, None), "log rms": (lambda z: np.log(np.maximum(outcome.rms(z), 1e-6)), None),
          **{f"rms cap {c}": ((lambda z, c=c: outcome.rms(np.minimum(z, c))), None) for c in (5, 10, 20)},
          **{f"share > {k}": (_share_over(k), 0.02) for k in (3, 5, 10)}}
+
+
+def _largest(k: int):
+    def rms_top(z: np.ndarray) -> np.ndarray:
+        top = -np.sort(-np.where(np.isfinite(z), z, -np.inf), axis=1)[:, :k]
+        return outcome.rms(np.where(np.isfinite(top), top, np.nan))
+    return rms_top
+
+
+FORMS |= {"max": (_largest(1), None), "rms top 2": (_largest(2), None), "rms top 3": (_largest(3), None)}
+
+
+def pooled_unit(x: np.ndarray, tasks: np.ndarray, floor, min_demos: int, small: str = "nan"):
+    """``modelfree.task_z`` with one unit per dimension for every task: the robust SD of all the demos' distances
+    from their own task's median."""
+    _, median = SHIPPED_Z(x, tasks, floor, min_demos, small)
+    dev = np.abs(x - median)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        unit = np.fmax(1.4826 * np.nanmedian(dev[np.isfinite(median).any(1)], axis=0), floor)
+    return dev / unit, median
+
+
+def reweighted(cut: float):
+    """``modelfree.task_z`` with each task's median and robust SD taken again, per dimension, from its demos within
+    ``cut`` robust SD of the first (where at least ``min_demos`` are)."""
+
+    def task_z(x: np.ndarray, tasks: np.ndarray, floor, min_demos: int, small: str = "nan"):
+        z, median = SHIPPED_Z(x, tasks, floor, min_demos, small)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            for t in np.unique(tasks):
+                rows = np.flatnonzero(tasks == t)
+                if not np.isfinite(median[rows]).any():
+                    continue  # too few demos: as the shipped form leaves it
+                ref = x[rows]
+                spread = np.fmax(1.4826 * np.nanmedian(np.abs(ref - median[rows[0]]), axis=0), floor)
+                inner = np.where(np.abs(ref - median[rows[0]]) / spread <= cut, ref, np.nan)
+                enough = np.isfinite(inner).sum(0) >= min_demos
+                med = np.where(enough, np.nanmedian(inner, axis=0), median[rows[0]])
+                spread = np.where(enough, np.fmax(1.4826 * np.nanmedian(np.abs(inner - med), axis=0), floor), spread)
+                z[rows], median[rows] = np.abs(ref - med) / spread, med
+        return z, median
+    return task_z
+
+
+SHIPPED_Z = modelfree.task_z
+REFERENCES = {"pooled unit": pooled_unit, "reweighted 3": reweighted(3.0), "reweighted 5": reweighted(5.0)}
 
 
 def outcome_stats(table: pd.DataFrame) -> outcome.OutcomeStats:
@@ -69,6 +124,14 @@ def main() -> None:
                           flush=True)
         finally:
             outcome.OUTCOME_FLOOR = old
+        for name, task_z in REFERENCES.items():
+            outcome.task_z = task_z
+            try:
+                score, _ = outcome.outcome(stats, tasks)
+            finally:
+                outcome.task_z = SHIPPED_Z
+            alone = " ".join(f"{a:.3f}" for a in aurocs(score, labels).values())
+            print(f"  {name:<26} alone {alone} | ranking {judged(table, score, 'outcome')}", flush=True)
 
 
 if __name__ == "__main__":
