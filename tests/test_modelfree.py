@@ -544,3 +544,37 @@ def test_a_worker_whose_setup_fails_reports_it_instead_of_hanging():
             pool.run_shards([(0, None, [0]), (1, None, [1])], _echo_shard, _failing_init, (), workers, 2)
     assert pool.run_shards([(0, None, [0]), (1, None, [1])], _echo_shard, lambda: None, (), 1, 2) == [
         {"shard": 0}, {"shard": 1}]
+
+
+def test_ksg_mutual_information_matches_the_gaussian_formula():
+    """KSG's estimate on samples with a known mutual information: independent (0) and correlated Gaussians
+    (-log(1 - rho^2) / 2 per pair), and a copy that never moves counts as no information at all."""
+    from democheck.audit.coupling import ksg_mutual_information
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(1000, 2))
+    assert abs(ksg_mutual_information(x, rng.normal(size=(1000, 3)))) < 0.05
+    for rho in (0.6, 0.9):
+        y = rho * x + np.sqrt(1 - rho ** 2) * rng.normal(size=x.shape)
+        want = -np.log(1 - rho ** 2)  # two independent pairs, each -log(1 - rho^2) / 2
+        assert abs(ksg_mutual_information(x, y) - want) < 0.1 * want, (rho, ksg_mutual_information(x, y), want)
+    assert np.isnan(ksg_mutual_information(x[:4], x[:4]))
+
+
+def test_coupling_ranks_the_arm_let_go_of_first_and_stands_in_for_the_action_error():
+    from democheck.audit.scorers import ranked
+
+    demos, bad = _planted("idle")
+    d = demos[bad]
+    d.actions[40:] = 0.0  # nobody drives from step 40: zero torque, the arm at rest
+    d.state[40:] = d.state[40]
+    ev = _evidence(demos, ["coupling"])
+    values = ev.scores["coupling"]
+    assert values[bad] > np.nanmax(np.delete(values, bad))
+    assert "mutual information" in ev.reasons["coupling"][bad]
+    # In the ranking where the model's action error is not, and only there.
+    available = {"motion": values, "idle": values, "coupling": values}
+    tasks = np.array(["push"] * len(values))
+    assert "coupling" in ranked(available, tasks)
+    assert "coupling" not in ranked(available | {"action_error": values}, tasks)
+    assert "coupling" in ranked(available | {"action_error": values}, tasks, model_free=True)

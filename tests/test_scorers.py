@@ -30,6 +30,7 @@ MEANT_FOR = {
     "view": "hidden",  # model-free: squares over most of the camera's view
     "colours": "hidden",  # model-free: the squares' colours, which no clean demo shows
     "outcome": "wrong-object",  # model-free: the objects end up unlike the task's other demos
+    "coupling": "idle",  # model-free: actions the state says nothing about
     "suspicion": "random",
     "ocsvm_flag": "occluded",
     "tecnet_knn": "occluded",  # a cue far from its task's others in the embedding

@@ -25,7 +25,7 @@ import pandas as pd
 
 from democheck.audit.baselines import (HEURISTIC_FEATURES, heuristic_z, knn_same_task, motion_features, random_score,
                                        summarise_motion)
-from democheck.audit import colours, dynamics, modelfree, outcome
+from democheck.audit import colours, coupling, dynamics, modelfree, outcome
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_parts, ocsvm_margin,
                                     rank_order, robust_tails)
@@ -117,6 +117,9 @@ class Scorer:
     # otherwise put clean demos many robust standard deviations up.
     log_in_ranking: bool = False
     in_robust_sd: bool = False  # its score is already a robust z within the task: the ranking takes it as it is
+    # In the ranking only where this other score is not (the state-action coupling where the model's action error
+    # is not: without a model, or with ``model_free``); see ``democheck.audit.coupling``.
+    stands_in_for: str = ""
     # The least spread a robust standard deviation of this score stands for in the ranking, in its units.
     ranking_min_scale: float = 0.0
     # Where its decoding pass's result lands in ``Evidence.behaviour`` (default: its name); scorers that give
@@ -205,15 +208,17 @@ def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
     """The scores the ranking combines, of those ``available`` (names, or columns by name): every
     ``in_suspicion`` scorer's, less the task embedding's on a dataset of one task (``in_single_task_ranking``),
     less the model's with ``model_free``, less a column with no score at all (the outcome of a dataset whose
-    tasks are all too small to compare): a look that cannot see anything must not cost the others' correction."""
+    tasks are all too small to compare): a look that cannot see anything must not cost the others' correction;
+    less one that stands in for a score the ranking has (``stands_in_for``)."""
     one_task = len(np.unique(tasks)) == 1
     columns = isinstance(available, (dict, pd.DataFrame))
 
     def scored(n: str) -> bool:
         return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
 
-    return [n for n, s in SCORERS.items() if s.in_suspicion and n in available and (s.model_free or not model_free)
-            and (s.in_single_task_ranking or not one_task) and scored(n)]
+    names = [n for n, s in SCORERS.items() if s.in_suspicion and n in available
+             and (s.model_free or not model_free) and (s.in_single_task_ranking or not one_task) and scored(n)]
+    return [n for n in names if SCORERS[n].stands_in_for not in names]
 
 
 REASON_P = 0.05  # a score this surprising (tail probability) is named in the ranking's reason beside the first
@@ -302,6 +307,10 @@ def _frozen_video(ev: Evidence) -> Scores:
 
 def _outcome(ev: Evidence) -> Scores:
     return outcome.outcome(ev.behaviour["outcome"], ev.tasks)
+
+
+def _coupling(ev: Evidence) -> Scores:
+    return coupling.coupling(ev.behaviour["coupling"], ev.tasks)
 
 
 def _ocsvm_flag(ev: Evidence) -> Scores:
@@ -400,14 +409,18 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "
            "z within its task)", ("demos",), _outcome, in_suspicion=True,
            decode=lambda ev, rows, device: outcome.OutcomeStats(), short="outc."),
+    Scorer("coupling", "model-free: how little the demo's actions go with its state (minus their mutual "
+           "information over its steps, KSG estimate, nats); in the ranking where the action error is not",
+           ("demos",), _coupling, in_suspicion=True, stands_in_for="action_error",
+           decode=lambda ev, rows, device: coupling.CouplingStats(), short="coupl."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
-           "consistency, action error (log), motion, idle, view, colours and outcome (one task: the last six), each in "
-           "robust standard deviations within its task, the tails fitted on the robust core (2 = as unusual as 1 "
-           "clean demo in 100)", ("scores",),
+           "consistency, action error (log), motion, idle, view, colours and outcome (one task: the last six; "
+           "without the action error, the coupling too), each in robust standard deviations within its task, the "
+           "tails fitted on the robust core (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
-           "view, colours, outcome): what democheck says with no model", ("scores",), _model_free, in_audit=False,
-           short="no-model"),
+           "view, colours, outcome, coupling): what democheck says with no model", ("scores",), _model_free,
+           in_audit=False, short="no-model"),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),
     Scorer("tecnet_knn", "TecNets embedding: mean distance to the 5 nearest other demos of the task", ("tecnet",),
