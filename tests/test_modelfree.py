@@ -559,6 +559,15 @@ def test_ksg_mutual_information_matches_the_gaussian_formula():
         want = -np.log(1 - rho ** 2)  # two independent pairs, each -log(1 - rho^2) / 2
         assert abs(ksg_mutual_information(x, y) - want) < 0.1 * want, (rho, ksg_mutual_information(x, y), want)
     assert np.isnan(ksg_mutual_information(x[:4], x[:4]))
+    # A long demo is read at COUPLING_MAX_STEPS evenly spaced steps, its first and last among them.
+    from democheck.audit.coupling import COUPLING_MAX_STEPS, CouplingStats
+
+    long = _demo(0, rng)
+    long.state, long.actions = np.repeat(long.state, 25, 0), np.repeat(long.actions, 25, 0)
+    stats = CouplingStats()
+    stats.add(long)
+    steps = np.linspace(0, len(long.state) - 1, COUPLING_MAX_STEPS).round().astype(int)
+    assert stats.information[0] == ksg_mutual_information(long.state[steps], long.actions[steps])
 
 
 def test_coupling_ranks_the_arm_let_go_of_first_and_stands_in_for_the_action_error():
