@@ -125,6 +125,8 @@ def test_the_last_view_reads_the_end_alone_and_old_models_the_cue():
         model.cfg.novelty_view = "cue"  # a model fitted before the view was a choice reads the whole cue
         assert not torch.equal(novel(cues), novel(other_start))
     assert ModelConfig().novelty_view == "cue"  # what a config.json without the field means
+    with pytest.raises(ValueError, match="unknown novelty view"):  # a checkpoint's loader says which file
+        ModelConfig(novelty_view="first")
     with pytest.raises(DemocheckError, match="unknown novelty view"):
         fit_novelty(model, train_cues, train_cues, CPU, autoencoder=0, view="first")
 

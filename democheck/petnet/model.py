@@ -29,6 +29,9 @@ from torch import nn
 from democheck.petnet.posterior import TaskPosterior, product_of_gaussians
 
 
+NOVELTY_VIEWS = ("cue", "last")  # what the novelty density can read of a cue (``novelty_input``)
+
+
 @dataclass
 class ModelConfig:
     """Everything needed to rebuild the network; stored in the checkpoint's config.json."""
@@ -57,6 +60,10 @@ class ModelConfig:
     # What of the cue the novelty density reads (``novelty_input``): "last", its last frame in both places -- how
     # familiar the demo's end looks; "cue", the cue as it is (models fitted before "last").  ``petnet.novelty``.
     novelty_view: str = "cue"
+
+    def __post_init__(self) -> None:
+        if self.novelty_view not in NOVELTY_VIEWS:
+            raise ValueError(f"unknown novelty view {self.novelty_view!r}; views: {', '.join(NOVELTY_VIEWS)}")
 
     @property
     def embed_dim(self) -> int:
@@ -125,9 +132,6 @@ def cue_input(cues: torch.Tensor) -> torch.Tensor:
     b, _, h, w, _ = cues.shape
     x = cues.permute(0, 1, 4, 2, 3).reshape(b, 6, h, w).float().div_(255.0).sub_(0.5)
     return x.contiguous(memory_format=torch.channels_last)
-
-
-NOVELTY_VIEWS = ("cue", "last")
 
 
 def novelty_input(x: torch.Tensor, view: str) -> torch.Tensor:
