@@ -9,17 +9,19 @@ one who let go half-way -- zero torque, the arm at rest -- or never drove leaves
 state says nothing about the actions.  A demo of more than ``COUPLING_MAX_STEPS`` steps is read at that many
 evenly spaced steps: the estimate costs 2.5 ms for push-v1's 100 steps of 17 + 7 dimensions, 18 ms for 300 (53
 ms for 300 steps of 64 + 14), 95 ms for 1,000 -- beside the action pass's ~19 ms a demo.  NaN for a demo of
-fewer than ``COUPLING_K + 2`` steps.  What dataset-quality tools measure as a demo's predictability (democlean's mutual information); a
-consumer of the audit's decoding pass like the other model-free checks (``democheck.audit.modelfree``).
+fewer than ``COUPLING_K + 2`` steps.  What dataset-quality tools measure as a demo's predictability
+(democlean's mutual information); a consumer of the audit's decoding pass like the other model-free checks
+(``democheck.audit.modelfree``).
 
 In the ranking only where the model's action error is not (``scorers.Scorer.stands_in_for``): both ask whether
 the actions are explained -- by the model's controller, or by the state -- and beside the action error the
 coupling counts the same resting arm twice.  Chosen on the development sets (benches of push-v1-dev, -dev3 and
--dev4 with their probes, each set's rows alone, Meta-World mw2-dev and mw2-one-dev; ``benchmarks/coupling_choices.py``:
-the KSG score in the ranking as the audit combines it): without a model, gave-up AUROC 0.993 / 0.998 / 0.997 -> 0.997 / 1.000 /
-0.999 with the probes pooled and its flags at --fpr 0.01 0.58 / 0.47 / 0.82 -> 0.92 / 0.92 / 1.00 (each set
-alone 0.58 / 0.42 / 0.74 -> 0.92 / 0.87 / 1.00), no more clean demos flagged (0-4 of 614), no-objects 0.964 /
-0.947 / 0.941 -> 0.956 / 0.936 / 0.918; Meta-World the same.  With the model's scores it was a wash on the
+-dev4 with their probes, each set's rows alone, Meta-World mw2-dev and mw2-one-dev;
+``benchmarks/coupling_choices.py``: the KSG score in the ranking as the audit combines it): without a model,
+gave-up AUROC 0.993 / 0.998 / 0.997 -> 0.997 / 1.000 / 0.999 with the probes pooled and its flags at --fpr
+0.01 0.58 / 0.47 / 0.82 -> 0.92 / 0.92 / 1.00 (each set alone 0.58 / 0.42 / 0.74 -> 0.92 / 0.87 / 1.00), no
+more clean demos flagged (0-4 of 614), no-objects 0.964 / 0.947 / 0.941 -> 0.956 / 0.936 / 0.918; Meta-World
+the same.  With the model's scores it was a wash on the
 ranking (gave-up +0.0002 to +0.0011) but flagged more clean demos (push-v1-dev pooled 6 -> 12 of 614).  Alone it
 reads gave-up and no-action 1.000 on every push draw, random 0.32-0.37: a flailing arm's state follows its
 torques closely.
@@ -28,6 +30,7 @@ torques closely.
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 from scipy.spatial import cKDTree
 from scipy.special import digamma
 
@@ -71,23 +74,18 @@ class CouplingStats(PerDemo):
     def add(self, demo: Demo) -> None:
         state, actions = np.asarray(demo.state), np.asarray(demo.actions)
         n = min(len(state), len(actions))
-        steps = np.unique(np.linspace(0, n - 1, min(n, COUPLING_MAX_STEPS)).round().astype(int)) if n else []
-        ok = state.size and actions.size and np.isfinite(state[steps]).all() and np.isfinite(actions[steps]).all()
-        self.information.append(ksg_mutual_information(state[steps], actions[steps]) if ok else float("nan"))
+        steps = np.unique(np.linspace(0, n - 1, min(n, COUPLING_MAX_STEPS)).round().astype(int))
+        x, y = state[steps], actions[steps]
+        ok = x.size and y.size and np.isfinite(x).all() and np.isfinite(y).all()
+        self.information.append(ksg_mutual_information(x, y) if ok else float("nan"))
 
 
 def coupling(stats: CouplingStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """Minus each demo's state-action mutual information (see the module docstring), and a reason that compares it
     with its task's median."""
     info = np.asarray(stats.information, np.float64)
-    tasks = np.asarray(tasks)
-    reasons = []
-    medians = {t: np.nanmedian(info[tasks == t]) if np.isfinite(info[tasks == t]).any() else np.nan
-               for t in np.unique(tasks)}
-    for value, task in zip(info, tasks):
-        if not np.isfinite(value):
-            reasons.append("too short, or no state, to relate its actions to")
-        else:
-            reasons.append(f"its actions go with its state less than its task's others': state-action mutual "
-                           f"information {value:.2f} nats (its task's median {medians[task]:.2f})")
+    medians = pd.Series(info).groupby(np.asarray(tasks)).transform("median").to_numpy()
+    reasons = [f"its actions go with its state less than its task's others': state-action mutual information "
+               f"{value:.2f} nats (its task's median {median:.2f})" if np.isfinite(value)
+               else "too short, or no state, to relate its actions to" for value, median in zip(info, medians)]
     return -info, reasons
