@@ -4,10 +4,10 @@
 
 BENCH_DIR is a ``democheck bench`` output (scores.parquet).  Every demo the bench read is decoded once more for its
 state-action mutual information (``coupling.CouplingStats``), and the ranking combined as ``democheck audit``
-combines it (``Evidence.combination``) four ways: with the model's scores, without and with the coupling (as the
+combines it (``view_choices.judged``) four ways: with the model's scores, without and with the coupling (as the
 ranking has it, the coupling only where the action error is not; forced in beside it), and with the model-free
-scores alone (``model_free``), without and with it.  Printed per way: the ranking's AUROC per kind, the clean demos
-flagged at --fpr 0.01 and each kind's share flagged; first, the coupling's own AUROC per kind.  ``--only`` keeps the
+scores alone (``model_free``), without and with it.  Printed per way: the ranking's AUROC per kind, the share of clean
+demos flagged at --fpr 0.01 and each kind's; first, the coupling's own AUROC per kind.  ``--only`` keeps the
 rows of one of the bench's datasets (the demos an audit of that dataset alone would see).
 """
 
@@ -18,10 +18,11 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 
-from democheck.audit import coupling, scores
-from democheck.audit.scorers import SCORERS, Evidence
+from democheck.audit import coupling
+from democheck.audit.scorers import SCORERS
 from democheck.data import open_dataset
 from suspicion_choices import aurocs, bench_tables
+from view_choices import judged
 
 
 def coupling_scores(table: pd.DataFrame) -> np.ndarray:
@@ -33,36 +34,23 @@ def coupling_scores(table: pd.DataFrame) -> np.ndarray:
     return coupling.coupling(stats, table["task"].to_numpy())[0]
 
 
-def judged(table: pd.DataFrame, values: dict[str, np.ndarray], model_free: bool) -> str:
-    labels = table["label"].fillna("clean").to_numpy()
-    ev = Evidence(episodes=table[["episode_index", "task"]], scores=values)
-    names, log_p, core = ev.combination(model_free)
-    s = np.nan_to_num(-scores.combined_log10(log_p), posinf=np.finfo(float).max)
-    flagged = scores.conformal_p(s, core) <= scores.DEFAULT_FPR
-    kinds = sorted(set(labels) - {"clean"})
-    return (" ".join(f"{a:.4f}" for a in aurocs(s, labels).values())
-            + f" | clean {int(flagged[labels == 'clean'].sum()):3d} | "
-            + " ".join(f"{flagged[labels == k].mean():.2f}" for k in kinds) + f"  ({', '.join(names)})")
-
-
 def main() -> None:
     shipped = SCORERS["coupling"]
     for path, only, table in bench_tables(__doc__):
         labels = table["label"].fillna("clean").to_numpy()
         kinds = sorted(set(labels) - {"clean"})
         value = coupling_scores(table)
-        base = {c: table[c].to_numpy(float) for c in table if c in SCORERS and c != "coupling"}
         print(f"\n{path}{' (' + only + ')' if only else ''}: {len(table)} demos; AUROC {' '.join(kinds)} | "
               "clean flagged | kinds flagged")
         print(f"  {'coupling alone':<24} " + " ".join(f"{a:.3f}" for a in aurocs(value, labels).values()))
         for model_free in (False, True):
             what = "no model" if model_free else "with the model"
-            print(f"  {what + ', without':<24} {judged(table, base, model_free)}")
-            print(f"  {what + ', with':<24} {judged(table, base | {'coupling': value}, model_free)}", flush=True)
+            print(f"  {what + ', without':<24} {judged(table, None, 'coupling', model_free)}")
+            print(f"  {what + ', with':<24} {judged(table, value, 'coupling', model_free)}", flush=True)
             if not model_free:
                 SCORERS["coupling"] = replace(shipped, stands_in_for="")
                 try:
-                    print(f"  {what + ', forced in':<24} {judged(table, base | {'coupling': value}, model_free)}")
+                    print(f"  {what + ', forced in':<24} {judged(table, value, 'coupling', model_free)}")
                 finally:
                     SCORERS["coupling"] = shipped
 

@@ -44,9 +44,10 @@ def thumbnails(table: pd.DataFrame, size: int) -> np.ndarray:
         modelfree.VIEW_THUMB = old
 
 
-def judged(table: pd.DataFrame, view: np.ndarray | None, name: str = "view") -> str:
+def judged(table: pd.DataFrame, view: np.ndarray | None, name: str = "view", model_free: bool = False) -> str:
     """The ranking's AUROC per kind, the share of clean demos flagged at ``DEFAULT_FPR`` and each kind's, with the
-    bench's ``name`` column replaced by ``view`` (None: left out of the ranking)."""
+    bench's ``name`` column replaced by ``view`` (None: left out of the ranking); the model-free scores alone with
+    ``model_free``."""
     labels = table["label"].fillna("clean").to_numpy()
     cols = {c: table[c].to_numpy(float) for c in table if c in SCORERS}
     if view is None:
@@ -54,7 +55,7 @@ def judged(table: pd.DataFrame, view: np.ndarray | None, name: str = "view") -> 
     else:
         cols[name] = view
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=cols)
-    _, log_p, core = ev.combination()  # as the audit ranks and flags
+    _, log_p, core = ev.combination(model_free)  # as the audit ranks and flags
     s = -scores.combined_log10(log_p)
     kinds = sorted(set(labels) - {"clean"})
     au = [roc_auc_score(labels[(labels == k) | (labels == "clean")] == k, s[(labels == k) | (labels == "clean")])
