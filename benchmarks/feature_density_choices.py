@@ -85,59 +85,72 @@ def squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a ** 2).sum(1)[:, None] - 2.0 * a @ b.T + (b ** 2).sum(1)[None]
 
 
-def densities(encoder, train: np.ndarray, train_tasks: np.ndarray, val: np.ndarray, x: np.ndarray,
-              channels: int) -> dict[str, np.ndarray]:
+def densities(encoder, train: np.ndarray, train_tasks: np.ndarray, val: np.ndarray, channels: int,
+              *sets: np.ndarray) -> list[dict[str, np.ndarray]]:
+    """Each density's score (see the module docstring) of the features [N, D] of each of ``sets``, every density
+    fitted once, on the ``train`` features (the typicality's centre and the PaDiM references on ``val``)."""
     mean = encoder.feature_mean.cpu().numpy().astype(np.float64)
     precision = encoder.feature_precision.cpu().numpy().astype(np.float64)
-    out = {"global d2": mahalanobis(x, mean, precision)}
     log_val = np.log(mahalanobis(val, mean, precision))
     centre = np.median(log_val)
-    out["typicality"] = np.abs(np.log(out["global d2"]) - centre) / np.median(np.abs(log_val - centre))
+    spread = np.median(np.abs(log_val - centre))
     names = np.unique(train_tasks)
     means = np.stack([train[train_tasks == t].mean(0) for t in names])
     within = LedoitWolf().fit(train - means[np.searchsorted(names, train_tasks)]).precision_
     w = np.linalg.cholesky(within)
-    d = squared_distances(x @ w, means @ w)
-    out["task min d2"] = d.min(1)
-    out["task -logsumexp"] = -np.logaddexp.reduce(-d / 2.0, axis=1)
     g = np.linalg.cholesky(precision)
-    near = np.sort(squared_distances(x @ g, train @ g), 1)
-    for k in (1, 10, 50):
-        out[f"kNN{k} whitened"] = near[:, :k].mean(1)
     unit = lambda v: v / np.linalg.norm(v, axis=1, keepdims=True)  # noqa: E731
-    out["kNN10 cosine"] = 1.0 - np.sort(unit(x) @ unit(train).T, 1)[:, -10:].mean(1)
-    out["location max d2"] = location_d2(train, val, x, channels)
+    means_w, train_g, train_unit = means @ w, train @ g, unit(train)
+    out = []
+    for x, location in zip(sets, location_d2(train, val, channels, *sets)):
+        global_d2 = mahalanobis(x, mean, precision)
+        d = squared_distances(x @ w, means_w)
+        near = np.sort(squared_distances(x @ g, train_g), 1)
+        out.append({"global d2": global_d2, "typicality": np.abs(np.log(global_d2) - centre) / spread,
+                    "task min d2": d.min(1), "task -logsumexp": -np.logaddexp.reduce(-d / 2.0, axis=1),
+                    **{f"kNN{k} whitened": near[:, :k].mean(1) for k in (1, 10, 50)},
+                    "kNN10 cosine": 1.0 - np.sort(unit(x) @ train_unit.T, 1)[:, -10:].mean(1),
+                    "location max d2": location})
     return out
 
 
-def location_d2(train: np.ndarray, val: np.ndarray, x: np.ndarray, channels: int) -> np.ndarray:
-    """PaDiM's image score (Defard et al. 2020): one Gaussian per position of the [channels, s, s] feature map, fitted
-    on the training cues; each position's d2 in units of its held-out cues' ``QUANTILE``; the largest over the
-    positions -- a small thing missing or added somewhere is not averaged away over the whole map."""
-    maps = [f.reshape(len(f), channels, -1) for f in (train, val, x)]
-    per_position = []
-    for pos in range(maps[0].shape[2]):
-        fit = LedoitWolf().fit(maps[0][:, :, pos])
-        ref = np.quantile(fit.mahalanobis(maps[1][:, :, pos]), QUANTILE)
-        per_position.append(fit.mahalanobis(maps[2][:, :, pos]) / ref)
-    return np.max(per_position, axis=0)
+def location_d2(train: np.ndarray, val: np.ndarray, channels: int, *sets: np.ndarray) -> list[np.ndarray]:
+    """PaDiM's image score (Defard et al. 2020) of each of ``sets``: one Gaussian per position of the [channels, s,
+    s] feature map, fitted on the training cues; each position's d2 in units of its held-out cues' ``QUANTILE``;
+    the largest over the positions -- a small thing missing or added somewhere is not averaged away over the
+    whole map."""
+    train_map, val_map, *maps = [f.reshape(len(f), channels, -1) for f in (train, val, *sets)]
+    per_position: list[list[np.ndarray]] = [[] for _ in sets]
+    for pos in range(train_map.shape[2]):
+        fit = LedoitWolf().fit(train_map[:, :, pos])
+        ref = np.quantile(fit.mahalanobis(val_map[:, :, pos]), QUANTILE)
+        for scored, m in zip(per_position, maps):
+            scored.append(fit.mahalanobis(m[:, :, pos]) / ref)
+    return [np.max(scored, axis=0) for scored in per_position]
 
 
 VIEWS = {"cue": [0, 1], "last": [1, 1], "first": [0, 0], "swapped": [1, 0]}
 
 
-def view_densities(conv, train_cues: np.ndarray, cues: np.ndarray) -> dict[str, np.ndarray]:
-    """d2 of ``cues`` [N, 2, H, W, 3] under a Gaussian fitted on each view (``VIEWS``) of ``train_cues``, as
-    ``fit_novelty`` fits it, and the last view's given the first's (see the module docstring)."""
+def view_densities(conv, train_cues: np.ndarray, *sets: np.ndarray) -> list[dict[str, np.ndarray]]:
+    """d2 of the cues [N, 2, H, W, 3] of each of ``sets`` under a Gaussian fitted, once, on each view (``VIEWS``)
+    of ``train_cues``, as ``fit_novelty`` fits it, and the last view's given the first's (see the module
+    docstring)."""
     cpu = torch.device("cpu")
-    feats = lambda c, view: stack_features(conv, c[:, VIEWS[view]], cpu).astype(np.float64)  # noqa: E731
-    fits = {view: LedoitWolf().fit(feats(train_cues, view)) for view in VIEWS}
-    out = {f"view {view} d2": fits[view].mahalanobis(feats(cues, view)) for view in VIEWS}
-    both = LedoitWolf().fit(np.concatenate([feats(train_cues, "first"), feats(train_cues, "last")], 1))
-    d = fits["first"].location_.shape[0]
-    first = feats(cues, "first")
-    marginal = mahalanobis(first, both.location_[:d], np.linalg.inv(both.covariance_[:d, :d]))
-    out["last | first d2"] = both.mahalanobis(np.concatenate([first, feats(cues, "last")], 1)) - marginal
+    feats = lambda c: {view: stack_features(conv, c[:, pick], cpu).astype(np.float64)  # noqa: E731
+                       for view, pick in VIEWS.items()}
+    train = feats(train_cues)
+    fits = {view: LedoitWolf().fit(f) for view, f in train.items()}
+    both = LedoitWolf().fit(np.concatenate([train["first"], train["last"]], 1))
+    d = train["first"].shape[1]
+    first_precision = np.linalg.inv(both.covariance_[:d, :d])
+    out = []
+    for cues in sets:
+        f = feats(cues)
+        scored = {f"view {view} d2": fits[view].mahalanobis(f[view]) for view in VIEWS}
+        marginal = mahalanobis(f["first"], both.location_[:d], first_precision)
+        scored["last | first d2"] = both.mahalanobis(np.concatenate([f["first"], f["last"]], 1)) - marginal
+        out.append(scored)
     return out
 
 
@@ -164,11 +177,11 @@ def main() -> None:
     print(f"{len(train)} training cues of {len(np.unique(train_tasks))} tasks, {len(val)} held-out, {len(x)} scored")
     print(f"{'score':<40}" + "".join(f"{k[:12]:>13}" for k in kinds))
     channels = model.cfg.conv_channels
-    scored = densities(encoder, train, train_tasks, val, x, channels)
-    held = densities(encoder, train, train_tasks, val, val, channels)
+    scored, held = densities(encoder, train, train_tasks, val, channels, x, val)
     conv = encoder.novelty_conv if model.cfg.novelty_autoencoder else encoder.conv
-    scored |= view_densities(conv, train_cues, cues)
-    held |= view_densities(conv, train_cues, val_cues)
+    viewed, viewed_held = view_densities(conv, train_cues, cues, val_cues)
+    scored |= viewed
+    held |= viewed_held
     for name in list(scored):
         ref = np.quantile(held[name], QUANTILE)  # as the novelty part is referenced (``fit_novelty``)
         scored[f"task uncertainty with {name}"] = np.sqrt(var_task + prior_var * (scored[name] / ref)[:, None]).mean(1)
