@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from democheck.audit.modelfree import PerDemo
 from democheck.audit.scores import robust_stats, standardise, task_neighbours
+from democheck.data.demo import Demo
 
 # An arm that moves less than this share of its median per-step motion is idle at that step.
 IDLE_FRACTION_OF_MEDIAN = 0.05
@@ -45,6 +47,19 @@ def summarise_motion(parts: list[tuple[np.ndarray, float, float]]) -> np.ndarray
     typical = float(np.median(np.concatenate(motions))) if motions else 0.0
     idle = [float(np.mean(m < IDLE_FRACTION_OF_MEDIAN * typical)) if len(m) else 1.0 for m in motions]
     return np.column_stack([idle, np.asarray(rest).reshape(-1, 2)]) if motions else np.zeros((0, 3))
+
+
+class MotionFeatures(PerDemo):
+    """Consumer of decoded demos: the linter heuristics' features (``summarise_motion``)."""
+
+    fields = ("parts",)
+    parts: list[tuple[np.ndarray, float, float]]
+
+    def add(self, demo: Demo) -> None:
+        self.parts.append(motion_features(demo.state, demo.actions))
+
+    def finish(self) -> np.ndarray:
+        return summarise_motion(self.parts)
 
 
 def heuristic_z(features: np.ndarray) -> np.ndarray:

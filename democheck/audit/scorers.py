@@ -23,8 +23,7 @@ from typing import Any, Callable, Protocol
 import numpy as np
 import pandas as pd
 
-from democheck.audit.baselines import (HEURISTIC_FEATURES, heuristic_z, knn_same_task, motion_features, random_score,
-                                       summarise_motion)
+from democheck.audit.baselines import HEURISTIC_FEATURES, MotionFeatures, heuristic_z, knn_same_task, random_score
 from democheck.audit import colours, coupling, dynamics, modelfree, outcome
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_parts, ocsvm_margin,
@@ -324,19 +323,6 @@ def _ocsvm_flag(ev: Evidence) -> Scores:
 
 def _tecnet_knn(ev: Evidence) -> Scores:
     return knn_same_task(ev.embedding, ev.tasks), None
-
-
-class MotionFeatures(modelfree.PerDemo):
-    """Consumer of decoded demos: the linter heuristics' features (``baselines.summarise_motion``)."""
-
-    fields = ("parts",)
-    parts: list[tuple[np.ndarray, float, float]]
-
-    def add(self, demo: Demo) -> None:
-        self.parts.append(motion_features(demo.state, demo.actions))
-
-    def finish(self) -> np.ndarray:
-        return summarise_motion(self.parts)
 
 
 def _heuristic(ev: Evidence) -> Scores:
