@@ -73,8 +73,10 @@ def main() -> None:
     split = train.episodes["split"] if "split" in train.episodes else pd.Series("train", train.episodes.index)
     train_eps = [int(e) for e in train.episodes.index[split == "train"]]
     train_cues, train_tasks = train.cue_frames_many(train_eps), train.episodes.loc[train_eps, "task"].to_numpy()
+    train_ends = train.end_states(train_eps)
     sets = [open_dataset(p) for p in args.sets.split(",")]
     cues = np.concatenate([d.cue_frames_many(d.episode_indices) for d in sets])
+    ends = np.concatenate([d.end_states(d.episode_indices) for d in sets])
     labels = np.concatenate([d.episodes["label"].fillna("clean").to_numpy() if "label" in d.episodes
                              else np.full(len(d), "clean") for d in sets])
     tasks = np.concatenate([d.episodes["task"].to_numpy() for d in sets])
@@ -88,9 +90,9 @@ def main() -> None:
     members, prototypes = [], []
     for path in args.models:
         model = load_checkpoint(path).model.eval()
-        post = encode(model, cues)
+        post = encode(model, cues, end_states=ends)
         members.append((post.mu.astype(np.float64), post.var.astype(np.float64)))
-        prototypes.append(pd.DataFrame(encode(model, train_cues).mu).groupby(train_tasks).mean().to_numpy())
+        prototypes.append(pd.DataFrame(encode(model, train_cues, end_states=train_ends).mu).groupby(train_tasks).mean().to_numpy())
     aligned = []
     print(f"{len(cues)} cues of {', '.join(args.sets.split(','))}; {len(members)} members")
     for (mu, var), proto, path in zip(members, prototypes, args.models):

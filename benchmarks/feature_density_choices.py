@@ -57,7 +57,7 @@ def features(encoder, path: str, split: str | None = None, limit: int | None = N
         episodes = episodes.sample(limit, random_state=seed).sort_values("episode_index")
     cues = ds.cue_frames_many(episodes["episode_index"].to_numpy())
     cpu = torch.device("cpu")
-    f = stack_features(encoder.novelty_features, cues, cpu)
+    f = stack_features(encoder.image_features, cues, cpu)
     var_task = conv_features(encoder, cues, cpu)[2]
     labels = episodes["label"].fillna("clean") if "label" in episodes else np.full(len(episodes), "clean")
     out = (f.astype(np.float64), episodes["task"].to_numpy(), np.asarray(labels), var_task)
@@ -167,6 +167,9 @@ def main() -> None:
     encoder = model.encoder
     if not hasattr(encoder, "feature_mean"):
         raise SystemExit("the model has no novelty density (democheck fit-novelty gives it one)")
+    if encoder.cfg.novelty_state:
+        raise SystemExit("this compares densities over the image features alone; give it a model whose density reads "
+                         "no end state (one fitted before it)")
     train, train_tasks, _, _, train_cues = features(encoder, args.train, "train", args.train_cues, with_cues=True)
     val, _, _, _, val_cues = features(encoder, args.train, "val", with_cues=True)
     parts = [features(encoder, p, with_cues=True) for p in args.sets.split(",")]

@@ -32,8 +32,9 @@ def main() -> None:
     rows = np.concatenate(list(task_rows(arrays, "val", 0).values()))
     for path in args.models:
         model = load_checkpoint(path).model
-        sig = [encode(model, arrays.cue(rows, end=np.full(len(rows), t)), torch.device("cpu")).sigma.mean()
-               for t in CUTS]
+        cut = lambda t: np.minimum(t, arrays.lengths[rows] - 1)  # noqa: E731
+        sig = [encode(model, arrays.cue(rows, end=cut(t)), torch.device("cpu"),
+                      end_states=arrays.state[arrays.offsets[rows] + cut(t)]).sigma.mean() for t in CUTS]
         print(f"{path}: " + "  ".join(f"t={t}: {s:.3f}" for t, s in zip(CUTS, sig)))
 
 

@@ -26,7 +26,8 @@ ds = open_dataset(args.dataset)
 ckpt = load_checkpoint(args.model)
 task, episodes = next(iter(ds.by_task().items()))
 cues = ds.cue_frames_many(episodes)  # [N, 2, H, W, 3]: first and last frame of each demo
-post = encode(ckpt.model, cues)  # a TaskPosterior: mu, and the variance's two parts
+ends = ds.end_states(episodes)  # [N, S]: where each demo ended (the novelty density reads it too)
+post = encode(ckpt.model, cues, end_states=ends)  # a TaskPosterior: mu, and the variance's two parts
 sigma = post.sigma
 print(f"task: {task}")
 for e, s in zip(episodes, post.task_uncertainty()):
@@ -38,6 +39,6 @@ print(f"all {len(episodes)} cues together: mean sigma {np.sqrt(var_all).mean():.
 
 # Gate: would the model's one-class SVM accept these cues?
 ocsvm = ckpt.meta["reference"]["ocsvm"]
-for name, cue_sigma in (("real cue", sigma[:1]), ("black cue", encode(ckpt.model, np.zeros_like(cues[:1])).sigma)):
+for name, cue_sigma in (("real cue", sigma[:1]), ("black cue", encode(ckpt.model, np.zeros_like(cues[:1]), end_states=ends[:1]).sigma)):
     ok = ocsvm_margin(ocsvm, cue_sigma)[0] >= 0
     print(f"{name}: {'accept' if ok else 'refuse: ask for another demonstration'}")

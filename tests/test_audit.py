@@ -145,9 +145,11 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
     enc = load_checkpoint(tiny_model).model.encoder
     ds = open_dataset(root)
     assert enc.cfg.novelty_autoencoder  # democheck train's default: the density is over its autoencoder's features
-    feats = stack_features(enc.novelty_conv, ds.cue_frames_many(table["episode_index"].tolist()), torch.device("cpu"),
-                           view=enc.cfg.novelty_view)
-    want = (enc.distance2(torch.from_numpy(feats)) / enc.novelty_ref).numpy()
+    eps = table["episode_index"].tolist()
+    feats = stack_features(enc.novelty_conv, ds.cue_frames_many(eps), torch.device("cpu"), view=enc.cfg.novelty_view)
+    assert enc.cfg.novelty_state  # ... and where each demo ended, standardised by the training demos' ends
+    ends = (torch.from_numpy(ds.end_states(eps)) - enc.end_state_mean) / enc.end_state_scale
+    want = (enc.distance2(torch.cat([torch.from_numpy(feats), ends], 1)) / enc.novelty_ref).numpy()
     np.testing.assert_allclose(table["novelty"].to_numpy(), want, rtol=1e-4)
     csv = pd.read_csv(tmp_path / "r" / "scores.csv")
     assert list(csv["episode_index"]) == list(table["episode_index"])
@@ -233,6 +235,7 @@ def test_robomimic_reader_and_audit(tiny_model, tmp_path):
     demo = ds[2]
     assert demo.frames.shape == (8, 16, 16, 3) and demo.env_state.shape == (8, 10)  # obs/object, not the state
     np.testing.assert_array_equal(ds.cue_frames(2), demo.frames[[0, -1]])
+    np.testing.assert_array_equal(ds.end_states([2, 5]), np.stack([demo.state[-1], ds[5].state[-1]]))
     assert open_dataset(path, task="lift").tasks == ["another task", "lift"]
     res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
                               "--device", "cpu", "--json"])

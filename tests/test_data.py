@@ -59,6 +59,8 @@ def test_round_trip_matches_resimulation(tiny_dataset):
         cue = ds.cue_frames(e)
         np.testing.assert_array_equal(cue[0], demo.frames[0])
         np.testing.assert_array_equal(cue[1], demo.frames[-1])
+    eps = ds.episode_indices
+    np.testing.assert_array_equal(ds.end_states(eps), np.stack([ds[e].state[-1] for e in eps]))
 
 
 def test_video_quality_at_64(tmp_path):
@@ -165,6 +167,7 @@ def test_lerobot_v21_videos(tmp_path):
         assert psnr(demo.frames, 255 - imgs) > 30  # CRF 0 on noise: near lossless
         np.testing.assert_allclose(demo.state, state)
         np.testing.assert_array_equal(ds.cue_frames(e), demo.frames[[0, -1]])
+        np.testing.assert_array_equal(ds.end_states([e])[0], demo.state[-1])
 
 
 def test_cue_frames_do_not_decode_whole_episodes(tiny_dataset, tmp_path):
@@ -181,6 +184,9 @@ def test_cue_frames_do_not_decode_whole_episodes(tiny_dataset, tmp_path):
         ds.cue_frames(e)
     per_demo = (video.frames_decoded - before) / len(ds)
     assert per_demo <= 2 + video.GOP, per_demo  # at most one GOP before the last frame, never 60
+    before = video.frames_decoded
+    ds.end_states(ds.episode_indices)  # where each demo ended: its data file alone
+    assert video.frames_decoded == before
 
 
 def test_bad_inputs_are_one_line_errors(tmp_path):

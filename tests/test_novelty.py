@@ -131,6 +131,46 @@ def test_the_last_view_reads_the_end_alone_and_old_models_the_cue():
         fit_novelty(model, train_cues, train_cues, CPU, autoencoder=0, view="first")
 
 
+def test_the_end_state_counts_where_the_arm_ended_and_nothing_else():
+    """With end states the density is one Gaussian over the image features and the standardised last state: a
+    demo whose frames look ordinary but whose arm ended far from where every training demo's did is unfamiliar
+    (an arm flung out of view leaves an ordinary-looking last frame), and one that ended where they did is not."""
+    torch.manual_seed(3)
+    cfg = ModelConfig(image_size=16, state_dim=3)
+    model = build_model(cfg).eval()
+    rng = np.random.default_rng(9)
+    train_cues, held = _cues(200, seed=10), _cues(40, seed=11)
+    ends = lambda n: rng.normal([0.2, -0.1, 5.0], [0.05, 0.05, 0.5], (n, 3)).astype(np.float32)  # noqa: E731
+    train_ends, held_ends = ends(200), ends(40)
+    stats = fit_novelty(model, train_cues, held, CPU, autoencoder=10, train_states=train_ends,
+                        held_out_states=held_ends)
+    assert model.cfg.novelty_state and stats["end_state"]
+    np.testing.assert_allclose(model.encoder.end_state_mean.numpy(), train_ends.mean(0), rtol=1e-5)
+    np.testing.assert_allclose(model.encoder.end_state_scale.numpy(), train_ends.std(0), rtol=1e-4)
+    # The d2 is sklearn's over both parts.
+    feats = stack_features(model.encoder.novelty_conv, train_cues, CPU, view="last").astype(np.float64)
+    both = lambda f, e: np.concatenate([f, (e - train_ends.mean(0)) / train_ends.std(0)], 1)  # noqa: E731
+    lw = LedoitWolf().fit(both(feats, train_ends.astype(np.float64)))
+    held_feats = stack_features(model.encoder.novelty_conv, held, CPU, view="last").astype(np.float64)
+    want = lw.mahalanobis(both(held_feats, held_ends.astype(np.float64)))
+    assert stats["d2_ref"] == pytest.approx(float(np.quantile(want, QUANTILE)), rel=1e-3)
+    flung = held_ends.copy()
+    flung[:, 0] += 1.0  # 20 training SDs away, the frames the same
+    with torch.no_grad():
+        novel = lambda e: (model.encoder.parts(cue_input(torch.from_numpy(held)), torch.from_numpy(e))[2]  # noqa: E731
+                           / model.encoder.prior_var).mean(1).numpy()
+        np.testing.assert_allclose(novel(held_ends), want / stats["d2_ref"], rtol=1e-3)
+        assert novel(flung).min() > 10 * novel(held_ends).max()
+        with pytest.raises(ValueError, match="end_state"):  # such a model cannot be read without them
+            model.encoder.parts(cue_input(torch.from_numpy(held)))
+    assert not ModelConfig().novelty_state  # what a config.json without the field means
+    # Refitted without end states, the density is the image features' alone again, of their size.
+    fit_novelty(model, train_cues, held, CPU, autoencoder=10)
+    assert not model.cfg.novelty_state and model.encoder.feature_mean.shape == (feats.shape[1],)
+    with pytest.raises(DemocheckError, match="both"):
+        fit_novelty(model, train_cues, held, CPU, autoencoder=0, train_states=train_ends)
+
+
 def test_fit_refuses_a_tecnet_and_too_few_cues():
     with pytest.raises(DemocheckError, match="PETNet"):
         fit_novelty(build_model(ModelConfig(model_type="tecnet", image_size=16)), _cues(5), _cues(2), CPU)
@@ -143,9 +183,10 @@ def test_training_fits_it_and_the_checkpoint_keeps_it_bit_for_bit(arrays, tmp_pa
     result = train(arrays, tmp_path / "m", TrainConfig(steps=4, seed=0, **FAST), card=card)
     ckpt = load_checkpoint(tmp_path / "m")
     assert ckpt.config.novelty and ckpt.meta["novelty"]["train_cues"] > 0
-    cue = torch.from_numpy(arrays.cue(np.arange(6)))
+    assert ckpt.config.novelty_state and ckpt.meta["novelty"]["end_state"]  # the density reads where demos ended
+    cue, end = torch.from_numpy(arrays.cue(np.arange(6))), torch.from_numpy(arrays.end_state(np.arange(6)))
     with torch.no_grad():
-        a, b = result.model.eval().encoder.parts(cue_input(cue)), ckpt.model.encoder.parts(cue_input(cue))
+        a, b = result.model.eval().encoder.parts(cue_input(cue), end), ckpt.model.encoder.parts(cue_input(cue), end)
     assert all(torch.equal(x, y) for x, y in zip(a, b)) and (a[2] > 0).all()
     assert "novelty density" in (tmp_path / "m" / "README.md").read_text()
     # The card's nonsense table is measured with both parts: a black cue is more uncertain than real ones.
@@ -176,12 +217,12 @@ def test_fit_novelty_cli_adds_it_to_a_trained_model(tiny_dataset, tmp_path):
         assert torch.equal(v, after.model.state_dict()[k]), k
     doc = json.loads((tmp_path / "nov" / "config.json").read_text())
     assert doc["novelty"]["command"] and doc["reference"]["ocsvm"]  # how it was made, and the audit refitted
-    real = arrays.cue(np.arange(8))
+    real, end = arrays.cue(np.arange(8)), torch.from_numpy(arrays.end_state(np.arange(8)))
     with torch.no_grad():
-        _, var_real = after.model.encoder(cue_input(torch.from_numpy(real)))
+        _, var_real = after.model.encoder(cue_input(torch.from_numpy(real)), end)
         for name, cues in nonsense_cues(real, np.random.default_rng(0)).items():
             if name in ("black", "white", "grey", "noise"):
-                _, var = after.model.encoder(cue_input(torch.from_numpy(cues)))
+                _, var = after.model.encoder(cue_input(torch.from_numpy(cues)), end)
                 assert var.sqrt().mean() > var_real.sqrt().mean(), name
     # The same folder again needs --force; a TecNets model and the wrong data are refused in one line.
     res = CliRunner().invoke(app, args)

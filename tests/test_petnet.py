@@ -88,10 +88,10 @@ def test_save_load_bit_identical_and_card(arrays, tmp_path):
     result = train(arrays, tmp_path / "m", TrainConfig(steps=6, seed=1, **FAST))
     ckpt = load_checkpoint(tmp_path / "m")
     assert isinstance(ckpt.model, PETNet) and ckpt.meta["data"]["fingerprint"] == arrays.fingerprint
-    cue = torch.from_numpy(arrays.cue(np.arange(4)))
+    cue, end = torch.from_numpy(arrays.cue(np.arange(4))), torch.from_numpy(arrays.end_state(np.arange(4)))
     with torch.no_grad():
-        a = result.model.eval().encoder(cue_input(cue))
-        b = ckpt.model.encoder(cue_input(cue))
+        a = result.model.eval().encoder(cue_input(cue), end)
+        b = ckpt.model.encoder(cue_input(cue), end)
     assert all(torch.equal(x, y) for x, y in zip(a, b))
     assert not (tmp_path / ".m.partial").exists()  # the resume state is gone once the model is written
 

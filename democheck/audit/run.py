@@ -26,7 +26,7 @@ from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
 from democheck.fsutil import to_json
 from democheck.petnet.checkpoint import Checkpoint
-from democheck.petnet.model import encode
+from democheck.petnet.model import encode_demos
 from democheck.petnet.posterior import TaskPosterior
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
@@ -61,7 +61,7 @@ def cue_posteriors(ds: DemoSet, model, device, batch: int | None = None,
         return shards.parallel_cues(ds, runner, batch, on_progress)
     parts = []
     for s in range(0, len(eps), batch):
-        parts.append(encode(model, ds.cue_frames_many(eps[s:s + batch]), device))
+        parts.append(encode_demos(model, ds, eps[s:s + batch], device))
         if on_progress:
             on_progress(min(s + batch, len(eps)), len(eps))
     return TaskPosterior.concat(parts)
@@ -324,9 +324,9 @@ def warnings(table: pd.DataFrame, ckpt: Checkpoint | None) -> list[str]:
                        f"{len(trained)} the model was trained on (e.g. {new[0]!r}): their demos are read by an "
                        "encoder that never learnt them; compare their scores with care")
     if "novelty" in table and len(table) and float(np.median(table["novelty"])) > 1:
-        out.append(f"most demos' images are unfamiliar to the model (median novelty "
+        out.append(f"most demos' ends are unfamiliar to the model (median novelty "
                    f"{float(np.median(table['novelty'])):.3g}; 1 = the 90th percentile of its own held-out cues): "
-                   "another camera or scene than it was trained on; train a model on this data")
+                   "another camera, scene or robot than it was trained on; train a model on this data")
     return out
 
 

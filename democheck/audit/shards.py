@@ -23,7 +23,7 @@ from democheck.audit import dynamics, modelfree, scorers as registry
 from democheck.audit.action_error import ACTION_BATCH
 from democheck.audit.scorers import Evidence, Scorer
 from democheck.data.demo import DemoSet
-from democheck.petnet.model import encode
+from democheck.petnet.model import encode_demos
 from democheck.petnet.posterior import TaskPosterior
 
 CUE_BATCH = 256  # cues encoded at a time, in one process and in a worker alike
@@ -143,7 +143,7 @@ def _cue_shard(job: tuple) -> list[dict[str, Any]]:
     ds, ckpt = _opened(spec), pool.state["ckpt"]
     parts, batch = [], spec["batch"]
     for s in range(0, len(eps), batch):
-        parts.append(encode(ckpt.model, ds.cue_frames_many(eps[s:s + batch]), pool.state["device"]))
+        parts.append(encode_demos(ckpt.model, ds, eps[s:s + batch], pool.state["device"]))
         pool.tick(len(parts[-1]))
     return [{"shard": index, "post": TaskPosterior.concat(parts)}]
 

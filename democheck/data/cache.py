@@ -63,6 +63,10 @@ class EpisodeArrays:
         last = first + (self.lengths[rows] - 1 if end is None else np.minimum(end, self.lengths[rows] - 1))
         return np.stack([self.frames[first], self.frames[last]], axis=1)
 
+    def end_state(self, rows: np.ndarray) -> np.ndarray:
+        """The state at each row's episode's last step: float32 [len(rows), S]."""
+        return self.state[self.offsets[rows] + self.lengths[rows] - 1]
+
 
 def build_cache(ds: DemoSet, cache_dir: Path | None = None,
                 on_progress: Callable[[int, int], None] | None = None) -> EpisodeArrays:

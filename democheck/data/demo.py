@@ -201,6 +201,15 @@ class DemoSet:
             return self._sized(many([int(e) for e in episode_indices]))
         return self._sized(np.stack([self._src.cue_frames(int(e)) for e in episode_indices]))
 
+    def end_states(self, episode_indices: list[int]) -> np.ndarray:
+        """The state at each episode's last step, float32 [N, S], without decoding frames where the format allows
+        (a reader's ``end_state``; otherwise the whole demo is read)."""
+        one = getattr(self._src, "end_state", None) or (lambda e: self._src.load(e).state[-1])
+        out = np.zeros((len(episode_indices), self.state_dim), np.float32)
+        for i, e in enumerate(episode_indices):
+            out[i] = one(int(e))
+        return out
+
     def by_task(self) -> dict[str, list[int]]:
         """Episode indices grouped by task string (demos with the same string are the same task)."""
         groups = self._src.episodes.groupby("task", sort=True).groups

@@ -47,8 +47,11 @@ class LeRobotV21(LeRobotBase):
                         video_key=self.camera)
         return inside_root(self.root, rel)
 
+    def _data_path(self, episode_index: int) -> Path:
+        return self._path("data_path", episode_index)
+
     def load(self, episode_index: int) -> Demo:
-        path = self._path("data_path", episode_index)
+        path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
         if self.camera_dtype == "video":
             frames = video.read_range(self._path("video_path", episode_index), 0, e - s, self.fps)
@@ -60,7 +63,7 @@ class LeRobotV21(LeRobotBase):
         n = int(self.episodes.loc[episode_index, "length"])
         if self.camera_dtype == "video":
             return video.read_frames(self._path("video_path", episode_index), [0, n - 1], self.fps)
-        path = self._path("data_path", episode_index)
+        path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
         return np.stack([self._decode_images(entry, s, s + 1, path)[0], self._decode_images(entry, e - 1, e, path)[0]])
 

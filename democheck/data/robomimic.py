@@ -121,6 +121,13 @@ class Robomimic:
         return Demo(episode_index=episode_index, task=str(row["task"]), frames=frames, state=state, actions=actions,
                     split=split if isinstance(split, str) else None, env_state=env_state)
 
+    def end_state(self, episode_index: int) -> np.ndarray:
+        """The state at an episode's last step, float32 [S], reading one row of each state key."""
+        with self._h5.File(self.root, "r") as f:
+            obs = self._group(f, episode_index)["obs"]
+            parts = [np.asarray(obs[k][obs[k].shape[0] - 1], np.float32).reshape(-1) for k in self.state_keys]
+        return np.concatenate(parts) if parts else np.zeros(0, np.float32)
+
     def cue_frames(self, episode_index: int) -> np.ndarray:
         with self._h5.File(self.root, "r") as f:
             img = self._group(f, episode_index)["obs"][self.camera]

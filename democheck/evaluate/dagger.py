@@ -184,7 +184,7 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
 
     # z of every training demo once: the encoder does not change.
     all_rows = np.concatenate(batches.rows)
-    post = encode(model, arrays.cue(all_rows), device)
+    post = encode(model, arrays.cue(all_rows), device, end_states=arrays.end_state(all_rows))
     mu_all, var_all = post.mu, post.var
     row_of = {int(r): i for i, r in enumerate(all_rows)}
     t0 = time.perf_counter()

@@ -29,7 +29,7 @@ from democheck.errors import DemocheckError
 from democheck.evaluate.rollout import ControllerPolicy, init_worker
 from democheck.fsutil import to_json
 from democheck.petnet.checkpoint import Checkpoint
-from democheck.petnet.model import encode
+from democheck.petnet.model import encode_demos
 from democheck.sim.catalog import OBJECTS
 from democheck.sim.expert import ScriptedExpert
 from democheck.sim.variants import record_demo
@@ -103,7 +103,7 @@ def infer_tasks(ds: DemoSet, ckpt: Checkpoint, trials: list[Trial], device) -> N
     """Fill each trial's z (and for PETNet its sigma and OCSVM verdict) from its cue demos."""
     eps = sorted({e for t in trials for e in t.cues})
     pos = {e: i for i, e in enumerate(eps)}
-    post = encode(ckpt.model, ds.cue_frames_many(eps), device)
+    post = encode_demos(ckpt.model, ds, eps, device)
     ref = (ckpt.meta.get("reference") or {}).get("ocsvm")
     for t in trials:
         cues = post.take([pos[e] for e in t.cues])

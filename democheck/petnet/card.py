@@ -31,6 +31,8 @@ def novelty_lines(nov: dict[str, Any] | None) -> list[str]:
                 f"training cues: {ae['steps']} steps, final loss {ae.get('loss', float('nan')):.4f})"
                 if ae.get("steps") else f"the encoder's {nov['feature_dim']} conv features")
     of = "the last frame (in both places) of each of" if nov.get("view") == "last" else "the whole cue of"
+    if nov.get("end_state"):
+        features += ", and the demo's state at its last step (standardised over the training demos' ends)"
     lines = [f"- novelty density (the epistemic part of the task variance): a Gaussian over {features}, of {of} "
              f"{nov['train_cues']} training cues (Ledoit-Wolf shrinkage {nov['shrinkage']:.3f}); reference "
              f"distance d2 = {nov['d2_ref']:.1f}, the {nov['quantile']:.0%} quantile of {nov['held_out_cues']} "

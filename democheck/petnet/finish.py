@@ -20,9 +20,10 @@ from democheck.petnet.novelty import fit_novelty
 from democheck.petnet.posterior import TaskPosterior
 
 
-def mean_sigma(model: torch.nn.Module, cues: np.ndarray, device: torch.device) -> float:
-    """The mean task standard deviation of uint8 cues [N, 2, H, W, 3], over cues and dimensions."""
-    return float(encode(model, cues, device).sigma.mean())
+def mean_sigma(model: torch.nn.Module, cues: np.ndarray, device: torch.device, end_states: np.ndarray) -> float:
+    """The mean task standard deviation of uint8 cues [N, 2, H, W, 3] (their demos' states at the last step
+    ``end_states`` [N, S]), over cues and dimensions."""
+    return float(encode(model, cues, device, end_states=end_states).sigma.mean())
 
 
 def finish_petnet(model, arrays: EpisodeArrays, train_rows: np.ndarray, held_rows: np.ndarray | None, seed: int,
@@ -38,17 +39,19 @@ def finish_petnet(model, arrays: EpisodeArrays, train_rows: np.ndarray, held_row
     out: dict[str, Any] = {}
     if novelty:
         # Without held-out tasks the reference distance comes from the training cues themselves (a little low).
-        out["novelty"] = fit_novelty(model, arrays.cue(train_rows),
-                                     arrays.cue(held_rows if held_rows is not None else train_rows), device,
+        held = held_rows if held_rows is not None else train_rows
+        out["novelty"] = fit_novelty(model, arrays.cue(train_rows), arrays.cue(held), device,
                                      trim=novelty_trim, autoencoder=autoencoder, seed=seed,
-                                     on_progress=on_novelty)
-    real = arrays.cue(held_rows if held_rows is not None else train_rows[:500])
-    sig = {"val demos" if held_rows is not None else "train demos": mean_sigma(model, real, device)}
+                                     on_progress=on_novelty, train_states=arrays.end_state(train_rows),
+                                     held_out_states=arrays.end_state(held))
+    rows = held_rows if held_rows is not None else train_rows[:500]
+    real, ends = arrays.cue(rows), arrays.end_state(rows)
+    sig = {"val demos" if held_rows is not None else "train demos": mean_sigma(model, real, device, ends)}
     for name, cues in nonsense_cues(real[:200], np.random.default_rng(seed)).items():
-        sig[name] = mean_sigma(model, cues, device)
+        sig[name] = mean_sigma(model, cues, device, ends[:200])
     out["task_sigma"] = sig
     if reference is not None:
-        post = encode(model, arrays.cue(train_rows), device)
+        post = encode(model, arrays.cue(train_rows), device, end_states=arrays.end_state(train_rows))
         out["reference"] = reference(post, arrays.episodes["task"].to_numpy()[train_rows])
     return out
 

@@ -19,7 +19,7 @@ loss plus the same control loss.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -60,6 +60,10 @@ class ModelConfig:
     # What of the cue the novelty density reads (``novelty_input``): "last", its last frame in both places -- how
     # familiar the demo's end looks; "cue", the cue as it is (models fitted before "last").  ``petnet.novelty``.
     novelty_view: str = "cue"
+    # The novelty density reads the demo's state at its last step beside the view's image features (one Gaussian
+    # over both, the state standardised over the training demos' ends): where the arm ended, which a frame cannot
+    # show once the arm has left the view.  False in models fitted before it.  ``petnet.novelty``.
+    novelty_state: bool = False
 
     def __post_init__(self) -> None:
         if self.novelty_view not in NOVELTY_VIEWS:
@@ -179,22 +183,36 @@ class TaskEncoder(nn.Module):
         autoencoder's conv stack it is fitted on; ``petnet.novelty.fit_novelty`` fills them."""
         device = next(self.conv.parameters()).device  # where the model is (a GPU after training there)
         if not hasattr(self, "feature_mean"):
-            d = conv_out_dim(self.cfg)
+            d = conv_out_dim(self.cfg) + (self.cfg.state_dim if self.cfg.novelty_state else 0)
             self.register_buffer("feature_mean", torch.zeros(d, device=device))
             self.register_buffer("feature_precision", torch.zeros(d, d, device=device))
             self.register_buffer("novelty_ref", torch.ones((), device=device))
             self.register_buffer("prior_var", torch.zeros(self.cfg.z_dim, device=device))
+            if self.cfg.novelty_state:
+                self.register_buffer("end_state_mean", torch.zeros(self.cfg.state_dim, device=device))
+                self.register_buffer("end_state_scale", torch.ones(self.cfg.state_dim, device=device))
         if self.cfg.novelty_autoencoder and not hasattr(self, "novelty_conv"):
             self.novelty_conv = conv_stack(6, self.cfg).to(device, memory_format=torch.channels_last)
 
-    def novelty_features(self, cue: torch.Tensor, h: torch.Tensor | None = None) -> torch.Tensor:
-        """The features the novelty density is over: the autoencoder's (``novelty_conv``) where the model has
-        one, else the task encoder's own conv features (``h``, when given, are those of the cue as it is); both of
-        what ``cfg.novelty_view`` reads of the cue (``novelty_input``)."""
+    def image_features(self, cue: torch.Tensor, h: torch.Tensor | None = None) -> torch.Tensor:
+        """The image part of the novelty features: the autoencoder's (``novelty_conv``) where the model has one,
+        else the task encoder's own conv features (``h``, when given, are those of the cue as it is); both of what
+        ``cfg.novelty_view`` reads of the cue (``novelty_input``)."""
         x = novelty_input(cue, self.cfg.novelty_view)
         if self.cfg.novelty_autoencoder:
             return self.novelty_conv(x)
         return self.conv(x) if h is None or x is not cue else h
+
+    def novelty_features(self, cue: torch.Tensor, h: torch.Tensor | None = None,
+                         end_state: torch.Tensor | None = None) -> torch.Tensor:
+        """The features the novelty density is over: ``image_features``, and with ``cfg.novelty_state`` the
+        demo's standardised state at its last step after them (``end_state`` [B, S], which such a model needs)."""
+        f = self.image_features(cue, h)
+        if not self.cfg.novelty_state:
+            return f
+        if end_state is None:
+            raise ValueError("this model's novelty density reads each demo's state at its last step; pass end_state")
+        return torch.cat([f, (end_state.to(f) - self.end_state_mean) / self.end_state_scale], 1)
 
     def distance2(self, features: torch.Tensor) -> torch.Tensor:
         """Squared Mahalanobis distance of conv features [B, D] from the training cues': [B]."""
@@ -206,17 +224,19 @@ class TaskEncoder(nn.Module):
         mu, raw = self.head(features).chunk(2, dim=-1)
         return mu, self.cfg.var_floor + F.softplus(raw)
 
-    def parts(self, cue: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(mu, var_task, var_novel); var_novel is zero without a fitted novelty density."""
+    def parts(self, cue: torch.Tensor, end_state: torch.Tensor | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(mu, var_task, var_novel); var_novel is zero without a fitted novelty density.  ``end_state``: each
+        demo's state at its last step [B, S], which a density with ``cfg.novelty_state`` reads."""
         h = self.conv(cue)
         mu, var_task = self.head_posterior(h)
         if not self.cfg.novelty:
             return mu, var_task, torch.zeros_like(var_task)
-        d2 = self.distance2(self.novelty_features(cue, h))
+        d2 = self.distance2(self.novelty_features(cue, h, end_state))
         return mu, var_task, self.prior_var * (d2 / self.novelty_ref)[:, None]
 
-    def forward(self, cue: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mu, var_task, var_novel = self.parts(cue)
+    def forward(self, cue: torch.Tensor, end_state: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        mu, var_task, var_novel = self.parts(cue, end_state)
         return mu, var_task + var_novel
 
 
@@ -273,9 +293,11 @@ class PETNet(nn.Module):
         mu, var = mu.reshape(b, n, -1), var.reshape(b, n, -1)
         return product_of_gaussians(mu, var, dim=1) if n > 1 else (mu[:, 0], var[:, 0])
 
-    def forward(self, cue: torch.Tensor, frames: torch.Tensor, state: torch.Tensor, sample: bool = True):
-        """cue uint8 [B, 2, H, W, 3]; frames uint8 [B, K, H, W, 3]; state [B, K, S] -> (actions [B, K, A], mu, var)."""
-        mu, var = self.encoder(cue_input(cue))
+    def forward(self, cue: torch.Tensor, frames: torch.Tensor, state: torch.Tensor, sample: bool = True,
+                cue_end: torch.Tensor | None = None):
+        """cue uint8 [B, 2, H, W, 3]; frames uint8 [B, K, H, W, 3]; state [B, K, S] -> (actions [B, K, A], mu, var).
+        ``cue_end``: the state at the cue demo's last step [B, S] (``TaskEncoder.parts``)."""
+        mu, var = self.encoder(cue_input(cue), cue_end)
         z = mu + var.sqrt() * torch.randn_like(mu) if sample else mu
         return self.controller.act(frames, state, z), mu, var
 
@@ -287,12 +309,12 @@ class PETNet(nn.Module):
         not ``sample``), then the mean squared error of the controller's actions on the demonstrated trajectory
         of another demo of the task.  Returns ``loss`` (= ``mse``) and the cues' mean ``sigma``.
 
-        batch: ``cue`` uint8 [B, 2, H, W, 3]; ``frames`` uint8 [B, K, H, W, 3], ``state`` [B, K, S] and
+        batch: ``cue`` uint8 [B, 2, H, W, 3] (and ``cue_end``, the state at its demo's last step [B, S]); ``frames`` uint8 [B, K, H, W, 3], ``state`` [B, K, S] and
         normalised ``actions`` [B, K, A] at K timesteps of the trajectory.  Hooks for the optional terms
         (``democheck.petnet.regularisers``): ``z_posterior(mu, var)`` replaces the Gaussian z is drawn from;
         ``terms(mu, var, sigma)`` adds named terms, computed after z is drawn and before the controller runs.
         """
-        mu, var = self.encoder(cue_input(batch["cue"]))
+        mu, var = self.encoder(cue_input(batch["cue"]), batch.get("cue_end"))
         mu_s, var_s = z_posterior(mu, var) if z_posterior is not None and sample else (mu, var)
         z = mu_s + var_s.sqrt() * torch.randn_like(mu_s) if sample else mu_s
         sigma = var.sqrt()
@@ -355,17 +377,20 @@ def build_model(cfg: ModelConfig) -> nn.Module:
 
 
 @torch.no_grad()
-def encode(model: torch.nn.Module, cues: np.ndarray, device: torch.device | str = "cpu", chunk: int = 256
-           ) -> TaskPosterior:
+def encode(model: torch.nn.Module, cues: np.ndarray, device: torch.device | str = "cpu", chunk: int = 256,
+           end_states: np.ndarray | None = None) -> TaskPosterior:
     """The task posterior of each of uint8 cues [N, 2, H, W, 3] under ``model`` (PETNet or TecNets).
 
-    A TecNets model has no variance: its embedding comes back as ``mu``, the variances zero.
+    ``end_states``: each demo's state at its last step [N, S], which a PETNet whose novelty density reads it
+    (``cfg.novelty_state``) needs.  A TecNets model has no variance: its embedding comes back as ``mu``, the
+    variances zero.
     """
     cols: list[list[np.ndarray]] = [[], [], []]
     for s in range(0, len(cues), chunk):
         x = cue_input(torch.from_numpy(np.ascontiguousarray(cues[s:s + chunk])).to(device))
         if isinstance(model.encoder, TaskEncoder):
-            out = model.encoder.parts(x)
+            end = None if end_states is None else torch.as_tensor(np.asarray(end_states[s:s + chunk]), device=device)
+            out = model.encoder.parts(x, end)
         else:
             emb = model.encoder(x)
             out = (emb, torch.zeros_like(emb), torch.zeros_like(emb))
@@ -375,5 +400,13 @@ def encode(model: torch.nn.Module, cues: np.ndarray, device: torch.device | str 
     return TaskPosterior(*(np.concatenate(c) if c else empty for c in cols))
 
 
+def encode_demos(model: torch.nn.Module, ds: Any, episodes: list[int], device: torch.device | str = "cpu"
+                 ) -> TaskPosterior:
+    """``encode`` of the cues of a DemoSet's ``episodes``, with their end states where the model's novelty density
+    reads them (``ModelConfig.novelty_state``)."""
+    ends = ds.end_states(episodes) if model.cfg.novelty and model.cfg.novelty_state else None
+    return encode(model, ds.cue_frames_many(episodes), device, end_states=ends)
+
+
 __all__ = ["ModelConfig", "PETNet", "TecNet", "TaskEncoder", "Controller", "kl_diag", "hinge_embedding_loss",
-           "build_model", "encode", "cue_input", "to_input"]
+           "build_model", "encode", "encode_demos", "cue_input", "to_input"]

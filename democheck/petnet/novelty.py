@@ -51,6 +51,22 @@ start is *more* familiar), the last frame's given the first's (a likelihood rati
 0.993; the whole task uncertainty of the shipped model refitted so, benched on each draw: random 0.970, 0.956,
 0.964 -> 0.986, 0.974, 0.986, no-objects and no-action the same or higher, occluded 1.000 -> 0.999 at worst
 (the model card).  The autoencoder learns from the cues as they are.
+And where the demo ended (``fit_novelty``'s end states, the model's ``novelty_state``): the density is one Gaussian
+over the last frame's features and the demo's state at its last step, each state dimension standardised over the
+training demos' ends (``end_state_units``).  A frame cannot show an arm that left the view -- the least unusual
+random probes end in a frame with less in it than a real one, the objects where they started -- and the state
+says where it is; one Gaussian over both reads the state's surprise *given* what the frame shows.  On the three
+development draws (``benchmarks/end_state_choices.py``, this model's autoencoder, draw 2; then each draw benched
+with the model refitted so), the whole task uncertainty random 0.986, 0.974, 0.986 -> 1.000 on all three,
+no-action 0.998, 0.998, 1.000 -> 1.000, no-objects 0.994, 0.985, 0.995 -> 0.997, 0.989, 0.996, gave-up 0.990,
+0.982, 0.989 -> 0.997, 0.990, 0.994, occluded 0.999, 0.999, 1.000 -> 0.999, 0.996, 0.998, hidden 1.000; the
+ranking the same or higher.  Two separate Gaussians summed instead (the state's d2 and the frame's, each over its
+reference) lost occluded (0.979 against 0.998 on draw 2: a clean demo's ordinary frame no longer excuses its
+unusual state); the state alone reads hidden and occluded at 0.44 and 0.95.  What it costs: the end states are
+read from the data files, no frame decoded -- 0.20 s of a 0.99 s cue pass over push-v1-fresh's 768 demos
+(``end_state_choices.py --time``), nothing in training.
+Meta-World mw2-dev (its your-data model refitted): random 0.815 -> 0.926, idle 0.822 -> 0.884, gave-up 0.724 ->
+0.800.  A dataset without state dimensions keeps the frame alone.
 Before, the conv features had been chosen over the fully connected layers'
 (their d2 ranked idle and covered cues above real ones, AUROC 0.99, 1.00,
 where the last hidden layer's did not, 0.53, 1.00).
@@ -159,11 +175,23 @@ def cue_decoder(cfg: Any) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def end_state_units(states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The centre and unit of each dimension of the training demos' end states [N, S] for the novelty density:
+    their mean and standard deviation (1 for a dimension that does not vary, which then stays put)."""
+    states = np.asarray(states, np.float64)
+    mean, spread = states.mean(0), states.std(0)
+    return mean, np.where(spread > 1e-6 * (1.0 + np.abs(mean)), spread, 1.0)
+
+
 def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: np.ndarray, device: torch.device,
                 quantile: float = QUANTILE, trim: float = 0.0, autoencoder: int | None = None, seed: int = 0,
-                on_progress: Callable[[int, int], None] | None = None, view: str = NOVELTY_VIEW) -> dict[str, Any]:
+                on_progress: Callable[[int, int], None] | None = None, view: str = NOVELTY_VIEW,
+                train_states: np.ndarray | None = None, held_out_states: np.ndarray | None = None) -> dict[str, Any]:
     """Fit the feature density of a PETNet model's encoder on ``train_cues`` and its reference distance on
     ``held_out_cues`` (real cues of tasks it was not fitted on), in place; sets ``model.cfg.novelty``.
+    ``train_states``, ``held_out_states``: the same demos' states at their last step [N, S]; given (and S > 0),
+    the density reads them beside the image features (``cfg.novelty_state``), each dimension standardised by
+    the training demos' ends.
 
     ``autoencoder``: the steps of the cue autoencoder whose encoder's features the density is over
     (``train_cue_autoencoder``; None: ``autoencoder_steps`` of the training cues; 0: none, the density over the
@@ -187,6 +215,17 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     if len(train_cues) < 2 or len(held_out_cues) < 1:
         raise DemocheckError(f"fitting the novelty density needs at least 2 training cues and 1 held-out cue "
                              f"(got {len(train_cues)} and {len(held_out_cues)})")
+    if (train_states is None) != (held_out_states is None):
+        raise DemocheckError("the novelty density reads end states of both the training and the held-out cues or of "
+                             "neither")
+    with_state = train_states is not None and np.asarray(train_states).shape[-1] > 0
+    if with_state:
+        train_states, held_out_states = (np.asarray(x, np.float64) for x in (train_states, held_out_states))
+        if train_states.shape != (len(train_cues), model.cfg.state_dim) or \
+                held_out_states.shape != (len(held_out_cues), model.cfg.state_dim):
+            raise DemocheckError(f"end states of shape {train_states.shape} and {held_out_states.shape} for "
+                                 f"{len(train_cues)} and {len(held_out_cues)} cues of a {model.cfg.state_dim}-d state")
+        state_mean, state_scale = end_state_units(train_states)
     encoder = model.encoder
     steps = autoencoder_steps(len(train_cues)) if autoencoder is None else int(autoencoder)
     ae: dict[str, Any] = {"steps": steps}
@@ -196,7 +235,10 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     else:
         conv = None
     reader = encoder.conv if conv is None else conv
-    feats, held = (stack_features(reader, c, device, view=view) for c in (train_cues, held_out_cues))
+    feats, held = (stack_features(reader, c, device, view=view).astype(np.float64) for c in (train_cues, held_out_cues))
+    if with_state:
+        feats, held = (np.concatenate([f, (x - state_mean) / state_scale], 1)
+                       for f, x in ((feats, train_states), (held, held_out_states)))
     density = LedoitWolf().fit(feats.astype(np.float64))
     if trim > 0:
         d2 = density.mahalanobis(feats.astype(np.float64))
@@ -208,8 +250,12 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
         raise DemocheckError(f"the held-out cues' feature distances are degenerate (reference {ref})")
     # Only now is the model changed: a fit that fails leaves it as it was.
     model.cfg.novelty, model.cfg.novelty_autoencoder, model.cfg.novelty_view = True, conv is not None, view
+    model.cfg.novelty_state = with_state
     if conv is None and hasattr(encoder, "novelty_conv"):
         del encoder.novelty_conv
+    for name in ("feature_mean", "feature_precision", "novelty_ref", "prior_var", "end_state_mean", "end_state_scale"):
+        if name in encoder._buffers:  # a density fitted before, perhaps over other features: registered anew
+            delattr(encoder, name)
     encoder.add_novelty()
     if conv is not None:
         encoder.novelty_conv.load_state_dict(conv.state_dict())
@@ -217,10 +263,14 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     encoder.feature_mean.copy_(as_t(density.location_))
     encoder.feature_precision.copy_(as_t(density.precision_))
     encoder.novelty_ref.copy_(as_t(ref))
+    if with_state:
+        encoder.end_state_mean.copy_(as_t(state_mean))
+        encoder.end_state_scale.copy_(as_t(state_scale))
     prior_var = mus.var(0) + var_task.mean(0)  # the spread of z over the training cues (law of total variance)
     encoder.prior_var.copy_(as_t(prior_var))
     return {"train_cues": len(train_cues), "held_out_cues": len(held_out_cues), "feature_dim": dim, "trim": trim,
             "features": "cue autoencoder" if steps > 0 else "task encoder", "view": view, "autoencoder": ae,
+            "end_state": bool(with_state),
             "quantile": quantile, "d2_ref": ref, "shrinkage": float(density.shrinkage_),
             "held_out_d2": {f"q{int(q * 100)}": float(np.quantile(d2_held, q)) for q in (0.05, 0.5, 0.95, 0.99)},
             "prior_sd": np.sqrt(prior_var).round(4).tolist()}
