@@ -38,7 +38,7 @@ from democheck.petnet.card import git_commit, model_card
 from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
 from democheck.petnet.finish import finish_petnet
 from democheck.petnet.recipe import DEFAULT_RECIPE, load_recipe, training_config
-from democheck.petnet.train import TrainConfig, TrainResult, resolve_device, train
+from democheck.petnet.train import TrainConfig, TrainResult, finish_rows, resolve_device, train
 from democheck.sim.suite import generate, load_recipe as load_suite
 from democheck.viz.report import embed_2d, write_bench_rrd, write_eval_rrd, write_report_rrd
 
@@ -103,12 +103,12 @@ def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camer
     train_rows, val_rows = task_rows(arrays, "train", seed), task_rows(arrays, "val", seed)
     if not train_rows:
         raise DemocheckError(f"{ds.root}: no training tasks with two or more demos")
-    held = np.concatenate(list(val_rows.values())) if val_rows else None
     recipe = training_config(ckpt.meta.get("training", {}))
+    fit_rows, held = finish_rows(arrays, recipe, train_rows, val_rows)  # the rows its training fitted it on
     trim = recipe.novelty_trim if trim is None else trim
     if not 0.0 <= trim < 0.5:
         raise DemocheckError(f"--trim is a share of the training cues below 0.5, not {trim}")
-    extra = finish_petnet(ckpt.model, arrays, np.concatenate(list(train_rows.values())), held, seed, dev,
+    extra = finish_petnet(ckpt.model, arrays, fit_rows, held, seed, dev,
                           novelty=True, novelty_trim=trim, reference=reference,
                           autoencoder=None if recipe.novelty_autoencoder else 0, on_novelty=on_novelty)
     meta = dict(ckpt.meta)

@@ -380,3 +380,11 @@ def test_the_final_phase_learns_the_validation_demos_too(tmp_path):
     assert meta["data"]["task_split"]["validation"].endswith("learnt too in the last 2 steps")
     assert result.history[-1]["step"] == 4  # validation stops where every demo is trained on
     assert meta["novelty"]["train_cues"] == len(arrays.episodes)  # the density (and the OCSVM) see every demo
+    assert meta["novelty"]["held_out_cues"] == len(arrays.episodes)  # ... and its reference is theirs
+    # fit-novelty refits it as training fitted it, not on the training split with the held-out demos as reference.
+    res = CliRunner().invoke(app, ["fit-novelty", str(tmp_path / "m"), "--data", str(root), "--out",
+                                   str(tmp_path / "refit"), "--device", "cpu", "--cache-dir", str(tmp_path / "cache")])
+    assert res.exit_code == 0, res.output
+    refit = load_checkpoint(tmp_path / "refit").meta["novelty"]
+    assert refit["train_cues"] == refit["held_out_cues"] == len(arrays.episodes)
+    assert refit["d2_ref"] == pytest.approx(meta["novelty"]["d2_ref"], rel=1e-6)  # the same fit, from its seed

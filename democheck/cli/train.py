@@ -66,7 +66,7 @@ def train(
 @app.command(name="fit-novelty")
 def fit_novelty(
     model: Annotated[Path, typer.Argument(help="A trained PETNet model folder.")],
-    data: Annotated[Path, typer.Option("--data", help="The dataset the model was trained on (its train split fits the density, its val split the reference distance).")],
+    data: Annotated[Path, typer.Option("--data", help="The dataset the model was trained on. The density is fitted as training fitted it: on its train split, the val split giving the reference distance; or on every demo, the reference from them too, where the recipe's last phase learnt every demo (--recipe your-data).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write: the same weights with the density, the card's numbers and the audit's reference redone.")],
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     camera: Annotated[Optional[str], typer.Option(help="Image feature the model was trained on when there are several.")] = None,

@@ -173,6 +173,35 @@ def _start_from(model: torch.nn.Module, cfg: ModelConfig, folder: str) -> Normal
     return start.norm
 
 
+def every_row(train_rows: dict[str, np.ndarray], val_rows: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Every demo of every task, validation demos included: what the final phase (``final_all_share``) learns."""
+    none = np.zeros(0, np.int64)
+    return {t: np.sort(np.concatenate([train_rows.get(t, none), val_rows.get(t, none)]))
+            for t in set(train_rows) | set(val_rows)}
+
+
+def names_splits(arrays: EpisodeArrays) -> bool:
+    """Whether the data names its splits (a democheck suite's sidecar) rather than democheck holding out demos."""
+    return bool("split" in arrays.episodes and arrays.episodes["split"].notna().any())
+
+
+def final_steps(arrays: EpisodeArrays, tc: TrainConfig, val_rows: dict[str, np.ndarray]) -> int:
+    """The steps of the final phase that learns every demo (``final_all_share``): only where validation holds out
+    demos of tasks that are trained on -- a split the data names stays as it is."""
+    return int(round(tc.final_all_share * tc.steps)) if val_rows and not names_splits(arrays) else 0
+
+
+def finish_rows(arrays: EpisodeArrays, tc: TrainConfig, train_rows: dict[str, np.ndarray],
+                val_rows: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
+    """The rows the novelty density and the OCSVM are fitted on, and the held-out rows the density's reference
+    distance comes from (None: the fitted rows themselves): every demo and None when the final phase learnt
+    every demo -- the audit then compares demos the model has all seen -- else the training and validation rows.
+    ``democheck fit-novelty`` refits a model the same way."""
+    if final_steps(arrays, tc, val_rows) > 0:
+        return np.concatenate(list(every_row(train_rows, val_rows).values())), None
+    return np.concatenate(list(train_rows.values())), (np.concatenate(list(val_rows.values())) if val_rows else None)
+
+
 def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = False, force: bool = False,
           meta: dict[str, Any] | None = None, on_progress: Callable[[int, int, dict[str, float]], None] | None = None,
           card: Callable[[dict[str, Any]], str] | None = None, stop_after: int | None = None,
@@ -215,13 +244,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     groups = task_groups if tc.hard_negatives else None
     batches, val = Batches(arrays, train_rows, norm, groups), Batches(arrays, val_rows, norm)
     pairs = val_pairs(val, tc.seed) if val_rows else None
-    # The final phase (``final_all_share``): every demo of every task, validation demos included.
-    every = {t: np.sort(np.concatenate([train_rows.get(t, np.zeros(0, np.int64)), val_rows.get(t, np.zeros(0, np.int64))]))
-             for t in set(train_rows) | set(val_rows)}
-    # Only where validation holds out demos of tasks that are trained on: a split the data names stays as it is.
-    named_split = "split" in arrays.episodes and arrays.episodes["split"].notna().any()
-    final_steps = int(round(tc.final_all_share * tc.steps)) if val_rows and not named_split else 0
-    final_from = tc.steps - final_steps
+    every = every_row(train_rows, val_rows)
+    final_from = tc.steps - final_steps(arrays, tc, val_rows)
     batches_all = Batches(arrays, every, norm, groups) if final_from < tc.steps else batches
 
     step, history, wall_before = 0, [], 0.0
@@ -271,17 +295,14 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     metrics: dict[str, Any] = {"steps": step, "wall_s": round(wall, 1), "final": history[-1] if history else report}
     meta = dict(meta or {})
     if cfg.model_type == "petnet":
-        if final_from < tc.steps:  # every demo learnt: the density and the OCSVM see them all
-            all_train, held = np.concatenate(list(every.values())), None
-        else:
-            held = np.concatenate(list(val_rows.values())) if val_rows else None
-        extra = finish_petnet(model, arrays, all_train, held, tc.seed, device, tc.novelty, tc.novelty_trim, reference,
+        fit_rows, held = finish_rows(arrays, tc, train_rows, val_rows)
+        extra = finish_petnet(model, arrays, fit_rows, held, tc.seed, device, tc.novelty, tc.novelty_trim, reference,
                               autoencoder=None if tc.novelty_autoencoder else 0, on_novelty=on_novelty)
         metrics["task_sigma"] = extra.pop("task_sigma")
         meta.update(extra)
     # Which tasks the model learnt: the audit warns about the others, the card names them.
     tasks = {"trained": sorted(train_rows), "left_out": left_out,
-             "validation": "the data's val split" if named_split else "held-out demos of every task"
+             "validation": "the data's val split" if names_splits(arrays) else "held-out demos of every task"
              + (f", learnt too in the last {tc.steps - final_from} steps" if final_from < tc.steps else "")}
     meta = {**meta, "data": {**meta.get("data", {}), "fingerprint": arrays.fingerprint, "task_split": tasks},
             "training": asdict(tc), "metrics": metrics, "history": history}
