@@ -20,7 +20,9 @@ its task as ``democheck audit`` does, and then:
   clean demos, for scores whose clean tail is lighter or heavier than the quartiles say;
 - the shipped choices with one part changed (``VARIANTS``): ``Cauchy`` combines the tail probabilities by the
   Cauchy combination test instead of Fisher-Brown; ``normal idle`` gives the idle share a normal tail (median
-  and IQR / 1.349 of the core) instead of the exponential; ``family by likelihood`` gives each score the normal
+  and IQR / 1.349 of the core) instead of the exponential; ``exponential coupling`` gives the coupling the
+  exponential tail instead of its own normal one (``Scorer.tail``; the shipped choice since, every row but that
+  one); ``family by likelihood`` gives each score the normal
   or the exponential tail, whichever fits the core's values above its median better (half-normal against
   exponential likelihood); ``empirical`` takes, once the core is found, each score's p-value as its rank among
   the core's values, the exponential carrying on beyond the core's largest; ``core-centred`` puts the scores in
@@ -49,7 +51,8 @@ from suspicion_choices import aurocs, bench_tables
 FPRS = (0.01, 0.02)
 CORES = (None, 1e-3, 1e-4, 1e-5)
 FINAL_FITS = ((0.5, 0.9), (0.75, 0.95), (0.5, 0.95))
-VARIANTS = ("Cauchy", "normal idle", "family by likelihood", "empirical", "core-centred")
+VARIANTS = ("Cauchy", "normal idle", "family by likelihood", "empirical", "core-centred",
+            "core-centred, exponential coupling")
 CAUCHY_P_MAX = 0.9  # the Cauchy test needs p < 1: the exponential tails give p = 1 below their 25th percentile
 
 
@@ -86,15 +89,6 @@ def cauchy_log10(log_p: np.ndarray) -> np.ndarray:
         stat = np.where(seen, t, 0.0).sum(1) / np.maximum(seen.sum(1), 1)
         out = np.where(stat > 1e15, -np.log10(np.pi * stat), np.log10(0.5 - np.arctan(stat) / np.pi))
     return np.where(np.isinf(stat), -np.inf, out)
-
-
-def normal_tail(x: np.ndarray, core: np.ndarray) -> np.ndarray:
-    """Natural log of a normal right tail through the core's median, its scale IQR / 1.349 (at least
-    ``scores.TAIL_MIN_SCALE``)."""
-    from scipy.stats import norm
-
-    q1, q2, q3 = np.quantile(x[np.isfinite(x) & core], [0.25, 0.5, 0.75])
-    return np.where(np.isnan(x), np.nan, norm.logsf((x - q2) / max((q3 - q1) / 1.349, scores.TAIL_MIN_SCALE)))
 
 
 def normal_fits_better(x: np.ndarray, core: np.ndarray) -> bool:
@@ -136,15 +130,16 @@ def variant(how: str, table, cons: np.ndarray, model_free: bool) -> tuple[np.nda
     combine = cauchy_log10 if how == "Cauchy" else scores.combined_log10
 
     def tails(z: np.ndarray, core: np.ndarray) -> np.ndarray:
-        log_p = scores.tail_probabilities(z, core)
+        normal = scorers.normal_tails(names)  # the scorers' own families (``Scorer.tail``), then the variant's
         for k, n in enumerate(names):
-            if (how == "normal idle" and n == "idle") or (how == "family by likelihood"
-                                                           and normal_fits_better(z[:, k], core)):
-                log_p[:, k] = normal_tail(z[:, k], core)
-        return log_p
+            if f"exponential {n}" in how.split(", "):
+                normal[k] = False
+            if f"normal {n}" in how.split(", ") or (how == "family by likelihood" and normal_fits_better(z[:, k], core)):
+                normal[k] = True
+        return scores.tail_probabilities(z, core, normal)
 
     def z_for(core: np.ndarray) -> np.ndarray:
-        return core_centred_z(table, values, names, core) if how == "core-centred" else \
+        return core_centred_z(table, values, names, core) if how.startswith("core-centred") else \
             ranking(table, cons, True, model_free)
 
     core = np.ones(len(table), bool)
@@ -162,18 +157,19 @@ def variant(how: str, table, cons: np.ndarray, model_free: bool) -> tuple[np.nda
     return -combine(log_p), core
 
 
-def calibrate(z: np.ndarray, core_p: float | None, final: tuple[float, float] | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """(-log10 combined tail probability, core) with the tails fitted on all demos or on the robust core (and then,
-    with ``final``, refitted on the core through those percentiles)."""
+def calibrate(z: np.ndarray, core_p: float | None, final: tuple[float, float] | None = None,
+              normal: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(-log10 combined tail probability, core) with the tails (``normal``: the columns with a normal one) fitted
+    on all demos or on the robust core (and then, with ``final``, refitted on the core through those
+    percentiles)."""
     if core_p is None:
-        return -scores.combined_log10(scores.tail_probabilities(z)), np.ones(len(z), bool)
-    log_p, core = scores.robust_tails(z, core_p)
+        return -scores.combined_log10(scores.tail_probabilities(z, normal=normal)), np.ones(len(z), bool)
+    log_p, core = scores.robust_tails(z, core_p, normal=normal)
     if final is not None:
         saved = scores.TAIL_QUANTILES
         scores.TAIL_QUANTILES = final
         try:
-            log_p = scores.tail_probabilities(z, core)
+            log_p = scores.tail_probabilities(z, core, normal)
         finally:
             scores.TAIL_QUANTILES = saved
     return -scores.combined_log10(log_p), core
@@ -212,15 +208,17 @@ def main() -> None:
                     if model_free and (form != "scaled kNN" or log_unc):
                         continue  # neither choice touches the model-free scores
                     z = ranking(table, cons, log_unc, model_free)
+                    values = {c: table[c].to_numpy() for c in table if c in SCORERS} | {"consistency": cons}
+                    normal = scorers.normal_tails(ranked_names(values, table, model_free))
                     for core_p in CORES:
                         name = ("no model" if model_free else f"{form}{', log unc.' if log_unc else ''}") + \
                             f", core {'off' if core_p is None else f'{core_p:g}'}"
-                        show(name, *calibrate(z, core_p), labels, kinds)
+                        show(name, *calibrate(z, core_p, normal=normal), labels, kinds)
                     if form == "scaled kNN" and (log_unc or model_free):  # the shipped choices
                         who = "no model" if model_free else "shipped"
                         for final in FINAL_FITS:
-                            show(f"{who}, final fit {final[0]:g}-{final[1]:g}", *calibrate(z, scores.CORE_P, final),
-                                 labels, kinds)
+                            show(f"{who}, final fit {final[0]:g}-{final[1]:g}",
+                                 *calibrate(z, scores.CORE_P, final, normal), labels, kinds)
                         for how in VARIANTS:
                             show(f"{who}, {how}", *variant(how, table, cons, model_free), labels, kinds)
 

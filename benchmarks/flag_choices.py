@@ -46,8 +46,8 @@ SHIPPED_TAILS = scores.tail_probabilities
 def pot_tails(q: float):
     """``scores.tail_probabilities`` with each column's tail above its core's ``q`` quantile refitted (see above)."""
 
-    def tails(z: np.ndarray, core: np.ndarray | None = None) -> np.ndarray:
-        out = SHIPPED_TAILS(z, core)
+    def tails(z: np.ndarray, core: np.ndarray | None = None, normal: np.ndarray | None = None) -> np.ndarray:
+        out = SHIPPED_TAILS(z, core, normal)
         core = np.ones(len(z), bool) if core is None else np.asarray(core, bool)
         for k in range(z.shape[1]):
             x = z[:, k]
@@ -58,7 +58,8 @@ def pot_tails(q: float):
             excess = f[f > u] - u
             beta = max(float(excess.mean()) if len(excess) else 0.0, scores.TAIL_MIN_SCALE)
             # The shipped tail's value at u: u as one more row, outside the core it is fitted on.
-            at_u = SHIPPED_TAILS(np.append(x, u)[:, None], np.append(core, False))[-1, 0]
+            at_u = SHIPPED_TAILS(np.append(x, u)[:, None], np.append(core, False),
+                                 None if normal is None else normal[k:k + 1])[-1, 0]
             with np.errstate(invalid="ignore"):
                 out[:, k] = np.where(x > u, np.minimum(at_u - (x - u) / beta, 0.0), out[:, k])
         return out
@@ -74,7 +75,7 @@ def combined(table: pd.DataFrame, model_free: bool, tails=SHIPPED_TAILS, empiric
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=values)
     scores.tail_probabilities = tails
     try:
-        log_p, core = scores.robust_tails(lambda c: ranking_z(ev, names, c))
+        log_p, core = scorers.ranking_tails(ev, names)
     finally:
         scores.tail_probabilities = SHIPPED_TAILS
     if empirical:

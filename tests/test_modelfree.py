@@ -2,6 +2,7 @@
 keep the false-positive rate they state."""
 
 import numpy as np
+import pytest
 import pandas as pd
 from scipy import stats
 
@@ -190,7 +191,28 @@ def test_model_free_suspicion_without_a_model_ranks_the_still_arm_first():
     demos, bad = _planted("idle")
     ev = _evidence(demos, [n for n, s in SCORERS.items() if s.model_free and s.in_audit])
     assert int(np.argmax(ev.scores["suspicion"])) == bad
-    assert ev.reasons["suspicion"][bad].startswith(("idle:", "motion:"))
+    assert ev.reasons["suspicion"][bad].startswith(("idle:", "motion:", "coupling:"))
+
+
+def test_a_normal_tail_keeps_the_rate_on_normal_scores_and_sees_how_far_out_a_demo_is():
+    """A score whose clean spread is normal (a mean over many steps: ``Scorer.tail`` "normal") gets a normal tail
+    through the core's median and interquartile range: the flags at a level flag that share of clean demos, and a
+    demo six robust SD out is as rare as a normal says, where the exponential through the quartiles calls it one
+    clean demo in a few hundred."""
+    rng = np.random.default_rng(1)
+    n = 20000
+    z = rng.normal(0.0, 1.0, (n, 1))
+    normal = np.array([True])
+    for fpr in (0.01, 0.05):
+        flagged = int((np.exp(tail_probabilities(z, normal=normal)[:, 0]) <= fpr).sum())
+        lo, hi = stats.binom.interval(0.999, n, fpr)
+        assert lo <= flagged <= hi, (fpr, flagged, lo, hi)
+    far = np.append(z[:, 0], 6.0)[:, None]
+    core = np.append(np.ones(n, bool), False)
+    as_normal = tail_probabilities(far, core, normal)[-1, 0]
+    assert as_normal == pytest.approx(stats.norm.logsf(6.0), abs=0.5)  # about 1e-9
+    assert np.exp(tail_probabilities(far, core)[-1, 0]) > 1e-3  # the exponential: under 1 in 1,000
+    assert np.isnan(tail_probabilities(np.array([[np.nan], [0.0]]), normal=normal)[0, 0])  # no score: none
 
 
 def test_the_combined_tail_probability_keeps_its_false_alarm_rate():

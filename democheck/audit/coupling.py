@@ -25,6 +25,17 @@ the same.  With the model's scores it was a wash on the
 ranking (gave-up +0.0002 to +0.0011) but flagged more clean demos (push-v1-dev pooled 6 -> 12 of 614).  Alone it
 reads gave-up and no-action 1.000 on every push draw, random 0.32-0.37: a flailing arm's state follows its
 torques closely.
+
+Its tail in the ranking is normal (``Scorer.tail``), not the exponential through the quartiles the other scores
+get: an estimate averaged over a demo's steps spreads normally over clean demos, and the exponential called a
+demo that let go, 5.7 robust SD below its task's median, one clean demo in 400 -- fewer than a clean demo that
+pushed its object 13 robust SD past the others' (``outcome``), which then ranked above two gave-up demos.  On the
+same development benches (``benchmarks/calibration_choices.py``, "no model" rows), without a model: gave-up
+AUROC 0.996 / 1.000 / 0.999 -> 1.000 on all three, its flags 0.92 / 0.92 / 1.00 -> 1.00 / 0.97 / 1.00, clean
+demos flagged 3 / 0 / 4 -> 4 / 0 / 4 of 614, no-objects 0.956 / 0.936 / 0.918 -> 0.942 / 0.929 / 0.902 and
+occluded 0.983 / 0.996 / 0.990 -> 0.977 / 0.995 / 0.985; Meta-World mw2-dev gave-up 0.997 -> 0.999, its clean
+demos flagged 5 of 200 either way; mw2-one-dev the same.  (The idle share's normal tail was measured and not
+kept: Meta-World's resting demos give it a long clean tail.)
 """
 
 from __future__ import annotations

@@ -72,7 +72,7 @@ class Evidence:
         names = ranked(self.scores, self.tasks, model_free)
         key = tuple(names)
         if key not in self._combinations:
-            self._combinations[key] = robust_tails(lambda core: ranking_z(self, names, core))
+            self._combinations[key] = ranking_tails(self, names)
         return (names, *self._combinations[key])
 
     @property
@@ -121,6 +121,10 @@ class Scorer:
     stands_in_for: str = ""
     # The least spread a robust standard deviation of this score stands for in the ranking, in its units.
     ranking_min_scale: float = 0.0
+    # The family of its clean right tail in the ranking (``scores.tail_probabilities``): "exponential", or
+    # "normal" for a score that is a mean over many steps (the central limit theorem makes its clean spread normal,
+    # and an exponential through its quartiles would call a demo six robust SD out one clean demo in a few hundred).
+    tail: str = "exponential"
     # Where its decoding pass's result lands in ``Evidence.behaviour`` (default: its name); scorers that give
     # the same key share one consumer.
     behaviour: str = ""
@@ -201,6 +205,17 @@ def ranking_z(ev: Evidence, names: list[str], core: np.ndarray | None = None) ->
         x = np.log(np.maximum(x, 1e-12)) if s.log_in_ranking else x
         cols.append(x if s.in_robust_sd else calibrated(x, ev.tasks, min_scale=s.ranking_min_scale, core=core))
     return np.column_stack(cols) if cols else np.zeros((len(ev.episodes), 0))
+
+
+def ranking_tails(ev: Evidence, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The tail probabilities (natural logs, [N, K]) of the ranking's scores ``names`` and the robust core they
+    are fitted on (``scores.robust_tails`` of ``ranking_z``), each score's tail of its scorer's family."""
+    return robust_tails(lambda core: ranking_z(ev, names, core), normal=normal_tails(names))
+
+
+def normal_tails(names: list[str]) -> np.ndarray:
+    """Which of the ranking's scores ``names`` have a normal tail (``Scorer.tail``): bool [K]."""
+    return np.array([SCORERS[n].tail == "normal" for n in names], bool)
 
 
 def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
@@ -398,7 +413,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            decode=lambda ev, rows, device: outcome.OutcomeStats(), short="outc."),
     Scorer("coupling", "model-free: how little the demo's actions go with its state (minus their mutual "
            "information over its steps, KSG estimate, nats); in the ranking where the action error is not",
-           ("demos",), _coupling, in_suspicion=True, stands_in_for="action_error",
+           ("demos",), _coupling, in_suspicion=True, stands_in_for="action_error", tail="normal",
            decode=lambda ev, rows, device: coupling.CouplingStats(), short="coupl."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
            "consistency, action error (log), motion, idle, view, colours and outcome (one task: the last six; "

@@ -30,8 +30,9 @@ Every score is one number per demo, higher = more suspect:
   ranking is first put in robust standard deviations within its task (``calibrated``: a task whose demos
   all score high does not fill the top ranks; the task uncertainty and the action error on a log scale: their
   clean demos' right tails are long), then turned into a tail probability by ``tail_probabilities``: an
-  exponential right tail through the 25th and 75th percentiles of the audited demos' *robust core*
-  (``robust_tails``): fitted on every demo, then again on those whose combined probability is above
+  exponential right tail through the 25th and 75th percentiles of the audited demos' *robust core* (a normal
+  tail for a score its scorer says is a mean over many steps, ``Scorer.tail``: the coupling, whose choice
+  ``democheck.audit.coupling`` gives) (``robust_tails``): fitted on every demo, then again on those whose combined probability is above
   ``CORE_P``, until the core stops changing; at every round each task's centre and the robust unit are taken
   again from the core's demos alone (``calibrated`` with ``core``; motion, view and colours, robust z within
   their task already, keep the centre of all the task's demos), so that a task's bad demos shift neither
@@ -256,14 +257,20 @@ def reference(post: TaskPosterior, tasks: np.ndarray, nu: float = 0.01) -> dict[
             "ocsvm": fit_ocsvm(post.sigma, nu)}
 
 
-def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None) -> np.ndarray:
+def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np.ndarray | None = None
+                       ) -> np.ndarray:
     """Natural log of the tail probability of each entry of [N, K] scores in robust standard deviations,
     column by column: an exponential tail through the ``TAIL_QUANTILES`` of the column's rows in ``core``
     (default: all; probability 0.75 at their 25th percentile, 0.25 at their 75th), at most 1, its scale at least
-    ``TAIL_MIN_SCALE``.  NaN (no score) stays NaN, which the combinations leave out; +inf (an exact copy) gives
-    log 0."""
+    ``TAIL_MIN_SCALE``; or, for the columns ``normal`` [K] marks, a normal tail through the core's median, its
+    scale the core's interquartile range / 1.349 (at least ``TAIL_MIN_SCALE``) -- for a score that is a mean over
+    many steps, whose clean spread the central limit theorem makes normal (``Scorer.tail``).  NaN (no score)
+    stays NaN, which the combinations leave out; +inf (an exact copy) gives log 0."""
+    from scipy.stats import norm
+
     lo, hi = TAIL_QUANTILES
     core = np.ones(len(z), bool) if core is None else np.asarray(core, bool)
+    normal = np.zeros(z.shape[1], bool) if normal is None else np.asarray(normal, bool)
     out = np.full(z.shape, np.nan)
     for k in range(z.shape[1]):
         x = z[:, k]
@@ -271,15 +278,19 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None) -> np.ndar
         if not ok.any():
             continue
         fit = x[np.isfinite(x) & core]
-        q_lo, q_hi = np.quantile(fit, [lo, hi]) if len(fit) else (0.0, 0.0)
-        beta = max((q_hi - q_lo) / np.log((1 - lo) / (1 - hi)), TAIL_MIN_SCALE)
-        tail = np.log(1 - lo) - (x - q_lo) / beta
+        q_lo, q_mid, q_hi = np.quantile(fit, [lo, 0.5, hi]) if len(fit) else (0.0, 0.0, 0.0)
+        if normal[k]:
+            with np.errstate(invalid="ignore"):
+                tail = norm.logsf((x - q_mid) / max((q_hi - q_lo) / (2 * norm.ppf(hi)), TAIL_MIN_SCALE))
+        else:
+            beta = max((q_hi - q_lo) / np.log((1 - lo) / (1 - hi)), TAIL_MIN_SCALE)
+            tail = np.log(1 - lo) - (x - q_lo) / beta
         out[:, k] = np.where(ok, np.minimum(tail, 0.0), np.nan)
     return out
 
 
 def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: float = CORE_P,
-                 rounds: int = CORE_ROUNDS) -> tuple[np.ndarray, np.ndarray]:
+                 rounds: int = CORE_ROUNDS, normal: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``tail_probabilities`` fitted on the audited demos' robust core, and the core [N] (bool): starting from
     every demo, the tails are fitted, combined (``combined_log10``), and the demos whose combined probability is
     at most ``core_p`` left out of the next fit, until the core stops changing.  The core never shrinks below
@@ -287,18 +298,18 @@ def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: flo
 
     ``z``: the [N, K] scores in robust SD, or a function of the core (None: every demo) that computes them (the
     ranking's: each task's centre and the unit from the core's demos, ``calibrated``), called again at every
-    round."""
+    round.  ``normal``: the columns with a normal tail (``tail_probabilities``)."""
     z_of = z if callable(z) else (lambda core: z)
     zc = z_of(None)  # every demo
     core = np.ones(len(zc), bool)
-    log_p = tail_probabilities(zc, core)
+    log_p = tail_probabilities(zc, core, normal)
     for _ in range(rounds):
         new = ~(10.0 ** combined_log10(log_p) <= core_p)
         if (new == core).all() or new.sum() < len(zc) / 2:
             break
         core = new
         zc = z_of(core)
-        log_p = tail_probabilities(zc, core)
+        log_p = tail_probabilities(zc, core, normal)
     return log_p, core
 
 
