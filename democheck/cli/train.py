@@ -76,7 +76,7 @@ def fit_novelty(
 ) -> None:
     """Give a trained PETNet model the epistemic part of its task variance, without retraining.
 
-    A cue autoencoder trained on the training cues, and a Gaussian fitted to its encoder's features of their last frames; a cue whose end is far from theirs gets a wider task posterior. democheck train fits it itself; this is for models trained with --set model.novelty=false or before it existed, and to refit an older model's density (over the whole cue) on the last frame.
+    A cue autoencoder trained on the training cues, and one Gaussian fitted to its encoder's features of their last frames together with the demos' states at their last step; a demo whose end is far from theirs (in what the camera saw or where the arm ended) gets a wider task posterior. democheck train fits it itself; this is for models trained with --set model.novelty=false or before it existed, and to refit an older model's density (over the whole cue, or the last frame alone) on both.
     """
     with user_errors():
         from democheck.workflows import refit_novelty
