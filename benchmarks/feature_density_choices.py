@@ -89,8 +89,12 @@ def densities(encoder, train: np.ndarray, train_tasks: np.ndarray, val: np.ndarr
               *sets: np.ndarray) -> list[dict[str, np.ndarray]]:
     """Each density's score (see the module docstring) of the features [N, D] of each of ``sets``, every density
     fitted once, on the ``train`` features (the typicality's centre and the PaDiM references on ``val``)."""
-    mean = encoder.feature_mean.cpu().numpy().astype(np.float64)
-    precision = encoder.feature_precision.cpu().numpy().astype(np.float64)
+    if encoder.cfg.novelty_state:  # the model's Gaussian reads end states too: the image features' own, as it fits
+        fit = LedoitWolf().fit(train)
+        mean, precision = fit.location_, fit.precision_
+    else:
+        mean = encoder.feature_mean.cpu().numpy().astype(np.float64)
+        precision = encoder.feature_precision.cpu().numpy().astype(np.float64)
     log_val = np.log(mahalanobis(val, mean, precision))
     centre = np.median(log_val)
     spread = np.median(np.abs(log_val - centre))
@@ -167,9 +171,6 @@ def main() -> None:
     encoder = model.encoder
     if not hasattr(encoder, "feature_mean"):
         raise SystemExit("the model has no novelty density (democheck fit-novelty gives it one)")
-    if encoder.cfg.novelty_state:
-        raise SystemExit("this compares densities over the image features alone; give it a model whose density reads "
-                         "no end state (one fitted before it)")
     train, train_tasks, _, _, train_cues = features(encoder, args.train, "train", args.train_cues, with_cues=True)
     val, _, _, _, val_cues = features(encoder, args.train, "val", with_cues=True)
     parts = [features(encoder, p, with_cues=True) for p in args.sets.split(",")]

@@ -85,10 +85,12 @@ def train_from_recipe(dataset: str | Path, out: str | Path, recipe: str | Path =
 def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camera: str | None = None,
                   cache_dir: Path | None = None, device: str = "auto", force: bool = False,
                   trim: float | None = None, on_decode: Callable[[int, int], None] | None = None,
-                  on_novelty: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                  on_novelty: Callable[[int, int], None] | None = None, end_state: bool | None = None
+                  ) -> dict[str, Any]:
     """Fit (or refit) a trained PETNet model's novelty density on ``dataset`` -- its training data -- and write
     the model, weights unchanged, to ``out`` with the card's numbers and the audit's reference redone.
-    ``trim``: the share of training cues the density leaves out as outliers (default: the model's recipe's)."""
+    ``trim``: the share of training cues the density leaves out as outliers (default: the model's recipe's);
+    ``end_state``: whether it reads the demos' states at their last step too (default: the recipe's)."""
     out = Path(out)
     refuse_existing(out, force)  # before the decoding, not only when writing
     dev = resolve_device(device)
@@ -110,7 +112,8 @@ def refit_novelty(model: str | Path, dataset: str | Path, out: str | Path, camer
         raise DemocheckError(f"--trim is a share of the training cues below 0.5, not {trim}")
     extra = finish_petnet(ckpt.model, arrays, fit_rows, held, seed, dev,
                           novelty=True, novelty_trim=trim, reference=reference,
-                          autoencoder=None if recipe.novelty_autoencoder else 0, on_novelty=on_novelty)
+                          autoencoder=None if recipe.novelty_autoencoder else 0, on_novelty=on_novelty,
+                          end_state=recipe.novelty_state if end_state is None else end_state)
     meta = dict(ckpt.meta)
     meta["metrics"] = {**meta.get("metrics", {}), "task_sigma": extra.pop("task_sigma")}
     meta.update(extra)

@@ -15,7 +15,7 @@ import numpy as np
 from democheck.audit.scores import ocsvm_margin
 from democheck.data import open_dataset
 from democheck.petnet.checkpoint import load_checkpoint
-from democheck.petnet.model import encode
+from democheck.petnet.model import encode, encode_demos
 
 ap = argparse.ArgumentParser()
 ap.add_argument("dataset")
@@ -25,9 +25,7 @@ args = ap.parse_args()
 ds = open_dataset(args.dataset)
 ckpt = load_checkpoint(args.model)
 task, episodes = next(iter(ds.by_task().items()))
-cues = ds.cue_frames_many(episodes)  # [N, 2, H, W, 3]: first and last frame of each demo
-ends = ds.end_states(episodes)  # [N, S]: where each demo ended (the novelty density reads it too)
-post = encode(ckpt.model, cues, end_states=ends)  # a TaskPosterior: mu, and the variance's two parts
+post = encode_demos(ckpt.model, ds, episodes)  # a TaskPosterior of each demo: mu, and the variance's two parts
 sigma = post.sigma
 print(f"task: {task}")
 for e, s in zip(episodes, post.task_uncertainty()):
@@ -39,6 +37,8 @@ print(f"all {len(episodes)} cues together: mean sigma {np.sqrt(var_all).mean():.
 
 # Gate: would the model's one-class SVM accept these cues?
 ocsvm = ckpt.meta["reference"]["ocsvm"]
-for name, cue_sigma in (("real cue", sigma[:1]), ("black cue", encode(ckpt.model, np.zeros_like(cues[:1]), end_states=ends[:1]).sigma)):
+black = np.zeros_like(ds.cue_frames_many(episodes[:1]))  # a covered camera, the arm where the first demo ended
+black_sigma = encode(ckpt.model, black, end_states=ds.end_states(episodes[:1])).sigma
+for name, cue_sigma in (("real cue", sigma[:1]), ("black cue", black_sigma)):
     ok = ocsvm_margin(ocsvm, cue_sigma)[0] >= 0
     print(f"{name}: {'accept' if ok else 'refuse: ask for another demonstration'}")

@@ -2,6 +2,7 @@ import json
 
 import numpy as np
 import pandas as pd
+import pytest
 import torch
 from typer.testing import CliRunner
 
@@ -9,6 +10,7 @@ from democheck.audit.metrics import detection, precision_at_k
 from democheck.audit.run import score_posteriors
 from democheck.audit.scores import consistency_parts, fit_ocsvm, ocsvm_margin, task_neighbours
 from democheck.cli import app
+from democheck.errors import DatasetError
 from democheck.petnet.posterior import TaskPosterior, product_of_others
 
 runner = CliRunner()
@@ -236,6 +238,15 @@ def test_robomimic_reader_and_audit(tiny_model, tmp_path):
     assert demo.frames.shape == (8, 16, 16, 3) and demo.env_state.shape == (8, 10)  # obs/object, not the state
     np.testing.assert_array_equal(ds.cue_frames(2), demo.frames[[0, -1]])
     np.testing.assert_array_equal(ds.end_states([2, 5]), np.stack([demo.state[-1], ds[5].state[-1]]))
+    import shutil
+
+    import h5py
+
+    broken = shutil.copy(path, tmp_path / "broken.hdf5")
+    with h5py.File(broken, "a") as f:  # a sensor that dropped out at the last step: one clear line, not NaN scores
+        f["data/demo_4/obs/robot0_eef_pos"][-1, 0] = np.nan
+    with pytest.raises(DatasetError, match="episode 4 has a non-finite state at its last step"):
+        open_dataset(broken).end_states([3, 4])
     assert open_dataset(path, task="lift").tasks == ["another task", "lift"]
     res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
                               "--device", "cpu", "--json"])

@@ -211,7 +211,17 @@ def test_a_normal_tail_keeps_the_rate_on_normal_scores_and_sees_how_far_out_a_de
     core = np.append(np.ones(n, bool), False)
     as_normal = tail_probabilities(far, core, normal)[-1, 0]
     assert as_normal == pytest.approx(stats.norm.logsf(6.0), abs=0.5)  # about 1e-9
-    assert np.exp(tail_probabilities(far, core)[-1, 0]) > 1e-3  # the exponential: under 1 in 1,000
+    assert np.exp(tail_probabilities(far, core)[-1, 0]) > 1e-3  # the exponential: more common than 1 in 1,000
+    # The audit's ranking gives the coupling (a mean over a demo's steps) this tail, the other scores theirs.
+    tasks = np.repeat(["a", "b"], 200)
+    values = {"idle": rng.normal(0.2, 0.05, 400), "motion": rng.normal(0.0, 1.0, 400),
+              "coupling": rng.normal(-1.5, 0.1, 400)}
+    values["coupling"][7] = -0.9  # six of its SDs less coupled than its task's others
+    ev = Evidence(episodes=pd.DataFrame({"episode_index": np.arange(400), "task": tasks}), scores=values)
+    names, log_p, _ = ev.combination(model_free=True)
+    assert sorted(names) == ["coupling", "idle", "motion"] and SCORERS["coupling"].tail == "normal"
+    assert log_p[7, names.index("coupling")] < np.log(1e-6)  # the exponential through its quartiles: about 1e-3
+    assert all(SCORERS[n].tail == "exponential" for n in names if n != "coupling")
     assert np.isnan(tail_probabilities(np.array([[np.nan], [0.0]]), normal=normal)[0, 0])  # no score: none
 
 

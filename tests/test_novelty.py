@@ -167,6 +167,11 @@ def test_the_end_state_counts_where_the_arm_ended_and_nothing_else():
     # Refitted without end states, the density is the image features' alone again, of their size.
     fit_novelty(model, train_cues, held, CPU, autoencoder=10)
     assert not model.cfg.novelty_state and model.encoder.feature_mean.shape == (feats.shape[1],)
+    assert not hasattr(model.encoder, "end_state_mean")
+    # A dataset with no state dimensions (a robomimic file without state keys) keeps the frame alone.
+    fit_novelty(model, train_cues, held, CPU, autoencoder=10, train_states=np.zeros((200, 0), np.float32),
+                held_out_states=np.zeros((40, 0), np.float32))
+    assert not model.cfg.novelty_state
     with pytest.raises(DemocheckError, match="both"):
         fit_novelty(model, train_cues, held, CPU, autoencoder=0, train_states=train_ends)
 
@@ -224,6 +229,11 @@ def test_fit_novelty_cli_adds_it_to_a_trained_model(tiny_dataset, tmp_path):
             if name in ("black", "white", "grey", "noise"):
                 _, var = after.model.encoder(cue_input(torch.from_numpy(cues)), end)
                 assert var.sqrt().mean() > var_real.sqrt().mean(), name
+    assert after.config.novelty_state  # where each demo ended is read too, unless asked not to
+    frame_only = [str(tmp_path / "frame") if a == str(tmp_path / "nov") else a for a in args]
+    res = CliRunner().invoke(app, frame_only + ["--no-end-state"])
+    assert res.exit_code == 0, res.output
+    assert not load_checkpoint(tmp_path / "frame").config.novelty_state
     # The same folder again needs --force; a TecNets model and the wrong data are refused in one line.
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 2 and "already exists" in res.output

@@ -365,7 +365,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            ("cues",), _task_uncertainty_head, in_audit=False, short="head"),
     Scorer("novelty", "how unfamiliar the demo's end is (its last frame, and where the arm ended where the model "
            "reads that too): squared feature distance from the training demos' over the model's reference (above 1: "
-           "less familiar than 9 in 10 real demos of new tasks)",
+           "less familiar than 9 in 10 of the real demos it was referenced on, held out or, where the model learnt "
+           "every demo, its own)",
            ("cues", "novelty"), _novelty, short="novel."),
     Scorer("consistency", f"mean distance of the demo's task mean from those of its {CONSISTENCY_K} nearest other "
            "demos of its task, each dimension in units of its median task standard deviation", ("cues",), _consistency,

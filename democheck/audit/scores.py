@@ -263,7 +263,7 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np
     column by column: an exponential tail through the ``TAIL_QUANTILES`` of the column's rows in ``core``
     (default: all; probability 0.75 at their 25th percentile, 0.25 at their 75th), at most 1, its scale at least
     ``TAIL_MIN_SCALE``; or, for the columns ``normal`` [K] marks, a normal tail through the core's median, its
-    scale the core's interquartile range / 1.349 (at least ``TAIL_MIN_SCALE``) -- for a score that is a mean over
+    scale from the same two percentiles (the interquartile range / 1.349; at least ``TAIL_MIN_SCALE``) -- for a score that is a mean over
     many steps, whose clean spread the central limit theorem makes normal (``Scorer.tail``).  NaN (no score)
     stays NaN, which the combinations leave out; +inf (an exact copy) gives log 0."""
     from scipy.stats import norm
@@ -281,7 +281,7 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np
         q_lo, q_mid, q_hi = np.quantile(fit, [lo, 0.5, hi]) if len(fit) else (0.0, 0.0, 0.0)
         if normal[k]:
             with np.errstate(invalid="ignore"):
-                tail = norm.logsf((x - q_mid) / max((q_hi - q_lo) / (2 * norm.ppf(hi)), TAIL_MIN_SCALE))
+                tail = norm.logsf((x - q_mid) / max((q_hi - q_lo) / (norm.ppf(hi) - norm.ppf(lo)), TAIL_MIN_SCALE))
         else:
             beta = max((q_hi - q_lo) / np.log((1 - lo) / (1 - hi)), TAIL_MIN_SCALE)
             tail = np.log(1 - lo) - (x - q_lo) / beta

@@ -66,12 +66,13 @@ def train(
 @app.command(name="fit-novelty")
 def fit_novelty(
     model: Annotated[Path, typer.Argument(help="A trained PETNet model folder.")],
-    data: Annotated[Path, typer.Option("--data", help="The dataset the model was trained on. The density is fitted as training fitted it: on its train split, the val split giving the reference distance; or on every demo, the reference from them too, where the recipe's last phase learnt every demo (--recipe your-data).")],
+    data: Annotated[Path, typer.Option("--data", help="The dataset the model was trained on. The density is fitted as training fitted it: on its train split, the val split giving the reference distance; or on every demo, the reference from them too, where the recipe's last phase learnt every demo (--recipe your-data, on data that names no split).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write: the same weights with the density, the card's numbers and the audit's reference redone.")],
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     camera: Annotated[Optional[str], typer.Option(help="Image feature the model was trained on when there are several.")] = None,
     cache_dir: Annotated[Optional[Path], typer.Option(help="Where decoded frames are cached (default ~/.cache/democheck).")] = None,
     trim: Annotated[Optional[float], typer.Option(help="Leave out this share of the training cues farthest from a first fit, and fit again (for data that may hold bad demos; default: the model's recipe's novelty_trim).")] = None,
+    end_state: Annotated[Optional[bool], typer.Option("--end-state/--no-end-state", help="Whether the density reads each demo's state at its last step beside its last frame (default: the model's recipe's, on unless it was trained with --set model.novelty_state=false). Off suits a small dataset with a wide state: on 55 demos of 39 state numbers the state blurred occluded frames.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out.")] = False,
 ) -> None:
     """Give a trained PETNet model the epistemic part of its task variance, without retraining.
@@ -79,14 +80,16 @@ def fit_novelty(
     A cue autoencoder trained on the training cues, and one Gaussian fitted to its encoder's features of their last frames together with the demos' states at their last step; a demo whose end is far from theirs (in what the camera saw or where the arm ended) gets a wider task posterior. democheck train fits it itself; this is for models trained with --set model.novelty=false or before it existed, and to refit an older model's density (over the whole cue, or the last frame alone) on both.
     """
     with user_errors():
+        from democheck.petnet.card import reference_cues
         from democheck.workflows import refit_novelty
 
         with Bar("decode frames", "episodes") as bar:
             meta = refit_novelty(model, data, out, camera=camera, cache_dir=cache_dir, device=device, force=force,
-                                 trim=trim, on_decode=bar.callback(), on_novelty=bar.callback("novelty autoencoder"))
+                                 trim=trim, on_decode=bar.callback(), on_novelty=bar.callback("novelty autoencoder"),
+                                 end_state=end_state)
     table = Table(title=f"{model} + novelty -> {out}", show_header=False)
     nov = meta["novelty"]
-    table.add_row("reference d2", f"{nov['d2_ref']:.1f} ({nov['quantile']:.0%} of {nov['held_out_cues']} held-out cues)")
+    table.add_row("reference d2", f"{nov['d2_ref']:.1f} ({nov['quantile']:.0%} of {reference_cues(nov)})")
     for name, v in meta["metrics"]["task_sigma"].items():
         table.add_row(f"mean sigma: {name}", f"{v:.4f}")
     console.print(table)

@@ -208,6 +208,8 @@ class DemoSet:
         out = np.zeros((len(episode_indices), self.state_dim), np.float32)
         for i, e in enumerate(episode_indices):
             out[i] = one(int(e))
+            if not np.isfinite(out[i]).all():
+                raise DatasetError(f"{self.root}: episode {int(e)} has a non-finite state at its last step")
         return out
 
     def by_task(self) -> dict[str, list[int]]:

@@ -50,7 +50,7 @@ from democheck.fsutil import atomic_output_dir
 from democheck.petnet.batches import Batches, task_rows, uniform_steps
 from democheck.petnet.card import git_commit, model_card
 from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
-from democheck.petnet.model import encode
+from democheck.petnet.model import encode_rows
 from democheck.petnet.run_state import load_state, save_state, work_dir
 from democheck.petnet.train import resolve_device
 from democheck.sim.catalog import OBJECTS
@@ -184,7 +184,7 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
 
     # z of every training demo once: the encoder does not change.
     all_rows = np.concatenate(batches.rows)
-    post = encode(model, arrays.cue(all_rows), device, end_states=arrays.end_state(all_rows))
+    post = encode_rows(model, arrays, all_rows, device)
     mu_all, var_all = post.mu, post.var
     row_of = {int(r): i for i, r in enumerate(all_rows)}
     t0 = time.perf_counter()

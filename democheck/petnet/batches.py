@@ -121,7 +121,7 @@ class Batches:
         return {**extra,
             "task": self.task_ids[cue_rows],
             "cue": a.cue(cue_rows),
-            "cue_end": a.end_state(cue_rows),  # where each cue's demo ended (a novelty density may read it)
+            "cue_end_state": a.end_state(cue_rows),  # where each cue's demo ended (a novelty density may read it)
             "traj_cue": a.cue(traj_rows),
             "frames": a.frames[flat].reshape(*idx.shape, *a.frames.shape[1:]),
             "state": self.norm.state(a.state[flat]).reshape(*idx.shape, -1),

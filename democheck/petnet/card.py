@@ -22,6 +22,13 @@ def git_commit(path: Path) -> str:
         return "unknown"
 
 
+def reference_cues(nov: dict[str, Any]) -> str:
+    """Which cues the novelty density's reference distance comes from (``finish.finish_petnet``)."""
+    if nov.get("reference_cues", "held-out") == "held-out":
+        return f"{nov['held_out_cues']} held-out cues"
+    return f"the {nov['held_out_cues']} cues it was fitted on (the model learnt every demo)"
+
+
 def novelty_lines(nov: dict[str, Any] | None) -> list[str]:
     """The card's account of the novelty density (``democheck.petnet.novelty``), if the model has one."""
     if not nov:
@@ -35,8 +42,7 @@ def novelty_lines(nov: dict[str, Any] | None) -> list[str]:
         features += ", and the demo's state at its last step (standardised over the training demos' ends)"
     lines = [f"- novelty density (the epistemic part of the task variance): a Gaussian over {features}, of {of} "
              f"{nov['train_cues']} training cues (Ledoit-Wolf shrinkage {nov['shrinkage']:.3f}); reference "
-             f"distance d2 = {nov['d2_ref']:.1f}, the {nov['quantile']:.0%} quantile of {nov['held_out_cues']} "
-             "held-out cues"]
+             f"distance d2 = {nov['d2_ref']:.1f}, the {nov['quantile']:.0%} quantile of {reference_cues(nov)}"]
     if nov.get("command"):
         lines.append(f"- novelty density fitted afterwards, weights unchanged: `{nov['command']}` (commit "
                      f"`{nov.get('commit', 'unknown')}`)")

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from democheck.data.cache import EpisodeArrays
-from democheck.petnet.model import encode
+from democheck.petnet.model import encode, encode_rows
 from democheck.petnet.novelty import fit_novelty
 from democheck.petnet.posterior import TaskPosterior
 
@@ -29,21 +29,24 @@ def mean_sigma(model: torch.nn.Module, cues: np.ndarray, device: torch.device, e
 def finish_petnet(model, arrays: EpisodeArrays, train_rows: np.ndarray, held_rows: np.ndarray | None, seed: int,
                   device: torch.device, novelty: bool = True, novelty_trim: float = 0.0,
                   reference: Callable[[TaskPosterior, np.ndarray], dict[str, Any]] | None = None,
-                  autoencoder: int | None = None, on_novelty: Callable[[int, int], None] | None = None
-                  ) -> dict[str, Any]:
+                  autoencoder: int | None = None, on_novelty: Callable[[int, int], None] | None = None,
+                  end_state: bool = True) -> dict[str, Any]:
     """What a trained PETNet model carries beside its weights, from its training cues (``train_rows``) and
     held-out real cues (``held_rows``, the val split; None: none): the novelty density (``novelty``, fitted in
     place), the mean task sigma of held-out and nonsense cues (``task_sigma``), and the audit's reference on the
     training demos (``reference``).  Also how an existing model gets its novelty density refitted.
-    ``autoencoder``, ``on_novelty``: the cue autoencoder's steps and progress (``novelty.fit_novelty``)."""
+    ``autoencoder``, ``on_novelty``: the cue autoencoder's steps and progress (``novelty.fit_novelty``);
+    ``end_state``: the density reads the demos' states at their last step too."""
     out: dict[str, Any] = {}
     if novelty:
         # Without held-out tasks the reference distance comes from the training cues themselves (a little low).
         held = held_rows if held_rows is not None else train_rows
         out["novelty"] = fit_novelty(model, arrays.cue(train_rows), arrays.cue(held), device,
                                      trim=novelty_trim, autoencoder=autoencoder, seed=seed,
-                                     on_progress=on_novelty, train_states=arrays.end_state(train_rows),
-                                     held_out_states=arrays.end_state(held))
+                                     on_progress=on_novelty,
+                                     train_states=arrays.end_state(train_rows) if end_state else None,
+                                     held_out_states=arrays.end_state(held) if end_state else None)
+        out["novelty"]["reference_cues"] = "held-out" if held_rows is not None else "fitted"
     rows = held_rows if held_rows is not None else train_rows[:500]
     real, ends = arrays.cue(rows), arrays.end_state(rows)
     sig = {"val demos" if held_rows is not None else "train demos": mean_sigma(model, real, device, ends)}
@@ -51,7 +54,7 @@ def finish_petnet(model, arrays: EpisodeArrays, train_rows: np.ndarray, held_row
         sig[name] = mean_sigma(model, cues, device, ends[:200])
     out["task_sigma"] = sig
     if reference is not None:
-        post = encode(model, arrays.cue(train_rows), device, end_states=arrays.end_state(train_rows))
+        post = encode_rows(model, arrays, train_rows, device)
         out["reference"] = reference(post, arrays.episodes["task"].to_numpy()[train_rows])
     return out
 

@@ -162,8 +162,10 @@ class TaskEncoder(nn.Module):
     (those of a cue autoencoder's encoder, ``novelty_features``; in models
     fitted before it, the task encoder's own conv features) of what
     ``cfg.novelty_view`` reads of a cue (its last frame; the whole cue in
-    models fitted before), d2_ref a
-    reference distance of held-out real cues and prior_var
+    models fitted before), followed with ``cfg.novelty_state`` by the demo's
+    standardised state at its last step (``end_state``), d2_ref a
+    reference distance of real cues (held out, or the fitted ones where the
+    model learnt every demo) and prior_var
     the variance of z over the training cues, per dimension -- an unfamiliar
     cue's posterior widens in proportion to how unfamiliar it is, in task-space
     units.  Fitted after training (``democheck.petnet.novelty``), zero until
@@ -215,7 +217,8 @@ class TaskEncoder(nn.Module):
         return torch.cat([f, (end_state.to(f) - self.end_state_mean) / self.end_state_scale], 1)
 
     def distance2(self, features: torch.Tensor) -> torch.Tensor:
-        """Squared Mahalanobis distance of conv features [B, D] from the training cues': [B]."""
+        """Squared Mahalanobis distance of novelty features [B, D] (``novelty_features``) from the training
+        demos': [B]."""
         d = features - self.feature_mean
         return ((d @ self.feature_precision) * d).sum(-1)
 
@@ -286,18 +289,21 @@ class PETNet(nn.Module):
         self.encoder = TaskEncoder(cfg)
         self.controller = Controller(cfg)
 
-    def task_posterior(self, cues: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """uint8 cues [B, N, 2, H, W, 3] -> the task posterior (mu, var) [B, z] of N cues each."""
+    def task_posterior(self, cues: torch.Tensor, end_states: torch.Tensor | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """uint8 cues [B, N, 2, H, W, 3] (their demos' states at the last step [B, N, S]) -> the task posterior
+        (mu, var) [B, z] of N cues each."""
         b, n = cues.shape[:2]
-        mu, var = self.encoder(cue_input(cues.reshape(b * n, *cues.shape[2:])))
+        ends = None if end_states is None else end_states.reshape(b * n, -1)
+        mu, var = self.encoder(cue_input(cues.reshape(b * n, *cues.shape[2:])), ends)
         mu, var = mu.reshape(b, n, -1), var.reshape(b, n, -1)
         return product_of_gaussians(mu, var, dim=1) if n > 1 else (mu[:, 0], var[:, 0])
 
     def forward(self, cue: torch.Tensor, frames: torch.Tensor, state: torch.Tensor, sample: bool = True,
-                cue_end: torch.Tensor | None = None):
+                cue_end_state: torch.Tensor | None = None):
         """cue uint8 [B, 2, H, W, 3]; frames uint8 [B, K, H, W, 3]; state [B, K, S] -> (actions [B, K, A], mu, var).
-        ``cue_end``: the state at the cue demo's last step [B, S] (``TaskEncoder.parts``)."""
-        mu, var = self.encoder(cue_input(cue), cue_end)
+        ``cue_end_state``: the state at the cue demo's last step [B, S] (``TaskEncoder.parts``)."""
+        mu, var = self.encoder(cue_input(cue), cue_end_state)
         z = mu + var.sqrt() * torch.randn_like(mu) if sample else mu
         return self.controller.act(frames, state, z), mu, var
 
@@ -309,12 +315,13 @@ class PETNet(nn.Module):
         not ``sample``), then the mean squared error of the controller's actions on the demonstrated trajectory
         of another demo of the task.  Returns ``loss`` (= ``mse``) and the cues' mean ``sigma``.
 
-        batch: ``cue`` uint8 [B, 2, H, W, 3] (and ``cue_end``, the state at its demo's last step [B, S]); ``frames`` uint8 [B, K, H, W, 3], ``state`` [B, K, S] and
+        batch: ``cue`` uint8 [B, 2, H, W, 3] (and ``cue_end_state``, the state at its demo's last step [B, S],
+        which a fitted density with end states reads); ``frames`` uint8 [B, K, H, W, 3], ``state`` [B, K, S] and
         normalised ``actions`` [B, K, A] at K timesteps of the trajectory.  Hooks for the optional terms
         (``democheck.petnet.regularisers``): ``z_posterior(mu, var)`` replaces the Gaussian z is drawn from;
         ``terms(mu, var, sigma)`` adds named terms, computed after z is drawn and before the controller runs.
         """
-        mu, var = self.encoder(cue_input(batch["cue"]), batch.get("cue_end"))
+        mu, var = self.encoder(cue_input(batch["cue"]), batch.get("cue_end_state"))
         mu_s, var_s = z_posterior(mu, var) if z_posterior is not None and sample else (mu, var)
         z = mu_s + var_s.sqrt() * torch.randn_like(mu_s) if sample else mu_s
         sigma = var.sqrt()
@@ -400,13 +407,25 @@ def encode(model: torch.nn.Module, cues: np.ndarray, device: torch.device | str 
     return TaskPosterior(*(np.concatenate(c) if c else empty for c in cols))
 
 
+def reads_end_states(model: torch.nn.Module) -> bool:
+    """Whether ``model``'s novelty density reads each demo's state at its last step (``ModelConfig.novelty_state``)."""
+    return bool(model.cfg.novelty and model.cfg.novelty_state)
+
+
 def encode_demos(model: torch.nn.Module, ds: Any, episodes: list[int], device: torch.device | str = "cpu"
                  ) -> TaskPosterior:
-    """``encode`` of the cues of a DemoSet's ``episodes``, with their end states where the model's novelty density
-    reads them (``ModelConfig.novelty_state``)."""
-    ends = ds.end_states(episodes) if model.cfg.novelty and model.cfg.novelty_state else None
+    """``encode`` of the cues of a DemoSet's ``episodes``, with their end states where the model reads them."""
+    ends = ds.end_states(episodes) if reads_end_states(model) else None
     return encode(model, ds.cue_frames_many(episodes), device, end_states=ends)
 
 
+def encode_rows(model: torch.nn.Module, arrays: Any, rows: np.ndarray, device: torch.device | str = "cpu"
+                ) -> TaskPosterior:
+    """``encode`` of the cues of decoded episodes' ``rows`` (``data.cache.EpisodeArrays``), with their end states
+    where the model reads them."""
+    ends = arrays.end_state(rows) if reads_end_states(model) else None
+    return encode(model, arrays.cue(rows), device, end_states=ends)
+
+
 __all__ = ["ModelConfig", "PETNet", "TecNet", "TaskEncoder", "Controller", "kl_diag", "hinge_embedding_loss",
-           "build_model", "encode", "encode_demos", "cue_input", "to_input"]
+           "build_model", "encode", "encode_demos", "encode_rows", "cue_input", "to_input"]

@@ -10,14 +10,16 @@ on the training inputs, says how much the network can be trusted at all.
 Here the density is one Gaussian over the flattened features of a *cue
 autoencoder*'s encoder (``train_cue_autoencoder``: the task encoder's conv
 shape, trained after the model to reconstruct its training cues; Ledoit-Wolf
-shrinkage covariance: 256 dimensions, a few thousand cues), and
+shrinkage covariance: 256 dimensions, a few thousand cues; with the demo's
+state at its last step after them, below), and
 the cue's squared Mahalanobis distance d2 from it becomes variance in task
 space (``TaskEncoder``): var_novel = prior_var * d2 / d2_ref, with prior_var
 the variance of z over the training cues (the spread of their means plus
 their mean variance: what z is known to be before a cue is read) and d2_ref
-the ``QUANTILE`` of d2 over held-out real cues (the ``val`` split): nine in
-ten real cues of new tasks get less than one prior's worth of variance, and
-an image of nothing gets tens to hundreds.
+the ``QUANTILE`` of d2 over held-out real cues (the ``val`` split; where the
+model learnt every demo, ``train.finish_rows``, over the fitted cues
+themselves): nine in ten real cues of new tasks get less than one prior's
+worth of variance, and an image of nothing gets tens to hundreds.
 
 Why an autoencoder's features and not the task encoder's own: the task loss
 makes the encoder's features keep what tells tasks apart and drop the rest,

@@ -30,7 +30,8 @@ KEYS: dict[str, dict[str, str]] = {
     "optim": {"steps": "steps", "batch_tasks": "batch_tasks", "timesteps": "timesteps", "lr": "lr"},
     "batches": {"hard_negatives": "hard_negatives", "shift": "shift"},
     "model": {"keypoints": "keypoints", "novelty": "novelty", "novelty_trim": "novelty_trim",
-              "novelty_autoencoder": "novelty_autoencoder", "init": "init", "image_size": "image_size"},
+              "novelty_autoencoder": "novelty_autoencoder", "novelty_state": "novelty_state", "init": "init",
+              "image_size": "image_size"},
     "tecnet": {"margin": "tecnet_margin", "weight": "tecnet_weight"},
     "schedule": {"val_every": "val_every", "ckpt_every": "ckpt_every", "final_all_share": "final_all_share"},
 }

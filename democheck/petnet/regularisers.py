@@ -113,7 +113,7 @@ def _partial_kl(s: Step) -> dict[str, torch.Tensor]:
         raise ValueError("the partial-cue KL needs the frozen starting encoder (a recipe's init)")
     mu_p, var_p = s.posterior("partial_cue")
     with torch.no_grad():
-        mu_0, var_0 = s.teacher(cue_input(s.batch["cue"]), s.batch.get("cue_end"))
+        mu_0, var_0 = s.teacher(cue_input(s.batch["cue"]))
     return {"partial_kl": kl_diag(mu_0, var_0, mu_p, var_p).mean(), "partial_sigma": var_p.sqrt().mean()}
 
 

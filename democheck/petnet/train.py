@@ -68,6 +68,10 @@ class TrainConfig:
     # The novelty density over a cue autoencoder's features (``novelty.train_cue_autoencoder``), trained after
     # the model on its training cues; off: over the task encoder's own conv features, as models before it.
     novelty_autoencoder: bool = True
+    # The novelty density reads each demo's state at its last step beside its last frame (``novelty.fit_novelty``
+    # with end states); off: the frame alone.  On the one-task Meta-World sets (55 demos, 39 state numbers) the
+    # state blurred three occluded demos' frames (the model card).
+    novelty_state: bool = True
     # Start from this model folder's weights and normalisation instead of a fresh network (same architecture).
     init: str | None = None
     # TecNets' own objective: hinge margin, and the hinge's weight.  At 1 the unit-norm embedding collapses at
@@ -297,7 +301,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     if cfg.model_type == "petnet":
         fit_rows, held = finish_rows(arrays, tc, train_rows, val_rows)
         extra = finish_petnet(model, arrays, fit_rows, held, tc.seed, device, tc.novelty, tc.novelty_trim, reference,
-                              autoencoder=None if tc.novelty_autoencoder else 0, on_novelty=on_novelty)
+                              autoencoder=None if tc.novelty_autoencoder else 0, on_novelty=on_novelty,
+                              end_state=tc.novelty_state)
         metrics["task_sigma"] = extra.pop("task_sigma")
         meta.update(extra)
     # Which tasks the model learnt: the audit warns about the others, the card names them.
