@@ -134,7 +134,8 @@ def variant(how: str, table, cons: np.ndarray, model_free: bool) -> tuple[np.nda
         for k, n in enumerate(names):
             if f"exponential {n}" in how.split(", "):
                 normal[k] = False
-            if f"normal {n}" in how.split(", ") or (how == "family by likelihood" and normal_fits_better(z[:, k], core)):
+            by_likelihood = how == "family by likelihood" and normal_fits_better(z[:, k], core)
+            if f"normal {n}" in how.split(", ") or by_likelihood:
                 normal[k] = True
         return scores.tail_probabilities(z, core, normal)
 

@@ -116,7 +116,8 @@ def main() -> None:
           f"({(labels == 'clean').sum()} clean)")
     print(f"{'score':<36}" + "".join(f"{k[:12]:>13}" for k in kinds))
     for name, s in rows.items():
-        au = [roc_auc_score(labels[np.isin(labels, ["clean", k])] == k, s[np.isin(labels, ["clean", k])]) for k in kinds]
+        au = [roc_auc_score(labels[np.isin(labels, ["clean", k])] == k, s[np.isin(labels, ["clean", k])])
+              for k in kinds]
         print(f"{name:<36}" + "".join(f"{a:13.4f}" for a in au))
 
 

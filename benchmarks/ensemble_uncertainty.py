@@ -92,7 +92,8 @@ def main() -> None:
         model = load_checkpoint(path).model.eval()
         post = encode(model, cues, end_states=ends)
         members.append((post.mu.astype(np.float64), post.var.astype(np.float64)))
-        prototypes.append(pd.DataFrame(encode(model, train_cues, end_states=train_ends).mu).groupby(train_tasks).mean().to_numpy())
+        train_mu = encode(model, train_cues, end_states=train_ends).mu
+        prototypes.append(pd.DataFrame(train_mu).groupby(train_tasks).mean().to_numpy())
     aligned = []
     print(f"{len(cues)} cues of {', '.join(args.sets.split(','))}; {len(members)} members")
     for (mu, var), proto, path in zip(members, prototypes, args.models):

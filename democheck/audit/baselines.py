@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from democheck.audit.modelfree import PerDemo
-from democheck.audit.scores import robust_stats, standardise, task_neighbours
+from democheck.audit.scores import rank_order, robust_stats, standardise, task_neighbours
 from democheck.data.demo import Demo
 
 # An arm that moves less than this share of its median per-step motion is idle at that step.
@@ -80,3 +80,23 @@ def knn_same_task(emb: np.ndarray, tasks: np.ndarray, k: int = 5) -> np.ndarray:
 
 def random_score(n: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng([seed, 0x4A4D]).uniform(size=n)
+
+
+# The registry's score functions (``democheck.audit.scorers``): each reads the audit's evidence and returns one
+# number per demo and a reason per demo (or None).
+
+def score_tecnet_knn(ev) -> tuple[np.ndarray, list[str] | None]:
+    return knn_same_task(ev.embedding, ev.tasks), None
+
+
+def score_heuristic(ev) -> tuple[np.ndarray, list[str] | None]:
+    z = heuristic_z(ev.behaviour["heuristic"])
+    return z.max(axis=1), [f"{HEURISTIC_FEATURES[int(np.argmax(r))]} |z| {r.max():.3g}" for r in z]
+
+
+def score_random(ev) -> tuple[np.ndarray, list[str] | None]:
+    # Dealt in ranking order (by suspicion), as benches have always done, so their random rows stay comparable.
+    draws = random_score(len(ev.episodes), ev.seed)
+    out = np.empty(len(draws))
+    out[rank_order(ev.scores["suspicion"], ev.episodes["episode_index"].to_numpy())] = draws
+    return out, None

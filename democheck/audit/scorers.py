@@ -23,11 +23,11 @@ from typing import Any, Callable, Protocol
 import numpy as np
 import pandas as pd
 
-from democheck.audit.baselines import HEURISTIC_FEATURES, MotionFeatures, heuristic_z, knn_same_task, random_score
+from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit import colours, coupling, dynamics, modelfree, outcome
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_parts, ocsvm_margin,
-                                    rank_order, robust_tails)
+                                    robust_tails)
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -332,27 +332,6 @@ def _ocsvm_flag(ev: Evidence) -> Scores:
     return (margin < 0).astype(float), None
 
 
-# ---------------------------------------------------------------------------
-# baselines (``democheck.audit.baselines``): what users would pick instead
-# ---------------------------------------------------------------------------
-
-def _tecnet_knn(ev: Evidence) -> Scores:
-    return knn_same_task(ev.embedding, ev.tasks), None
-
-
-def _heuristic(ev: Evidence) -> Scores:
-    z = heuristic_z(ev.behaviour["heuristic"])
-    return z.max(axis=1), [f"{HEURISTIC_FEATURES[int(np.argmax(r))]} |z| {r.max():.3g}" for r in z]
-
-
-def _random(ev: Evidence) -> Scores:
-    # Dealt in ranking order (by suspicion), as benches have always done, so their random rows stay comparable.
-    draws = random_score(len(ev.episodes), ev.seed)
-    out = np.empty(len(draws))
-    out[rank_order(ev.scores["suspicion"], ev.episodes["episode_index"].to_numpy())] = draws
-    return out, None
-
-
 def _traces(ev: Evidence, rows: slice, device: Any) -> modelfree.ActionTraces:
     return modelfree.ActionTraces()
 
@@ -427,11 +406,11 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),
     Scorer("tecnet_knn", "TecNets embedding: mean distance to the 5 nearest other demos of the task", ("tecnet",),
-           _tecnet_knn, family="baseline", in_audit=False, short="tecnet"),
+           score_tecnet_knn, family="baseline", in_audit=False, short="tecnet"),
     Scorer("heuristic", "linter rules: max |robust z| of idle fraction, action energy and jerk", ("demos",),
-           _heuristic, family="baseline", in_audit=False, decode=lambda ev, rows, device: MotionFeatures(),
+           score_heuristic, family="baseline", in_audit=False, decode=lambda ev, rows, device: MotionFeatures(),
            short="heurist."),
-    Scorer("random", "a uniform random score, the floor every detector must clear", ("scores",), _random,
+    Scorer("random", "a uniform random score, the floor every detector must clear", ("scores",), score_random,
            family="baseline", in_audit=False, short="random"),
 )}
 

@@ -30,10 +30,10 @@ Every score is one number per demo, higher = more suspect:
   ranking is first put in robust standard deviations within its task (``calibrated``: a task whose demos
   all score high does not fill the top ranks; the task uncertainty and the action error on a log scale: their
   clean demos' right tails are long), then turned into a tail probability by ``tail_probabilities``: an
-  exponential right tail through the 25th and 75th percentiles of the audited demos' *robust core* (a normal
-  tail for a score its scorer says is a mean over many steps, ``Scorer.tail``: the coupling, whose choice
-  ``democheck.audit.coupling`` gives) (``robust_tails``): fitted on every demo, then again on those whose combined probability is above
-  ``CORE_P``, until the core stops changing; at every round each task's centre and the robust unit are taken
+  exponential right tail through the 25th and 75th percentiles of the audited demos' *robust core*
+  (``robust_tails``; a normal tail for a score its scorer says is a mean over many steps, ``Scorer.tail``: the
+  coupling, whose choice ``democheck.audit.coupling`` gives): fitted on every demo, then again on those whose
+  combined probability is above ``CORE_P``, until the core stops changing; at every round each task's centre and the robust unit are taken
   again from the core's demos alone (``calibrated`` with ``core``; motion, view and colours, robust z within
   their task already, keep the centre of all the task's demos), so that a task's bad demos shift neither
   the centre its clean demos are judged from nor the unit: with the probes pooled in, a task of 15 demos holds
@@ -263,8 +263,9 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np
     column by column: an exponential tail through the ``TAIL_QUANTILES`` of the column's rows in ``core``
     (default: all; probability 0.75 at their 25th percentile, 0.25 at their 75th), at most 1, its scale at least
     ``TAIL_MIN_SCALE``; or, for the columns ``normal`` [K] marks, a normal tail through the core's median, its
-    scale from the same two percentiles (the interquartile range / 1.349; at least ``TAIL_MIN_SCALE``) -- for a score that is a mean over
-    many steps, whose clean spread the central limit theorem makes normal (``Scorer.tail``).  NaN (no score)
+    scale from the same two percentiles (the interquartile range / 1.349; at least ``TAIL_MIN_SCALE``) -- for a
+    score that is a mean over many steps, whose clean spread the central limit theorem makes normal
+    (``Scorer.tail``).  NaN (no score)
     stays NaN, which the combinations leave out; +inf (an exact copy) gives log 0."""
     from scipy.stats import norm
 
