@@ -12,7 +12,12 @@ audit`` combines it.  Then, at the shipped floor and form, each other way of mea
 task (``REFERENCES``): one robust SD per dimension for every task (the MAD of all the demos' distances from their
 task's median, as the ranking's ``calibrated`` puts scores in units), or each task's median and robust SD taken
 again from its demos within 3 or 5 robust SD of the first (one reweighting step: a task's own bad demos -- three
-or four of a dozen -- widen its MAD, and a gave-up demo that stopped near the goal then reads 2-3 robust SD).  Printed per variant: the
+or four of a dozen -- widen its MAD, and a gave-up demo that stopped near the goal then reads 2-3 robust SD).
+Then what each end is compared with (``SIDES``): the whole task's median instead of the median of the demos that
+started on the same side (``outcome.side_reference``), the side only in the dimensions the task's demos move,
+the side's median over the *other* demos that started
+there (at least 1, 2 or 3 of them), and each dimension's end and change predicted from the whole start by
+gradient-boosted trees fitted on the set's other tasks (task-centred, cross-fitted in five folds by task).  Printed per variant: the
 outcome score's own AUROC per kind, then the ranking's AUROC per kind, the share of clean demos flagged at
 ``--fpr 0.01`` and each kind's share flagged; the first row is the ranking without the outcome check.
 ``--only`` keeps the rows of one of the bench's datasets (the demos an audit of that dataset alone would see).
@@ -96,6 +101,72 @@ SHIPPED_Z = modelfree.task_z
 REFERENCES = {"pooled unit": pooled_unit, "reweighted 3": reweighted(3.0), "reweighted 5": reweighted(5.0)}
 
 
+def others_on_side(min_others: int):
+    """``outcome.side_reference`` over the *other* demos that started on the demo's side (at least
+    ``min_others``)."""
+
+    def side_reference(first, last, tasks, median, min_side=None):
+        ref = median.copy()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            for t in np.unique(tasks):
+                rows = np.flatnonzero(tasks == t)
+                side = np.sign(first[rows] - median[rows[0]])
+                for k, i in enumerate(rows):
+                    same = (side == side[k]) & (np.arange(len(rows)) != k)[:, None] & (side[k] != 0)
+                    enough = same.sum(0) >= min_others
+                    ref[i] = np.where(enough, np.nanmedian(np.where(same, last[rows], np.nan), axis=0), ref[i])
+        return ref
+    return side_reference
+
+
+def tree_z(x: np.ndarray, tasks: np.ndarray, floor, min_demos: int, small: str = "nan"):
+    """``modelfree.task_z`` of each dimension's end and change against its prediction from the demo's whole start
+    (its end less its change) by gradient-boosted trees (absolute error) fitted on the other folds' tasks, start and
+    target centred on their task's median and in robust units."""
+    from sklearn.ensemble import HistGradientBoostingRegressor
+    from sklearn.model_selection import GroupKFold, KFold
+
+    d = x.shape[1] // 2
+    first = x[:, :d] - x[:, d:]
+    _, med = SHIPPED_Z(x, tasks, floor, min_demos, small)
+    _, start_med = SHIPPED_Z(first, tasks, 0.0, min_demos, small)
+    ok = np.flatnonzero(np.isfinite(med).any(1) & np.isfinite(x).all(1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        xs = first - start_med
+        xs = xs / np.fmax(1.4826 * np.nanmedian(np.abs(xs[ok]), 0), 1e-9)
+        unit = np.fmax(1.4826 * np.nanmedian(np.abs((x - med)[ok]), 0), floor)
+    y = np.nan_to_num((x - med) / unit)
+    pred = med.copy()
+    folds = GroupKFold(5) if len(np.unique(tasks[ok])) >= 5 else KFold(5, shuffle=True, random_state=0)
+    for fit, held in folds.split(ok, groups=tasks[ok]):
+        for j in range(x.shape[1]):
+            if not np.isfinite(unit[j]):
+                continue
+            trees = HistGradientBoostingRegressor(loss="absolute_error", max_iter=60, min_samples_leaf=10)
+            trees.fit(xs[ok[fit]], y[ok[fit], j])
+            pred[ok[held], j] = med[ok[held], j] + trees.predict(xs[ok[held]]) * unit[j]
+    z, _ = SHIPPED_Z(x - pred, tasks, floor, min_demos, small)
+    return z, pred
+
+
+def moved_only(first, last, tasks, median, min_side=outcome.OUTCOME_MIN_SIDE):
+    """``outcome.side_reference`` only in the dimensions the task's demos move (their median change beyond
+    ``OUTCOME_FLOOR`` of the dimension's spread of final values): the other object keeps the task's median."""
+    ref = SHIPPED_SIDE(first, last, tasks, median, min_side)
+    _, change = SHIPPED_Z(last - first, tasks, 0.0, outcome.OUTCOME_MIN_DEMOS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        spread = 1.4826 * np.nanmedian(np.abs(last - np.nanmedian(last, 0)), 0)
+    return np.where(np.abs(change) > outcome.OUTCOME_FLOOR * spread, ref, median)
+
+
+SHIPPED_SIDE = outcome.side_reference
+SIDES = {"whole task": {"by_side": False}, "side where moved": {"side": moved_only}, **{f"others on side >= {k}": {"side": others_on_side(k)} for k in (1, 2, 3)},
+         "trees on the start": {"by_side": False, "task_z": tree_z}}
+
+
 def outcome_stats(table: pd.DataFrame) -> outcome.OutcomeStats:
     """Every row's ``OutcomeStats``, in the table's order."""
     sets = {path: open_dataset(path) for path in table["dataset"].unique()}
@@ -130,6 +201,14 @@ def main() -> None:
                 score, _ = outcome.outcome(stats, tasks)
             finally:
                 outcome.task_z = SHIPPED_Z
+            alone = " ".join(f"{a:.3f}" for a in aurocs(score, labels).values())
+            print(f"  {name:<26} alone {alone} | ranking {judged(table, score, 'outcome')}", flush=True)
+        for name, how in SIDES.items():
+            outcome.task_z, outcome.side_reference = how.get("task_z", SHIPPED_Z), how.get("side", SHIPPED_SIDE)
+            try:
+                score, _ = outcome.outcome(stats, tasks, by_side=how.get("by_side", True))
+            finally:
+                outcome.task_z, outcome.side_reference = SHIPPED_Z, SHIPPED_SIDE
             alone = " ".join(f"{a:.3f}" for a in aurocs(score, labels).values())
             print(f"  {name:<26} alone {alone} | ranking {judged(table, score, 'outcome')}", flush=True)
 

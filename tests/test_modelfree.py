@@ -619,3 +619,27 @@ def test_coupling_ranks_the_arm_let_go_of_first_and_stands_in_for_the_action_err
     assert "coupling" in ranked(available, tasks)
     assert "coupling" not in ranked(available | {"action_error": values}, tasks)
     assert "coupling" in ranked(available | {"action_error": values}, tasks, model_free=True)
+
+
+def test_outcome_compares_an_end_with_the_demos_that_started_on_its_side():
+    # A push that stops 9 mm short of its goal's line on the side it came from: 10 demos start above the line,
+    # 3 below.  Those 3 end below it -- as they should -- and a demo that started below but ended above is the
+    # one that differs.
+    from democheck.audit import outcome
+
+    rng = np.random.default_rng(0)
+    stats = outcome.OutcomeStats()
+    starts = np.r_[rng.uniform(0.05, 0.2, 10), rng.uniform(-0.2, -0.05, 4)]
+    for i, y0 in enumerate(starts):
+        y1 = (0.009 if y0 > 0 else -0.009) + rng.normal(0, 2e-4)
+        if i == 13:
+            y1 = 0.009  # started below, ended above: pushed past
+        stats.ends.append(np.array([[0.5, y0], [0.7 + rng.normal(0, 1e-3), y1]]))
+        stats.sources.append("environment state")
+        stats.names.append(["target.x", "target.y"])
+    tasks = np.zeros(len(starts), int)
+    by_side, reasons = outcome.outcome(stats, tasks)
+    whole, _ = outcome.outcome(stats, tasks, by_side=False)
+    assert int(np.argmax(by_side)) == 13 and by_side[10:13].max() < 3 < 10 < by_side[13]
+    assert whole[10:13].min() > 10  # against the whole task the three that started below read far out
+    assert "target.y at the end" in reasons[13] and "started on its side" in reasons[13]
