@@ -153,13 +153,10 @@ def tree_z(x: np.ndarray, tasks: np.ndarray, floor, min_demos: int, small: str =
 
 def moved_only(first, last, tasks, median, min_side=outcome.OUTCOME_MIN_SIDE):
     """``outcome.side_reference`` only in the dimensions the task's demos move (their median change beyond
-    ``OUTCOME_FLOOR`` of the dimension's spread of final values): the other object keeps the task's median."""
+    ``outcome.dimension_floor``): the other object keeps the task's median."""
     ref = SHIPPED_SIDE(first, last, tasks, median, min_side)
     _, change = SHIPPED_Z(last - first, tasks, 0.0, outcome.OUTCOME_MIN_DEMOS)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        spread = 1.4826 * np.nanmedian(np.abs(last - np.nanmedian(last, 0)), 0)
-    return np.where(np.abs(change) > outcome.OUTCOME_FLOOR * spread, ref, median)
+    return np.where(np.abs(change) > outcome.dimension_floor(last), ref, median)
 
 
 SHIPPED_SIDE = outcome.side_reference

@@ -104,6 +104,17 @@ def rms(z: np.ndarray) -> np.ndarray:
         return np.sqrt(np.nanmean(z ** 2, axis=1))
 
 
+def dimension_floor(last: np.ndarray) -> np.ndarray:
+    """[d] the least robust SD of each dimension: ``OUTCOME_FLOOR`` of its spread of final values ``last`` [N, d]
+    over all the demos (their MAD, else their standard deviation); NaN for a dimension that never varies, which is
+    left out."""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        spread = 1.4826 * np.nanmedian(np.abs(last - np.nanmedian(last, 0)), 0)
+        spread = np.where(spread > 0, spread, np.nanstd(last, 0))
+    return np.where(spread > 0, OUTCOME_FLOOR * spread, np.nan)
+
+
 def side_reference(first: np.ndarray, last: np.ndarray, tasks: np.ndarray, median: np.ndarray,
                    min_side: int = OUTCOME_MIN_SIDE) -> np.ndarray:
     """[N, d] what each demo's end is compared with: per task and dimension, the median end of the task's demos
@@ -140,15 +151,13 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray, combine: Callable[[np.ndarra
         last = _padded([stats.ends[i][1] for i in rows])
         d = last.shape[1]
         features = np.concatenate([last, last - first], 1)
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            spread = 1.4826 * np.nanmedian(np.abs(last - np.nanmedian(last, 0)), 0)
-            spread = np.where(spread > 0, spread, np.nanstd(last, 0))
-        # A dimension that never varies has no floor (NaN): it is left out.
-        floor = np.tile(np.where(spread > 0, OUTCOME_FLOOR * spread, np.nan), 2)
+        floor = np.tile(dimension_floor(last), 2)
         z, median = task_z(features, tasks[rows], floor, OUTCOME_MIN_DEMOS)
+        sided = np.zeros(last.shape, bool)  # where an end was compared with its side's demos
         if by_side:
-            median[:, :d] = side_reference(first, last, tasks[rows], median[:, :d])
+            whole = median[:, :d].copy()
+            median[:, :d] = side_reference(first, last, tasks[rows], whole)
+            sided = median[:, :d] != whole
             z[:, :d], _ = task_z(last - median[:, :d], tasks[rows], floor[:d], OUTCOME_MIN_DEMOS)
         out[rows] = combine(z)
         for k, i in enumerate(rows):
@@ -160,7 +169,7 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray, combine: Callable[[np.ndarra
             names = stats.names[i]
             name = names[j % d] if names and len(names) == d else f"{source}[{j % d}]"
             what = f"{name} at the end" if j < d else f"the change of {name}"
-            against = "the median of its task's demos that started on its side" if by_side and j < d else \
+            against = "the median of its task's demos that started on its side" if j < d and sided[k, j] else \
                 "the task's median"
             reasons[i] = (f"left the world unlike its task's other demos: {what} {features[k, j]:.3g} "
                           f"({against} {median[k, j]:.3g}; {z[k, j]:.0f} robust SD)")

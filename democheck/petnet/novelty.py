@@ -243,12 +243,12 @@ def fit_novelty(model: torch.nn.Module, train_cues: np.ndarray, held_out_cues: n
     if with_state:
         feats, held = (np.concatenate([f, (x - state_mean) / state_scale], 1)
                        for f, x in ((feats, train_states), (held, held_out_states)))
-    density = LedoitWolf().fit(feats.astype(np.float64))
+    density = LedoitWolf().fit(feats)
     if trim > 0:
-        d2 = density.mahalanobis(feats.astype(np.float64))
+        d2 = density.mahalanobis(feats)
         keep = d2 <= np.quantile(d2, 1.0 - trim)
-        density = LedoitWolf().fit(feats[keep].astype(np.float64))
-    d2_held = density.mahalanobis(held.astype(np.float64))
+        density = LedoitWolf().fit(feats[keep])
+    d2_held = density.mahalanobis(held)
     ref = float(np.quantile(d2_held, quantile))
     if not np.isfinite(ref) or ref <= 0:
         raise DemocheckError(f"the held-out cues' feature distances are degenerate (reference {ref})")
