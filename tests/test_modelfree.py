@@ -42,6 +42,8 @@ def _planted(kind: str, n: int = 30, seed: int = 0) -> tuple[list[Demo], int]:
         d.frames[30:] = d.frames[30]
     elif kind == "dynamics":  # actions recorded against another demo's state
         d.actions[:] = demos[3].actions
+    elif kind == "lag":  # actions recorded 10 steps late against the states (the first action held until then)
+        d.actions[:] = np.concatenate([np.repeat(d.actions[:1], 10, 0), d.actions[:-10]])
     elif kind == "timing":  # frames 60-69 dropped: the clock jumps from frame 59 to 60
         d.extra["timestamp"][60:] += 0.5
     elif kind == "outcome":  # every demo pushes object a to the goal at (1, 1); the planted one pushes object b there
@@ -172,6 +174,62 @@ def test_frozen_video_ranks_first_and_says_where():
     ev = _ranks_first("frozen_video")
     assert "frames 30-99" in ev.reasons["frozen_video"][17], ev.reasons["frozen_video"][17]
     assert (np.delete(ev.scores["frozen_video"], 17) == 0).all()
+
+
+def test_lag_ranks_actions_recorded_late_first_and_says_by_how_much():
+    ev = _ranks_first("lag")
+    assert "10 steps earlier" in ev.reasons["lag"][17] and "recorded 10 steps late" in ev.reasons["lag"][17], \
+        ev.reasons["lag"][17]
+    assert np.median(ev.scores["lag"]) < 0.05 and ev.scores["lag"][17] > 1.0  # clean: as recorded is best
+
+
+def _moving_square(t: int, size: int = 24) -> np.ndarray:
+    """A camera that sees a bright square move one pixel a step (and back), over a dim textured floor."""
+    rng = np.random.default_rng(t % 7)
+    frame = np.full((size, size, 3), 40, np.uint8) + rng.integers(0, 3, (size, size, 3), dtype=np.uint8)
+    x = t % (2 * (size - 6))
+    x = x if x < size - 6 else 2 * (size - 6) - x
+    frame[9:15, x:x + 6] = 220
+    return frame
+
+
+def test_frame_jump_ranks_a_dropped_stretch_first_and_says_where():
+    """Frames 40-59 dropped from one demo and the steps re-indexed (no timestamp shows it): the camera jumps
+    between frames 39 and 40 of what was kept; every other demo's square moves a pixel a step."""
+    rng = np.random.default_rng(1)
+    demos = []
+    for i in range(20):
+        start = int(rng.integers(0, 30))
+        frames = np.stack([_moving_square(start + t) for t in range(T)])
+        demos.append(_demo(i, rng, frames))
+    d = demos[17]
+    keep = np.r_[0:40, 60:T]
+    demos[17] = Demo(episode_index=17, task="push", frames=d.frames[keep], state=d.state[keep], actions=d.actions[keep])
+    ev = _evidence(demos, ["frame_jump"])
+    values = ev.scores["frame_jump"]
+    assert values[17] > np.delete(values, 17).max() + 1.0, (values[17], np.sort(np.delete(values, 17))[-3:])
+    assert "between frames 39 and 40" in ev.reasons["frame_jump"][17], ev.reasons["frame_jump"][17]
+
+
+def test_a_recording_fault_stands_on_its_own_in_the_combination():
+    """A column marked ``alone`` is combined with the others' Fisher-Brown probability by the Sidak minimum: a
+    demo extreme on it alone is not diluted by its ordinary scores (in Fisher's sum over eight scores, a tail
+    probability of 1e-5 reads about 1e-2), and on clean demos the combination still flags the share asked for."""
+    rng = np.random.default_rng(2)
+    n, k = 20000, 8
+    log_p = np.log(rng.uniform(size=(n, k)))  # clean demos: every tail probability uniform
+    alone = np.zeros(k, bool)
+    alone[-2:] = True
+    log_p[0] = np.log(0.5)
+    log_p[0, -1] = np.log(1e-5)
+    with_alone, fisher = combined_log10(log_p, alone), combined_log10(log_p)
+    assert with_alone[0] < np.log10(5e-5) and fisher[0] > np.log10(1e-3)
+    np.testing.assert_allclose(combined_log10(log_p[:, :1], np.ones(1, bool)), log_p[:, 0] / np.log(10))
+    for fpr in (0.01, 0.05):
+        flagged = int((with_alone[1:] <= np.log10(fpr)).sum())
+        lo, hi = stats.binom.interval(0.999, n - 1, fpr)
+        assert flagged <= hi, (fpr, flagged, hi)
+        assert flagged >= 0.8 * lo  # Sidak is conservative only under dependence; these are independent
 
 
 def test_an_exact_copy_is_named_and_flagged():

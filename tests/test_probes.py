@@ -283,7 +283,8 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     assert kinds <= set(doc["kinds"])
     assert list(doc["scorers"]) == ["task_uncertainty", "task_uncertainty_head", "novelty", "consistency",
                                     "action_error", "motion", "idle", "jerk", "saturation", "duplicate",
-                                    "dynamics", "timing", "frozen_video", "view", "colours", "outcome", "coupling",
+                                    "dynamics", "lag", "timing", "frozen_video", "frame_jump", "view", "colours",
+                                    "outcome", "coupling",
                                     "suspicion",
                                     "model_free",
                                     "ocsvm_flag", "tecnet_knn", "heuristic", "random"]

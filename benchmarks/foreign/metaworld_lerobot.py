@@ -18,6 +18,18 @@ truth and is not part of the dataset.  Every planted kind replaces a demo of a t
   stops (so the task is never done; a clean demo may rest after succeeding);
 - ``occluded``: a clean demo whose camera is covered by a grey card over 40-60% of the view, all episode.
 
+Four more kinds, recording faults no choice of democheck's was made on, planted only when ``--kinds`` names them
+(the default is the five above, so that a seed gives the datasets it gave before):
+
+- ``jittery``: a shaky operator -- the policy's actions plus Gaussian noise of SD 0.2-0.4 (actions span -1..1),
+  executed and recorded;
+- ``frozen-camera``: a clean demo whose camera stops delivering at 20-50% of the episode (its last frame repeats
+  to the end; state and actions go on);
+- ``lagged``: a clean demo whose recorded actions run 8-16 steps (0.1-0.2 s) late against its states and frames
+  (its first action held until then);
+- ``dropped``: a clean demo that lost a stretch of 20-30% of its steps in the middle (frames, states and actions
+  alike), re-indexed as if nothing were missing.
+
 Clean demos are the scripted policy on a variation of the task (Meta-World's goal and object positions) that
 no other episode of the task's scene uses while the 50 last, kept only when the policy succeeds.  (Before,
 variations were drawn with replacement: a reset of the same variation replays the same episode, so the datasets
@@ -52,6 +64,8 @@ TASKS = {  # Meta-World env -> (the task as a LeRobot dataset names it, the scri
     "coffee-button-v3": ("press the coffee machine's button", "SawyerCoffeeButtonV3Policy"),
 }
 KINDS = ("idle", "random", "wrong-task", "gave-up", "occluded")
+MORE_KINDS = ("jittery", "frozen-camera", "lagged", "dropped")
+FAULTS = ("frozen-camera", "lagged", "dropped")  # a clean episode, recorded wrongly (``_fault``)
 CAMERA = "corner"
 FPS = 80
 
@@ -95,6 +109,7 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout:
     obs, _ = env.reset(seed=layout[1])
     policy = getattr(P, TASKS[name][1])()
     stop = steps if stop is None else stop
+    jitter = rng.uniform(0.2, 0.4) if kind == "jittery" else 0.0  # drawn only here: old seeds give what they gave
     frames, state, actions, success, first = [], [], [], False, None
     for t in range(steps):
         frames.append(env.render()[::-1].copy())  # MuJoCo renders bottom-up
@@ -103,6 +118,8 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout:
             a = np.zeros(4, np.float32)
         elif kind == "random":
             a = rng.uniform(-1, 1, 4).astype(np.float32)
+        elif kind == "jittery":
+            a = np.clip(policy.get_action(obs) + rng.normal(0, jitter, 4), -1, 1).astype(np.float32)
         else:
             a = np.clip(policy.get_action(obs), -1, 1).astype(np.float32)
         actions.append(a)
@@ -110,7 +127,7 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout:
         if info["success"] and first is None:
             first = t + 1
         success = success or bool(info["success"])
-    if kind in ("clean", "wrong-task", "occluded") and not success:
+    if kind in ("clean", "wrong-task", "occluded", *FAULTS) and not success:
         return None  # a failed expert demo is not a clean one: draw again
     return {"frames": np.stack(frames), "state": np.stack(state), "actions": np.stack(actions), "layout": layout,
             "first_success": first, "success": success}
@@ -124,6 +141,24 @@ def _cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     out = frames.copy()
     out[:, r:r + ch, c:c + cw] = np.uint8(rng.integers(90, 160))
     return out
+
+
+def _fault(rec: dict, kind: str, rng: np.random.Generator) -> dict:
+    """A clean recording with ``kind``'s fault (see the module docstring)."""
+    frames, state, actions = rec["frames"], rec["state"], rec["actions"]
+    n = len(actions)
+    if kind == "frozen-camera":
+        at = int(n * rng.uniform(0.2, 0.5))
+        frames = np.concatenate([frames[:at], np.repeat(frames[at - 1:at], n - at, axis=0)])
+    elif kind == "lagged":
+        lag = int(rng.integers(8, 17))
+        actions = np.concatenate([np.repeat(actions[:1], lag, axis=0), actions[:-lag]])
+    elif kind == "dropped":
+        length = int(n * rng.uniform(0.2, 0.3))
+        at = int(rng.integers(n // 4, n - n // 4 - length))
+        keep = np.r_[0:at, at + length:n]
+        frames, state, actions = frames[keep], state[keep], actions[keep]
+    return {**rec, "frames": frames, "state": state, "actions": actions}
 
 
 def _episode(job: tuple) -> dict:
@@ -145,6 +180,8 @@ def _episode(job: tuple) -> dict:
         raise RuntimeError(f"episode {index}: the {name} policy failed 20 times")
     if kind == "occluded":
         rec["frames"] = _cover(rec["frames"], rng)
+    elif kind in FAULTS:
+        rec = _fault(rec, kind, rng)
     return {"index": index, "task": TASKS[name][0], "label": kind,
             **{k: rec[k] for k in ("frames", "state", "actions")}}
 
@@ -152,15 +189,17 @@ def _episode(job: tuple) -> dict:
 VARIATIONS = 50  # Meta-World's training variations (goal and object positions) of each task
 
 
-def plan(names: list[str], demos: int, plant: int, steps: int, seed: int) -> list[tuple]:
+def plan(names: list[str], demos: int, plant: int, steps: int, seed: int, kinds: tuple[str, ...] = KINDS
+         ) -> list[tuple]:
     """(episode index, env, kind, other env, steps, seed, variation) of every episode: ``demos`` per task,
-    ``plant`` of each kind in all, on tasks drawn by the seed.  Every episode of an env gets a variation of its
+    ``plant`` of each of ``kinds`` in all, on tasks drawn by the seed.  Every episode of an env gets a variation of its
     own (a reset of the same variation replays the same episode, bit for bit), clean demos first, until the
     env's ``VARIATIONS`` are used up; a planted demo may then share one with a clean demo (it is not a copy:
     its actions or frames differ)."""
     rng = np.random.default_rng([seed, 1])
-    kinds = ["clean"] * (demos * len(names)) + [k for k in KINDS for _ in range(plant)]
-    tasks = [n for n in names for _ in range(demos)] + list(rng.choice(names, size=plant * len(KINDS)))
+    planted = kinds
+    kinds = ["clean"] * (demos * len(names)) + [k for k in planted for _ in range(plant)]
+    tasks = [n for n in names for _ in range(demos)] + list(rng.choice(names, size=plant * len(planted)))
     order = rng.permutation(len(kinds))
     # Clean demos take their variations first: two clean demos on one variation would be exact copies.
     draw = sorted(range(len(order)), key=lambda i: kinds[order[i]] != "clean")
@@ -203,6 +242,8 @@ def main() -> None:
     ap.add_argument("--tasks", default="mt10", help="mt10 (the ten tasks of TASKS), or comma-separated env names")
     ap.add_argument("--demos", type=int, default=20, help="clean demos per task")
     ap.add_argument("--plant", type=int, default=7, help="bad demos of each kind, in all")
+    ap.add_argument("--kinds", default=",".join(KINDS),
+                    help=f"the bad kinds to plant, comma-separated, of {', '.join(KINDS + MORE_KINDS)}")
     ap.add_argument("--steps", type=int, default=120)
     ap.add_argument("--size", type=int, default=128, help="camera image size in pixels")
     ap.add_argument("--seed", type=int, default=0)
@@ -214,7 +255,11 @@ def main() -> None:
         if not args.force:
             raise SystemExit(f"{args.out}: exists (--force replaces it)")
         shutil.rmtree(args.out)
-    jobs = plan(names, args.demos, args.plant, args.steps, args.seed)
+    kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
+    unknown = sorted(set(kinds) - set(KINDS + MORE_KINDS))
+    if unknown:
+        raise SystemExit(f"unknown kind {', '.join(unknown)}; kinds: {', '.join(KINDS + MORE_KINDS)}")
+    jobs = plan(names, args.demos, args.plant, args.steps, args.seed, kinds)
     t0 = time.perf_counter()
     with mp.get_context("spawn").Pool(args.workers, initializer=_init, initargs=(args.size,)) as pool:
         episodes = []
@@ -232,7 +277,7 @@ def main() -> None:
         w.writerow(["episode_index", "label"])
         for i, ep in enumerate(episodes):
             w.writerow([i, ep["label"]])
-    counts = {k: sum(e["label"] == k for e in episodes) for k in ("clean", *KINDS)}
+    counts = {k: sum(e["label"] == k for e in episodes) for k in ("clean", *kinds)}
     print(f"{args.out}: {len(episodes)} episodes of {len(names)} tasks {counts} in {time.perf_counter() - t0:.0f} s; "
           f"labels: {labels}")
 

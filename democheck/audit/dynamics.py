@@ -8,6 +8,13 @@ log of the demo's mean squared prediction error over the median demo's, and the 
 ``DYNAMICS_WINDOW`` steps it is worst over.  A robot held, blocked or pushed by something it met, an arm that
 did not answer its commands, or actions recorded against another demo's state or shifted in time.  A consumer
 of the audit's decoding pass like the other model-free checks (``democheck.audit.modelfree``).
+
+The ``lag`` check reads the same fit: how much better the demo's states follow its actions shifted in time --
+the log of its mean squared prediction error with the actions as recorded over the least error with them moved
+up to ``LAG_MAX`` steps earlier or later (0 for a demo whose recorded alignment explains it best), and the
+shift.  An action stream recorded late or early against the states and frames (a clock offset between two
+recorders) is what a policy trained on it learns to be late by; the mean error above barely sees it where
+actions change slowly, since a shifted action is still close to the right one.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ DYNAMICS_RIDGE = 1e-3  # ridge penalty per step, on standardised features: a nea
 DYNAMICS_BLOCK = 128  # demos per fit (= the audit's decoding shard, ``shards.SHARD``)
 DYNAMICS_MIN_BLOCK = 32  # a last block of fewer demos is judged by the fit of the block before it
 DYNAMICS_WINDOW = 10  # the reason names the stretch of this many steps the state follows the actions worst
+LAG_MAX = 16  # steps either way the ``lag`` check moves a demo's actions (0.2 s at 80 fps, 0.5 s at 30 fps)
 
 
 def _dynamics_features(state: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -50,6 +58,26 @@ def _dynamics_fit(states: list[np.ndarray], actions: list[np.ndarray]) -> dict[s
     return {"x_mean": x_mean[xs], "x_sd": x_sd[xs], "xs": xs, "y_sd": y_sd[ys], "ys": ys, "y_mean": y_mean, "w": w}
 
 
+def _shifted(actions: np.ndarray, k: int) -> np.ndarray:
+    """The actions moved ``k`` steps earlier (k > 0: step t gets the action recorded at t + k), the ends held."""
+    if k == 0 or len(actions) < 2:
+        return actions
+    idx = np.clip(np.arange(len(actions)) + k, 0, len(actions) - 1)
+    return actions[idx]
+
+
+def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | None) -> tuple[float, int]:
+    """(log of the error as recorded over the least error with the actions moved up to ``LAG_MAX`` steps,
+    that shift); NaN without a fit or under 3 steps."""
+    if fit is None or len(actions) < 3:
+        return float("nan"), 0
+    reach = min(LAG_MAX, len(actions) - 2)
+    errors = {k: float(_dynamics_errors([state], [_shifted(actions, k)], fit)[0].mean())
+              for k in range(-reach, reach + 1)}
+    best = min(errors, key=lambda k: (errors[k], abs(k)))
+    return float(np.log(max(errors[0], 1e-12) / max(errors[best], 1e-12))), best
+
+
 def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray], fit: dict[str, np.ndarray] | None
                      ) -> list[np.ndarray | None]:
     """Per demo, the squared error of each step's predicted change of state under ``fit`` (mean over the state
@@ -72,9 +100,10 @@ class DynamicsFit(PerDemo):
     ``DYNAMICS_MIN_BLOCK`` demos is scored by the fit of the block before it (on its own steps alone a few
     demos would explain themselves)."""
 
-    fields = ("errors", "worst", "states", "actions")
+    fields = ("errors", "worst", "lags", "states", "actions")
     errors: list[float]  # per scored demo: mean squared error (NaN: not scored)
     worst: list[tuple[int, int, int]]  # per scored demo: start, width of its worst stretch, its steps
+    lags: list[tuple[float, int]]  # per scored demo: ``_lag``
     states: list[np.ndarray]  # the block not scored yet
     actions: list[np.ndarray]
 
@@ -97,11 +126,13 @@ class DynamicsFit(PerDemo):
                     self.last_fit = fit
             else:
                 fit = self.last_fit
-            for e in _dynamics_errors(states, actions, fit):
+            for e, state, a in zip(_dynamics_errors(states, actions, fit), states, actions):
                 if e is None:
                     self.errors.append(np.nan)
                     self.worst.append((0, 0, 0))
+                    self.lags.append((np.nan, 0))
                     continue
+                self.lags.append(_lag(state, a, fit))
                 width = min(DYNAMICS_WINDOW, len(e))
                 start = int(np.argmax(np.convolve(e, np.ones(width) / width, mode="valid")))
                 self.errors.append(float(e.mean()))
@@ -120,6 +151,7 @@ class DynamicsFit(PerDemo):
                                  f"must hold a multiple of {DYNAMICS_BLOCK} demos, or fewer")
             out.errors += part.errors
             out.worst += part.worst
+            out.lags += part.lags
             out.states += part.states
             out.actions += part.actions
             if part.last_fit is not None:
@@ -144,4 +176,21 @@ def dynamics(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
     reasons = [f"the state follows the actions {e / typical:.2g} x worse than usual; worst over "
                + steps_text(start, start + width, n + 1) if good else "too short, or a state that never changes"
                for e, good, (start, width, n) in zip(errors, ok, fit.worst)]
+    return out, reasons
+
+
+def lag(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
+    """How much better each demo's states follow its actions moved in time (``_lag``; see the module docstring),
+    and by how many steps."""
+    out = np.array([g for g, _ in fit.lags], np.float64)
+    reasons = []
+    for gain, k in fit.lags:
+        if not np.isfinite(gain):
+            reasons.append("too short, or a state that never changes")
+        elif k == 0:
+            reasons.append("its actions go with its states as recorded")
+        else:
+            reasons.append(f"its states follow its actions best with the actions {abs(k)} steps "
+                           f"{'earlier' if k > 0 else 'later'} ({np.exp(gain):.2g} x less error): "
+                           f"the actions were recorded {abs(k)} steps {'late' if k > 0 else 'early'}")
     return out, reasons

@@ -22,6 +22,12 @@ held shut, counts in units of 1% of the busiest dimension's, so it cannot make a
   chattering or random commands.
 - ``frozen_video``: the share of steps at which the camera frame repeats (mean absolute grey-level change
   under ``FROZEN_LEVEL``) while the actions change: a camera that stopped delivering while the arm moved.
+  With ``frame_jump`` below and ``dynamics.lag``, a recording fault: in the ranking on its own
+  (``scorers.Scorer.alone``).
+- ``frame_jump``: how much more the camera frame changes at one step than at the steps around it -- the largest
+  ratio of a step's mean absolute grey-level change to the median change of the ``JUMP_NEIGHBOURS`` steps either
+  side (at least ``JUMP_FLOOR`` grey levels), on a log scale: a stretch of frames dropped from the recording (and
+  the steps re-indexed, so that no timestamp shows it), or two recordings spliced.
 - ``saturation``: the share of steps at which some action dimension sits at its smallest or largest value over
   all the demos (a command clipped at its limit).
 - ``dynamics`` (``democheck.audit.dynamics``): how badly the demo's state follows its actions.
@@ -49,6 +55,8 @@ from democheck.data.demo import Demo
 STILL = 0.05  # a step is still when its change of action is under 5% of the median change
 FROZEN_LEVEL = 0.1  # grey levels (0-255): a frame this close to the previous one repeats it
 DUPLICATE_STEPS = 32
+JUMP_NEIGHBOURS = 5  # steps either side of a frame change that say what the change there usually is
+JUMP_FLOOR = 0.5  # grey levels: the least usual change a jump is measured against (a still scene's sensor noise)
 TIMING_TOLERANCE = 0.5  # a time step off the usual one by more than half of it is irregular
 IDLE_MIN_SCALE = 0.05  # a robust standard deviation of the idle share stands for at least 5% of the steps
 
@@ -259,6 +267,27 @@ def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
         start, length = longest_run(frozen)
         reasons.append(f"the frame repeats while the arm moves at {100 * out[i]:.0f}% of steps; longest "
                        + steps_text(start, start + length, n + 1) if length else "frames change while the arm moves")
+    return out, reasons
+
+
+def frame_jump(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
+    """log of the largest ratio of a step's frame change to the median change around it (see the module
+    docstring), and the step where it is."""
+    out, reasons = np.full(len(frames.deltas), np.nan), []
+    k = JUMP_NEIGHBOURS
+    for i, d in enumerate(frames.deltas):
+        if len(d) < 2:
+            reasons.append("too short")
+            continue
+        padded = np.concatenate([np.full(k, np.nan), np.asarray(d, np.float64), np.full(k, np.nan)])
+        window = np.lib.stride_tricks.sliding_window_view(padded, 2 * k + 1)
+        around = np.delete(window, k, axis=1)  # the step's neighbours, not the step itself
+        usual = np.maximum(np.nanmedian(around, axis=1), JUMP_FLOOR)
+        ratio = d / usual
+        at = int(np.argmax(ratio))
+        out[i] = float(np.log(max(ratio[at], 1e-9)))
+        reasons.append(f"the frame jumps between frames {at} and {at + 1}: {ratio[at]:.1f} x the change around it "
+                       f"({d[at]:.1f} grey levels against {usual[at]:.1f})")
     return out, reasons
 
 

@@ -125,6 +125,10 @@ class Scorer:
     # "normal" for a score that is a mean over many steps (the central limit theorem makes its clean spread normal,
     # and an exponential through its quartiles would call a demo six robust SD out one clean demo in a few hundred).
     tail: str = "exponential"
+    # A recording fault (a frozen camera, dropped frames, actions recorded out of step): its tail probability
+    # stands on its own beside the combination of the others (``scores.combined_log10``) instead of adding up
+    # with them in Fisher's sum, where one small probability is diluted by every ordinary one beside it.
+    alone: bool = False
     # Where its decoding pass's result lands in ``Evidence.behaviour`` (default: its name); scorers that give
     # the same key share one consumer.
     behaviour: str = ""
@@ -210,12 +214,24 @@ def ranking_z(ev: Evidence, names: list[str], core: np.ndarray | None = None) ->
 def ranking_tails(ev: Evidence, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """The tail probabilities (natural logs, [N, K]) of the ranking's scores ``names`` and the robust core they
     are fitted on (``scores.robust_tails`` of ``ranking_z``), each score's tail of its scorer's family."""
-    return robust_tails(lambda core: ranking_z(ev, names, core), normal=normal_tails(names))
+    return robust_tails(lambda core: ranking_z(ev, names, core), normal=normal_tails(names),
+                        alone=alone_columns(names))
 
 
 def normal_tails(names: list[str]) -> np.ndarray:
     """Which of the ranking's scores ``names`` have a normal tail (``Scorer.tail``): bool [K]."""
     return np.array([SCORERS[n].tail == "normal" for n in names], bool)
+
+
+def alone_columns(names: list[str]) -> np.ndarray:
+    """Which of the ranking's scores ``names`` stand on their own in the combination (``Scorer.alone``): bool [K]."""
+    return np.array([SCORERS[n].alone for n in names], bool)
+
+
+def combine(names: list[str], log_p: np.ndarray) -> np.ndarray:
+    """The ranking: -log10 of the combined tail probability of the scores ``names`` (``scores.combined_log10``,
+    the recording faults beside the rest)."""
+    return -combined_log10(log_p, alone_columns(names))
 
 
 def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
@@ -235,6 +251,12 @@ def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
     return [n for n in names if SCORERS[n].stands_in_for not in names]
 
 
+# The least spread a robust standard deviation of a recording fault's score stands for in the ranking (a share of
+# the steps for the frozen video, a log ratio for the frame jump and the lag): a camera whose frames never repeat,
+# or actions that no shift explains better, leave a MAD of zero, which would call a single repeated frame many
+# standard deviations.  Chosen on the development sets (``benchmarks/fault_choices.py``).
+FAULT_MIN_SCALE = 0.02
+
 REASON_P = 0.05  # a score this surprising (tail probability) is named in the ranking's reason beside the first
 
 
@@ -244,7 +266,7 @@ def _combination(ev: Evidence, model_free: bool = False) -> Scores:
     names, log_p, _ = ev.combination(model_free)
     if not names:
         return np.full(len(ev.episodes), np.nan), None
-    value = -combined_log10(log_p)
+    value = combine(names, log_p)
     reasons = []
     for i, row in enumerate(np.nan_to_num(log_p, nan=0.0)):  # no score: nothing to name
         # The score that drove it most, and up to two more that added to it (often the one that says where).
@@ -319,6 +341,14 @@ def _frozen_video(ev: Evidence) -> Scores:
     return modelfree.frozen_video(ev.behaviour["frozen_video"])
 
 
+def _frame_jump(ev: Evidence) -> Scores:
+    return modelfree.frame_jump(ev.behaviour["frozen_video"])
+
+
+def _lag(ev: Evidence) -> Scores:
+    return dynamics.lag(ev.behaviour["dynamics"])
+
+
 def _outcome(ev: Evidence) -> Scores:
     return outcome.outcome(ev.behaviour["outcome"], ev.tasks)
 
@@ -371,12 +401,23 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            f"{dynamics.DYNAMICS_BLOCK} demos predicts the demo's change of state from its state and actions, "
            "over the median demo's", ("demos",), _dynamics,
            decode=lambda ev, rows, device: dynamics.DynamicsFit(), short="dyn."),
+    Scorer("lag", f"model-free: how much better the demo's states follow its actions moved in time (log of the "
+           f"dynamics check's error as recorded over the least with the actions moved up to {dynamics.LAG_MAX} "
+           "steps either way): actions recorded late or early", ("demos",), _lag, in_suspicion=True, alone=True,
+           ranking_min_scale=FAULT_MIN_SCALE, behaviour="dynamics",
+           decode=lambda ev, rows, device: dynamics.DynamicsFit(), short="lag"),
     Scorer("timing", "model-free: share of time steps off the frame period 1/fps (dropped, repeated or reordered "
            "frames; NaN without timestamps)", ("demos",), _timing, behaviour="actions", decode=_traces,
            short="time"),
     Scorer("frozen_video", "model-free: share of steps at which the camera frame repeats while the actions "
-           "change (a camera that stopped delivering)", ("demos",), _frozen_video,
+           "change (a camera that stopped delivering)", ("demos",), _frozen_video, in_suspicion=True, alone=True,
+           ranking_min_scale=FAULT_MIN_SCALE,
            decode=lambda ev, rows, device: modelfree.FrameChanges(), short="frozen"),
+    Scorer("frame_jump", "model-free: how much more the camera frame changes at one step than at the "
+           f"{modelfree.JUMP_NEIGHBOURS} steps either side (log of the largest ratio): frames dropped from the "
+           "recording, or recordings spliced", ("demos",), _frame_jump, in_suspicion=True, alone=True,
+           ranking_min_scale=FAULT_MIN_SCALE, behaviour="frozen_video",
+           decode=lambda ev, rows, device: modelfree.FrameChanges(), short="jump"),
     Scorer("view", "model-free: share of the demo's average picture (16x16) unlike its task's other demos' there "
            f"(over {modelfree.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
            "robust z within its task", ("demos",), _view, in_suspicion=True, in_robust_sd=True,
@@ -398,10 +439,12 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
            "consistency, action error (log), motion, idle, view, colours and outcome (one task: the last six; "
            "without the action error, the coupling too), each in robust standard deviations within its task, the "
-           "tails fitted on the robust core (2 = as unusual as 1 clean demo in 100)", ("scores",),
+           "tails fitted on the robust core, beside the recording faults (frozen video, frame jump, lag), each on "
+           "its own (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
-           "view, colours, outcome, coupling): what democheck says with no model", ("scores",), _model_free,
+           "view, colours, outcome, coupling, and the recording faults): what democheck says with no model",
+           ("scores",), _model_free,
            in_audit=False, short="no-model"),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "
            "(1 = flagged; one operating point)", ("cues", "reference"), _ocsvm_flag, in_audit=False, short="ocsvm"),

@@ -69,6 +69,21 @@ Every score is one number per demo, higher = more suspect:
   core, the exponential beyond its largest (no-objects 0.988 -> 0.967, flagged 0.34 -> 0.18); each task's centre
   from its core demos alone, without the ``colours`` check (push-v1-dev alone: 9 clean flagged, 1.47%, against
   5, by the combined probability's own level; kept since, with the conformal flags below).
+  The recording faults (``Scorer.alone``: frozen video, frame jump, lag) are not added into Fisher's sum: each
+  one's tail probability stands beside the sum's combined probability, the ranking their Sidak minimum
+  (``combined_log10``'s ``alone``).  Chosen with ``benchmarks/fault_choices.py`` on a Meta-World set with the
+  faults planted (mw3-dev: 150 clean, 6 each of jittery, frozen-camera, lagged, dropped; trained on itself), the
+  push-v1 development draws and Meta-World mw2-dev and mw2-one-dev.  On mw3-dev, AUROC/flagged at --fpr 0.01,
+  dropped, frozen-camera, jittery, lagged: the faults out of the ranking 0.756/0.00, 0.903/0.00, 0.997/1.00,
+  0.840/0.00; in Fisher's sum 0.988/0.50, 0.998/1.00, 0.996/0.83, 0.992/0.67; alone 0.999/1.00, 1.000/1.00,
+  0.996/0.83, 0.999/1.00 (2 of 150 clean flagged, 1.5 expected; 1 out of the ranking); without a model, out
+  0.910/0.00, 0.879/0.17, 1.000/1.00, 0.924/0.00, alone 0.983/0.50, 1.000/1.00, 1.000/1.00, 0.999/1.00.  The
+  push-v1 draws audited alone: clean flagged 8 / 10 / 9 -> 8 / 9 / 7 of 614, every bad demo either way (in
+  Fisher's sum 7 / 7 / 6); seed 2 with its probes pooled 7 -> 6, every bad demo (in Fisher's sum 4, gave-up and
+  wrong-object 0.97); mw2-dev and mw2-one-dev unchanged.  What it costs: without a model, occluded push demos
+  flagged 0.55 / 0.58 / 0.39 -> 0.34 / 0.42 / 0.21 and no-objects probes ranked 0.942 -> 0.909 (the others'
+  combined probability is Sidak-corrected for four looks).  A normal tail for the faults flagged 10-21 clean
+  demos where 6-7 and 2 were.
 - ``is_anomaly``: the demo's conformal p-value against the robust core (``conformal_p``: the share of the core
   at least as suspect) at most the false-positive rate asked for (``audit --fpr``, default ``DEFAULT_FPR``):
   if the core's demos are clean and a clean demo is like them, about that share of clean demos is flagged,
@@ -291,7 +306,8 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np
 
 
 def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: float = CORE_P,
-                 rounds: int = CORE_ROUNDS, normal: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 rounds: int = CORE_ROUNDS, normal: np.ndarray | None = None, alone: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """``tail_probabilities`` fitted on the audited demos' robust core, and the core [N] (bool): starting from
     every demo, the tails are fitted, combined (``combined_log10``), and the demos whose combined probability is
     at most ``core_p`` left out of the next fit, until the core stops changing.  The core never shrinks below
@@ -299,13 +315,14 @@ def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: flo
 
     ``z``: the [N, K] scores in robust SD, or a function of the core (None: every demo) that computes them (the
     ranking's: each task's centre and the unit from the core's demos, ``calibrated``), called again at every
-    round.  ``normal``: the columns with a normal tail (``tail_probabilities``)."""
+    round.  ``normal``: the columns with a normal tail (``tail_probabilities``); ``alone``: the columns combined
+    beside the others (``combined_log10``)."""
     z_of = z if callable(z) else (lambda core: z)
     zc = z_of(None)  # every demo
     core = np.ones(len(zc), bool)
     log_p = tail_probabilities(zc, core, normal)
     for _ in range(rounds):
-        new = ~(10.0 ** combined_log10(log_p) <= core_p)
+        new = ~(10.0 ** combined_log10(log_p, alone) <= core_p)
         if (new == core).all() or new.sum() < len(zc) / 2:
             break
         core = new
@@ -366,13 +383,22 @@ def brown_scale(log_p: np.ndarray) -> tuple[float, float] | None:
     return var / (4.0 * k), 8.0 * k * k / var
 
 
-def combined_log10(log_p: np.ndarray) -> np.ndarray:
+def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None) -> np.ndarray:
     """log10 of the combined tail probability of each row's K tail probabilities (given as natural logs):
     Fisher's -2 sum log p against Brown's scaled chi-square (``brown_scale``: the scores' dependence measured on
     the audited demos themselves), or, with too few demos to measure it, the Sidak minimum.  A row's missing
     scores (NaN) are left out, with their share of the degrees of freedom: a look that saw nothing is not
     evidence that the demo is typical (counted as p = 1, it would make a demo with a missing score look more
-    ordinary than a clean demo with every score)."""
+    ordinary than a clean demo with every score).
+
+    ``alone`` (bool [K]) marks the columns that stand on their own (a recording fault, ``Scorer.alone``): the
+    others are combined as above, and that combined probability and theirs by the Sidak minimum -- a camera that
+    froze is a defect whatever the demo's behaviour says, and in Fisher's sum its one small probability would be
+    diluted by every ordinary one beside it."""
+    alone = np.zeros(log_p.shape[1], bool) if alone is None else np.asarray(alone, bool)
+    if alone.any():
+        rest = combined_log10(log_p[:, ~alone]) * np.log(10) if (~alone).any() else np.zeros((len(log_p), 0))
+        return sidak_log10(np.column_stack([rest, log_p[:, alone]]))
     if log_p.shape[1] == 0:
         return np.zeros(len(log_p))
     scale = brown_scale(log_p)

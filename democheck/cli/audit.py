@@ -33,7 +33,7 @@ def audit(
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     actions: Annotated[bool, typer.Option("--actions/--no-actions", help="Also score how badly the model's controller explains each demo's actions (catches arms that never moved, flailed or stopped half-way). Decodes every demo in full: --no-actions is the fast pass on cue frames only.")] = True,
     fpr: Annotated[float, typer.Option(help="Flag the demos at least as suspect as at most this share of the reference demos -- the audited demos' robust core, believed clean -- so that about this share of clean demos is flagged (the summary states the level and the expected number of false flags).")] = 0.01,
-    no_model: Annotated[bool, typer.Option("--no-model", help="Use the model-free checks alone (idle, motion, jerk, frozen video, duplicates, saturation, action-state dynamics, state-action coupling, timestamps, view, colours, outcome): works on any robot before any model is trained. Automatic, with a warning, when the shipped model cannot read the data.")] = False,
+    no_model: Annotated[bool, typer.Option("--no-model", help="Use the model-free checks alone (idle, motion, jerk, frozen video, frame jumps, duplicates, saturation, action-state dynamics, action lag, state-action coupling, timestamps, view, colours, outcome): works on any robot before any model is trained. Automatic, with a warning, when the shipped model cannot read the data.")] = False,
     keep_list: Annotated[Optional[Path], typer.Option(help="Also write the unflagged episode indices to this file as [0, 2, 5] (what a dataset-editing tool takes).")] = None,
     drop_list: Annotated[Optional[Path], typer.Option(help="Also write the flagged episode indices to this file as [0, 2, 5], e.g. for lerobot-edit-dataset --operation.type delete_episodes --operation.episode_indices \"$(cat FILE)\".")] = None,
     workers: Annotated[Optional[int], typer.Option(help="Processes for the cue pass and the pass that decodes every demo, started once for both (default: the machine's cores; small datasets stay in one). The scores are the same for any number.")] = None,
@@ -68,23 +68,22 @@ def audit(
 
 
 def print_audit(summary: dict, out: Path) -> None:
-    """The top suspects as a table that fits 80 columns: the scores the ranking takes, and the ranking (the
-    others are in scores.csv and the report)."""
-    from democheck.audit.scorers import SCORERS
-
+    """The top suspects as a table that fits 80 columns: each one's rank, episode, task, suspicion, flag and the
+    score that drove it most (every score is in scores.csv and the report; the reasons of the first three follow
+    the table)."""
     from rich import box
 
     flag = summary["flag"]
-    # No vertical rules, short headers and a clipped task column: every score of the ranking fits 80 columns.
     table = Table(title=f"top suspects of {summary['demos']} demos", box=box.SIMPLE_HEAD, pad_edge=False)
-    cols = [n for n, s in SCORERS.items() if (s.in_suspicion or n == "suspicion") and summary["top_suspects"]
-            and n in summary["top_suspects"][0]]
-    for col in ("rank", "ep", "task", *(SCORERS[c].short for c in cols), "flag"):
-        table.add_column(col, justify="left" if col == "task" else "right", no_wrap=True, overflow="ellipsis",
-                         max_width=max(10, 34 - 4 * len(cols)) if col == "task" else None)
+    for col in ("rank", "episode", "task", "suspicion", "flag", "driven by"):
+        table.add_column(col, justify="left" if col in ("task", "driven by") else "right", no_wrap=True,
+                         overflow="ellipsis", max_width=24 if col == "task" else None,
+                         min_width=None if col == "task" else max(len(col), 12 if col == "driven by" else 0))
     for r in summary["top_suspects"]:
-        cells = ["n/a" if r[c] is None else short(r[c]) for c in cols]
-        table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"], *cells, "[red]yes[/]" if r["is_anomaly"] else "")
+        driver = (r.get("reason") or "").split(":", 1)[0]
+        table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"],
+                      "n/a" if r.get("suspicion") is None else short(r["suspicion"]),
+                      "[red]yes[/]" if r["is_anomaly"] else "", driver)
     console.print(table)
     level = flag.get("p_value_at_level")
     console.print(f"{summary['flagged']} flagged at --fpr {flag['fpr']:g}"
