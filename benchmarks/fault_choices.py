@@ -12,7 +12,9 @@ conformal flags on the robust core) with the faults' scorers changed:
 - ``in Fisher's sum``: in the ranking like any other score;
 - ``alone``: each on its own beside the combination of the others (``Scorer.alone``: the Sidak minimum), their
   robust SD at least ``FAULT_MIN_SCALE`` (the shipped form), or at least 0.05, 0.1, or no floor;
-- ``alone, normal tails``: the same with a normal tail in place of the exponential through the quartiles.
+- ``alone, normal tails``: the same with a normal tail in place of the exponential through the quartiles;
+- ``alone, each its own look``: each fault's tail probability beside the others' combined one in one Sidak
+  minimum over the four, instead of the faults' own Sidak minimum beside it (two looks; shipped).
 
 For each it prints the clean demos flagged at ``--fpr`` against the number the audit expects, and per labelled
 kind the ranking's AUROC against the clean demos and the share flagged.  ``--no-model`` recombines the model-free
@@ -43,7 +45,18 @@ VARIANTS = {
     "alone, floor 0.1": dict(ranking_min_scale=0.1),
     "alone, no floor": dict(ranking_min_scale=0.0),
     "alone, normal tails": dict(tail="normal"),
+    "alone, each its own look": dict(),
 }
+SHIPPED_COMBINED = scores.combined_log10
+
+
+def each_its_own_look(log_p: np.ndarray, alone: np.ndarray | None = None) -> np.ndarray:
+    """``scores.combined_log10`` with every fault a look of its own in the last Sidak minimum."""
+    alone = np.zeros(log_p.shape[1], bool) if alone is None else np.asarray(alone, bool)
+    if not alone.any():
+        return SHIPPED_COMBINED(log_p)
+    rest = SHIPPED_COMBINED(log_p[:, ~alone]) * np.log(10)
+    return scores.sidak_log10(np.column_stack([rest, log_p[:, alone]]))
 
 
 @contextmanager
@@ -91,8 +104,14 @@ def main() -> None:
         clean = labels == "clean"
         print(f"\n{path}: {len(table)} demos, {clean.sum()} clean; per kind AUROC/flagged: {' '.join(kinds)}")
         for name, changes in VARIANTS.items():
-            with faults_as(**changes):
-                s, flagged, expected = recombined(table, args.no_model, args.fpr)
+            # The core's rounds (scores) and the ranking (scorers) both combine.
+            scores.combined_log10 = scorers.combined_log10 = (
+                each_its_own_look if name == "alone, each its own look" else SHIPPED_COMBINED)
+            try:
+                with faults_as(**changes):
+                    s, flagged, expected = recombined(table, args.no_model, args.fpr)
+            finally:
+                scores.combined_log10 = scorers.combined_log10 = SHIPPED_COMBINED
             cells = []
             for k in kinds:
                 sel = clean | (labels == k)

@@ -80,7 +80,7 @@ def combined(table: pd.DataFrame, model_free: bool, tails=SHIPPED_TAILS, empiric
         scores.tail_probabilities = SHIPPED_TAILS
     if empirical:
         log_p = empirical_tails(ranking_z(ev, names, core), core)
-    return -scores.combined_log10(log_p), core
+    return scorers.combine(names, log_p), core
 
 
 def bulk_flags(s: np.ndarray, core: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, float]:

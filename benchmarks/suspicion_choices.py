@@ -110,7 +110,7 @@ def main() -> None:
                       + f" {np.mean(list(au.values())):8.3f}")
         log_p, core = scorers.ranking_tails(ev, ranked)  # as the audit fits them
         clean = labels == "clean"
-        for what, s in (("the shipped combination", -scores.combined_log10(log_p)),
+        for what, s in (("the shipped combination", scorers.combine(ranked, log_p)),
                         ("the Sidak minimum", -scores.sidak_log10(log_p))):
             print(f"  flags with {what} (conformal on the robust core, as the audit flags): fpr asked -> clean "
                   "share flagged (x asked), recall per kind")

@@ -68,12 +68,27 @@ def _shifted(actions: np.ndarray, k: int) -> np.ndarray:
 
 def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | None) -> tuple[float, int]:
     """(log of the error as recorded over the least error with the actions moved up to ``LAG_MAX`` steps,
-    that shift); NaN without a fit or under 3 steps."""
+    that shift); NaN without a fit or under 3 steps.  The fit is linear, so each part of the prediction is
+    computed once and moving the actions is moving rows of theirs: what ``_dynamics_errors`` gives the actions
+    ``_shifted`` by each k, at the cost of one prediction."""
     if fit is None or len(actions) < 3:
         return float("nan"), 0
-    reach = min(LAG_MAX, len(actions) - 2)
-    errors = {k: float(_dynamics_errors([state], [_shifted(actions, k)], fit)[0].mean())
-              for k in range(-reach, reach + 1)}
+    s, a = state.astype(np.float64), actions.astype(np.float64)
+    n, ds, da = len(a), s.shape[1], a.shape[1]
+    w = np.zeros((ds + 2 * da, fit["w"].shape[1]))
+    w[fit["xs"]] = fit["w"] / fit["x_sd"][:, None]
+    const = fit["y_mean"] - (fit["x_mean"] / fit["x_sd"]) @ fit["w"]
+    from_state = s[:-1] @ w[:ds] + const
+    from_action, from_before = a @ w[ds:ds + da], a @ w[ds + da:]
+    target = np.diff(s, axis=0)[:, fit["ys"]] / fit["y_sd"]
+    steps = np.arange(n - 1)
+    reach = min(LAG_MAX, n - 2)
+    errors = {}
+    for k in range(-reach, reach + 1):
+        before = from_before[np.clip(steps - 1 + k, 0, n - 1)]
+        before[0] = 0.0  # the first step has no action before it
+        pred = from_state + from_action[np.clip(steps + k, 0, n - 1)] + before
+        errors[k] = float(((pred - target) ** 2).mean())
     best = min(errors, key=lambda k: (errors[k], abs(k)))
     return float(np.log(max(errors[0], 1e-12) / max(errors[best], 1e-12))), best
 

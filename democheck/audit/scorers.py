@@ -125,9 +125,9 @@ class Scorer:
     # "normal" for a score that is a mean over many steps (the central limit theorem makes its clean spread normal,
     # and an exponential through its quartiles would call a demo six robust SD out one clean demo in a few hundred).
     tail: str = "exponential"
-    # A recording fault (a frozen camera, dropped frames, actions recorded out of step): its tail probability
-    # stands on its own beside the combination of the others (``scores.combined_log10``) instead of adding up
-    # with them in Fisher's sum, where one small probability is diluted by every ordinary one beside it.
+    # A recording fault (a frozen camera, dropped frames, actions recorded out of step): the faults' tail
+    # probabilities stand apart, beside the combination of the others (``scores.combined_log10``), instead of
+    # adding up with them in Fisher's sum, where one small probability is diluted by every ordinary one beside it.
     alone: bool = False
     # Where its decoding pass's result lands in ``Evidence.behaviour`` (default: its name); scorers that give
     # the same key share one consumer.
@@ -224,7 +224,7 @@ def normal_tails(names: list[str]) -> np.ndarray:
 
 
 def alone_columns(names: list[str]) -> np.ndarray:
-    """Which of the ranking's scores ``names`` stand on their own in the combination (``Scorer.alone``): bool [K]."""
+    """Which of the ranking's scores ``names`` stand apart in the combination (``Scorer.alone``): bool [K]."""
     return np.array([SCORERS[n].alone for n in names], bool)
 
 
@@ -409,8 +409,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("timing", "model-free: share of time steps off the frame period 1/fps (dropped, repeated or reordered "
            "frames; NaN without timestamps)", ("demos",), _timing, behaviour="actions", decode=_traces,
            short="time"),
-    Scorer("frozen_video", "model-free: share of steps at which the camera frame repeats while the actions "
-           "change (a camera that stopped delivering)", ("demos",), _frozen_video, in_suspicion=True, alone=True,
+    Scorer("frozen_video", "model-free: the longest stretch of steps at which the camera frame repeats while the "
+           "actions change, as a share of the demo's steps (a camera that stopped delivering)", ("demos",), _frozen_video, in_suspicion=True, alone=True,
            ranking_min_scale=FAULT_MIN_SCALE,
            decode=lambda ev, rows, device: modelfree.FrameChanges(), short="frozen"),
     Scorer("frame_jump", "model-free: how much more the camera frame changes at one step than at the "
@@ -439,8 +439,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
            "consistency, action error (log), motion, idle, view, colours and outcome (one task: the last six; "
            "without the action error, the coupling too), each in robust standard deviations within its task, the "
-           "tails fitted on the robust core, beside the recording faults (frozen video, frame jump, lag), each on "
-           "its own (2 = as unusual as 1 clean demo in 100)", ("scores",),
+           "tails fitted on the robust core; beside that, the smallest of the recording faults' (frozen video, "
+           "frame jump, lag) (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
            "view, colours, outcome, coupling, and the recording faults): what democheck says with no model",

@@ -69,21 +69,25 @@ Every score is one number per demo, higher = more suspect:
   core, the exponential beyond its largest (no-objects 0.988 -> 0.967, flagged 0.34 -> 0.18); each task's centre
   from its core demos alone, without the ``colours`` check (push-v1-dev alone: 9 clean flagged, 1.47%, against
   5, by the combined probability's own level; kept since, with the conformal flags below).
-  The recording faults (``Scorer.alone``: frozen video, frame jump, lag) are not added into Fisher's sum: each
-  one's tail probability stands beside the sum's combined probability, the ranking their Sidak minimum
-  (``combined_log10``'s ``alone``).  Chosen with ``benchmarks/fault_choices.py`` on a Meta-World set with the
-  faults planted (mw3-dev: 150 clean, 6 each of jittery, frozen-camera, lagged, dropped; trained on itself), the
-  push-v1 development draws and Meta-World mw2-dev and mw2-one-dev.  On mw3-dev, AUROC/flagged at --fpr 0.01,
-  dropped, frozen-camera, jittery, lagged: the faults out of the ranking 0.756/0.00, 0.903/0.00, 0.997/1.00,
-  0.840/0.00; in Fisher's sum 0.988/0.50, 0.998/1.00, 0.996/0.83, 0.992/0.67; alone 0.999/1.00, 1.000/1.00,
-  0.996/0.83, 0.999/1.00 (2 of 150 clean flagged, 1.5 expected; 1 out of the ranking); without a model, out
-  0.910/0.00, 0.879/0.17, 1.000/1.00, 0.924/0.00, alone 0.983/0.50, 1.000/1.00, 1.000/1.00, 0.999/1.00.  The
-  push-v1 draws audited alone: clean flagged 8 / 10 / 9 -> 8 / 9 / 7 of 614, every bad demo either way (in
-  Fisher's sum 7 / 7 / 6); seed 2 with its probes pooled 7 -> 6, every bad demo (in Fisher's sum 4, gave-up and
-  wrong-object 0.97); mw2-dev and mw2-one-dev unchanged.  What it costs: without a model, occluded push demos
-  flagged 0.55 / 0.58 / 0.39 -> 0.34 / 0.42 / 0.21 and no-objects probes ranked 0.942 -> 0.909 (the others'
-  combined probability is Sidak-corrected for four looks).  A normal tail for the faults flagged 10-21 clean
-  demos where 6-7 and 2 were.
+  The recording faults (``Scorer.alone``: frozen video, frame jump, lag) are not added into Fisher's sum: their
+  own Sidak minimum (is the recording faulty?) stands beside the sum's combined probability (is the behaviour
+  unusual?), the ranking the Sidak minimum of the two (``combined_log10``'s ``alone``).  Chosen with
+  ``benchmarks/fault_choices.py`` on a Meta-World set with the faults planted (mw3-dev: 150 clean, 6 each of
+  jittery, frozen-camera, lagged, dropped; trained on itself), the push-v1 development draws and Meta-World
+  mw2-dev and mw2-one-dev.  On mw3-dev, AUROC/flagged at --fpr 0.01, dropped, frozen-camera, jittery, lagged:
+  the faults out of the ranking 0.756/0.00, 0.903/0.00, 0.997/1.00, 0.840/0.00; in Fisher's sum 0.988/0.33,
+  1.000/1.00, 0.996/0.83, 0.992/0.67; beside it 0.999/1.00, 1.000/1.00, 0.997/1.00, 0.999/1.00 (1 of 150 clean
+  flagged either way, 1.5 expected); without a model, out 0.910/0.00, 0.879/0.17, 1.000/1.00, 0.924/0.00,
+  beside 0.979/0.50, 1.000/1.00, 1.000/1.00, 0.997/1.00.  The push-v1 draws audited alone: clean flagged
+  8 / 10 / 9 -> 8 / 9 / 7 of 614, every bad demo either way (in Fisher's sum 7 / 7 / 6); seed 2 with its probes
+  pooled 7 -> 7, every bad demo (in Fisher's sum 4, gave-up and wrong-object 0.97); mw2-dev and mw2-one-dev
+  unchanged, with a model and without.  Each fault a look of its own in one Sidak minimum with the others'
+  probability (four looks) cost the rest more: without a model occluded push demos flagged 0.55 / 0.58 / 0.39
+  before, 0.47 / 0.47 / 0.29 with two looks, 0.34 / 0.42 / 0.21 with four, and the pooled no-objects probes
+  ranked 0.942, 0.943, 0.914; with a model mw3-dev's jittery demos flagged 0.83.  Each fault's robust SD stands
+  for at least ``scorers.FAULT_MIN_SCALE``: without that floor mw3-dev's clean flags were 9 of 150 and mw2-dev's
+  11 of 200 against 7 (clean Meta-World demos never freeze two frames in a row: a MAD of zero); with 0.05,
+  lagged 0.989/0.50.  Normal tails for the faults flagged 7 of 150 and 14 of 200.
 - ``is_anomaly``: the demo's conformal p-value against the robust core (``conformal_p``: the share of the core
   at least as suspect) at most the false-positive rate asked for (``audit --fpr``, default ``DEFAULT_FPR``):
   if the core's demos are clean and a clean demo is like them, about that share of clean demos is flagged,
@@ -391,14 +395,15 @@ def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None) -> np.nda
     evidence that the demo is typical (counted as p = 1, it would make a demo with a missing score look more
     ordinary than a clean demo with every score).
 
-    ``alone`` (bool [K]) marks the columns that stand on their own (a recording fault, ``Scorer.alone``): the
-    others are combined as above, and that combined probability and theirs by the Sidak minimum -- a camera that
-    froze is a defect whatever the demo's behaviour says, and in Fisher's sum its one small probability would be
-    diluted by every ordinary one beside it."""
+    ``alone`` (bool [K]) marks the columns that stand apart (the recording faults, ``Scorer.alone``): the others
+    are combined as above, the marked ones by their Sidak minimum (is the recording faulty?), and those two
+    probabilities by theirs -- a camera that froze is a defect whatever the demo's behaviour says, and in Fisher's
+    sum its one small probability would be diluted by every ordinary one beside it."""
     alone = np.zeros(log_p.shape[1], bool) if alone is None else np.asarray(alone, bool)
     if alone.any():
         rest = combined_log10(log_p[:, ~alone]) * np.log(10) if (~alone).any() else np.zeros((len(log_p), 0))
-        return sidak_log10(np.column_stack([rest, log_p[:, alone]]))
+        faults = sidak_log10(log_p[:, alone]) * np.log(10)
+        return sidak_log10(np.column_stack([rest, faults]))
     if log_p.shape[1] == 0:
         return np.zeros(len(log_p))
     scale = brown_scale(log_p)
