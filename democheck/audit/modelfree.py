@@ -269,8 +269,9 @@ def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
         frozen = (d[:n] < FROZEN_LEVEL) & ((c[:n] / scale).mean(1) >= STILL)
         start, length = longest_run(frozen)
         out[i] = length / n
+        scattered = int(frozen.sum()) - length  # repeats elsewhere, outside the longest stretch
         reasons.append(f"the frame repeats while the arm moves over {steps_text(start, start + length, n + 1)}"
-                       f" ({100 * frozen.mean():.0f}% of steps in all)" if length
+                       + (f"; {scattered} more repeated frames elsewhere" if scattered else "") if length
                        else "frames change while the arm moves")
     return out, reasons
 
