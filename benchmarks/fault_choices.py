@@ -1,4 +1,4 @@
-"""The development-set sweep behind the recording faults in the ranking (frozen video, frame jump, lag).
+"""The development-set sweep behind the recording faults in the ranking (timing, frozen video, frame jump, lag).
 
     python benchmarks/fault_choices.py TABLE[@LABELS.csv] [TABLE[@LABELS.csv] ...] [--no-model] [--fpr 0.01]
 
@@ -26,8 +26,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import warnings
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 import numpy as np
 import pandas as pd
@@ -36,16 +36,16 @@ from sklearn.metrics import roc_auc_score
 from democheck.audit import scorers, scores
 from democheck.audit.scorers import FAULT_MIN_SCALE, SCORERS, Evidence
 
-FAULTS = ("frozen_video", "frame_jump", "lag")
+FAULTS = ("timing", "frozen_video", "frame_jump", "lag")
 VARIANTS = {
-    "without": dict(in_suspicion=False),
-    "in Fisher's sum": dict(alone=False),
-    f"alone, floor {FAULT_MIN_SCALE:g} (shipped)": dict(),
-    "alone, floor 0.05": dict(ranking_min_scale=0.05),
-    "alone, floor 0.1": dict(ranking_min_scale=0.1),
-    "alone, no floor": dict(ranking_min_scale=0.0),
-    "alone, normal tails": dict(tail="normal"),
-    "alone, each its own look": dict(),
+    "without": {"in_suspicion": False},
+    "in Fisher's sum": {"alone": False},
+    f"alone, floor {FAULT_MIN_SCALE:g} (shipped)": {},
+    "alone, floor 0.05": {"ranking_min_scale": 0.05},
+    "alone, floor 0.1": {"ranking_min_scale": 0.1},
+    "alone, no floor": {"ranking_min_scale": 0.0},
+    "alone, normal tails": {"tail": "normal"},
+    "alone, each its own look": {},
 }
 SHIPPED_COMBINED = scores.combined_log10
 

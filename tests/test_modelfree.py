@@ -158,6 +158,9 @@ def test_timing_ranks_the_dropped_frames_first_and_names_the_frame():
     ev = _ranks_first("timing")
     assert "first at frame 60" in ev.reasons["timing"][17], ev.reasons["timing"][17]
     assert np.nanmax(np.delete(ev.scores["timing"], 17)) == 0.0
+    # Ten frames dropped read as one step eleven periods long (log 11), not as one step in a hundred.
+    np.testing.assert_allclose(ev.scores["timing"][17], np.log(11.0))
+    assert "the worst at frame 60: 0.55 s" in ev.reasons["timing"][17], ev.reasons["timing"][17]
     demos, _ = _planted("timing")
     demos[5].extra["timestamp"][[30, 31]] = demos[5].extra["timestamp"][[31, 30]]  # two frames swapped
     ev = _evidence(demos, ["timing"])

@@ -32,9 +32,12 @@ held shut, counts in units of 1% of the busiest dimension's, so it cannot make a
 - ``saturation``: the share of steps at which some action dimension sits at its smallest or largest value over
   all the demos (a command clipped at its limit).
 - ``dynamics`` (``democheck.audit.dynamics``): how badly the demo's state follows its actions.
-- ``timing``: the share of a demo's time steps (the ``timestamp`` column, where the format has one) that are
-  not the dataset's frame period (1 / fps) -- off by more than ``TIMING_TOLERANCE`` of it, or not forward at
-  all: dropped, repeated or reordered frames.  NaN where the dataset records no timestamps.
+- ``timing``: how far a demo's worst time step (the ``timestamp`` column, where the format has one) is off the
+  dataset's frame period (1 / fps), log(1 + |step - period| / period) over the steps off by more than
+  ``TIMING_TOLERANCE`` of it (a step that stands still or goes back is off by at least a period), 0 where none
+  is: dropped, repeated or reordered frames -- one dropped frame reads log 2, ten log 11, where the share of steps
+  off would call ten dropped frames one step in a hundred.  NaN where the dataset records no timestamps.  A
+  recording fault (``scorers.Scorer.alone``).
 - ``outcome`` (``democheck.audit.outcome``): how differently from its task's other demos the demo left the
   world (where the objects ended up).
 - ``duplicate``: how close the demo's actions come to another demo's: the log of the median nearest-neighbour
@@ -216,7 +219,7 @@ def duplicate(traces: ActionTraces, episode_index: np.ndarray) -> tuple[np.ndarr
 
 
 def _timing_of(t: np.ndarray | None, fps: float | None) -> tuple[float, str]:
-    """``timing`` of one demo: the share of its time steps off the frame period (see the module docstring)."""
+    """``timing`` of one demo: how far its worst time step is off the frame period (see the module docstring)."""
     if t is None or not fps:
         return np.nan, "no timestamps"
     if not np.isfinite(t).all():
@@ -225,18 +228,21 @@ def _timing_of(t: np.ndarray | None, fps: float | None) -> tuple[float, str]:
         return 0.0, "a single frame"
     period = 1.0 / float(fps)
     dt = np.diff(np.asarray(t, np.float64))
-    off = (np.abs(dt - period) > TIMING_TOLERANCE * period) | (dt <= 0)
+    # A step that stands still or goes back is at least a period off, however small |dt - period| is.
+    error = np.where(dt > 0, np.abs(dt - period), period + np.abs(dt)) / period
+    off = error > TIMING_TOLERANCE
     if not off.any():
         return 0.0, "regular time steps"
-    first = int(np.argmax(off))
+    first, worst = int(np.argmax(off)), int(np.argmax(error))
     back = np.flatnonzero(dt <= 0)
-    return float(off.mean()), (f"{100 * off.mean():.0f}% of time steps off the frame period ({period:.3g} s), "
-                               f"first at frame {first + 1}: {dt[first]:.3g} s"
-                               + (f"; time stands still or goes back at frame {int(back[0]) + 1}" if len(back) else ""))
+    return float(np.log1p(error[worst])), (
+        f"{100 * off.mean():.0f}% of time steps off the frame period ({period:.3g} s), first at frame {first + 1}: "
+        f"{dt[first]:.3g} s; the worst at frame {worst + 1}: {dt[worst]:.3g} s"
+        + (f"; time stands still or goes back at frame {int(back[0]) + 1}" if len(back) else ""))
 
 
 def timing(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
-    """Share of each demo's time steps off the frame period (see the module docstring), and where."""
+    """How far each demo's worst time step is off the frame period (see the module docstring), and where."""
     return np.array([v for v, _ in traces.timing], np.float64), [r for _, r in traces.timing]
 
 

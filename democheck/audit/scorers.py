@@ -406,9 +406,10 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "steps either way): actions recorded late or early", ("demos",), _lag, in_suspicion=True, alone=True,
            ranking_min_scale=FAULT_MIN_SCALE, behaviour="dynamics",
            decode=lambda ev, rows, device: dynamics.DynamicsFit(), short="lag"),
-    Scorer("timing", "model-free: share of time steps off the frame period 1/fps (dropped, repeated or reordered "
-           "frames; NaN without timestamps)", ("demos",), _timing, behaviour="actions", decode=_traces,
-           short="time"),
+    Scorer("timing", "model-free: how far the worst time step is off the frame period 1/fps, log(1 + |step - "
+           "period| / period), 0 when every step is within half a period (dropped, repeated or reordered frames; "
+           "NaN without timestamps)", ("demos",), _timing, in_suspicion=True, alone=True,
+           ranking_min_scale=FAULT_MIN_SCALE, behaviour="actions", decode=_traces, short="time"),
     Scorer("frozen_video", "model-free: the longest stretch of steps at which the camera frame repeats while the "
            "actions change, as a share of the demo's steps (a camera that stopped delivering)", ("demos",), _frozen_video, in_suspicion=True, alone=True,
            ranking_min_scale=FAULT_MIN_SCALE,
@@ -439,8 +440,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
            "consistency, action error (log), motion, idle, view, colours and outcome (one task: the last six; "
            "without the action error, the coupling too), each in robust standard deviations within its task, the "
-           "tails fitted on the robust core; beside that, the smallest of the recording faults' (frozen video, "
-           "frame jump, lag) (2 = as unusual as 1 clean demo in 100)", ("scores",),
+           "tails fitted on the robust core; beside that, the smallest of the recording faults' (timing, frozen "
+           "video, frame jump, lag) (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
            "view, colours, outcome, coupling, and the recording faults): what democheck says with no model",

@@ -69,7 +69,7 @@ Every score is one number per demo, higher = more suspect:
   core, the exponential beyond its largest (no-objects 0.988 -> 0.967, flagged 0.34 -> 0.18); each task's centre
   from its core demos alone, without the ``colours`` check (push-v1-dev alone: 9 clean flagged, 1.47%, against
   5, by the combined probability's own level; kept since, with the conformal flags below).
-  The recording faults (``Scorer.alone``: frozen video, frame jump, lag) are not added into Fisher's sum: their
+  The recording faults (``Scorer.alone``: timing, frozen video, frame jump, lag) are not added into Fisher's sum: their
   own Sidak minimum (is the recording faulty?) stands beside the sum's combined probability (is the behaviour
   unusual?), the ranking the Sidak minimum of the two (``combined_log10``'s ``alone``).  Chosen with
   ``benchmarks/fault_choices.py`` on a Meta-World set with the faults planted (mw3-dev: 150 clean, 6 each of
@@ -87,7 +87,10 @@ Every score is one number per demo, higher = more suspect:
   ranked 0.942, 0.943, 0.914; with a model mw3-dev's jittery demos flagged 0.83.  Each fault's robust SD stands
   for at least ``scorers.FAULT_MIN_SCALE``: without that floor mw3-dev's clean flags were 9 of 150 and mw2-dev's
   11 of 200 against 7 (clean Meta-World demos never freeze two frames in a row: a MAD of zero); with 0.05,
-  lagged 0.989/0.50.  Normal tails for the faults flagged 7 of 150 and 14 of 200.
+  lagged 0.989/0.50.  Normal tails for the faults flagged 7 of 150 and 14 of 200.  Timing (every development
+  set's timestamps are regular: a constant 0 there, which changed none of the numbers above) measured on a copy
+  of mw3-dev whose parquet puts 6 clean demos' frames from a step on 1-5 frame periods later, without a model:
+  AUROC 0.42 -> 1.00, flagged 0.00 -> 1.00, 1 clean demo flagged either way.
 - ``is_anomaly``: the demo's conformal p-value against the robust core (``conformal_p``: the share of the core
   at least as suspect) at most the false-positive rate asked for (``audit --fpr``, default ``DEFAULT_FPR``):
   if the core's demos are clean and a clean demo is like them, about that share of clean demos is flagged,
