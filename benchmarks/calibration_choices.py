@@ -127,7 +127,10 @@ def variant(how: str, table, cons: np.ndarray, model_free: bool) -> tuple[np.nda
     """(-log10 combined tail probability, core) of the shipped choices with one part changed (``VARIANTS``)."""
     values = {c: table[c].to_numpy() for c in table if c in SCORERS} | {"consistency": cons}
     names = ranked_names(values, table, model_free)
-    combine = cauchy_log10 if how == "Cauchy" else scores.combined_log10
+    alone = scorers.alone_columns(names)  # the recording faults stand apart, as the audit combines them
+
+    def combine(log_p: np.ndarray) -> np.ndarray:
+        return cauchy_log10(log_p) if how == "Cauchy" else scores.combined_log10(log_p, alone)
 
     def tails(z: np.ndarray, core: np.ndarray) -> np.ndarray:
         normal = scorers.normal_tails(names)  # the scorers' own families (``Scorer.tail``), then the variant's
@@ -159,13 +162,13 @@ def variant(how: str, table, cons: np.ndarray, model_free: bool) -> tuple[np.nda
 
 
 def calibrate(z: np.ndarray, core_p: float | None, final: tuple[float, float] | None = None,
-              normal: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+              normal: np.ndarray | None = None, alone: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(-log10 combined tail probability, core) with the tails (``normal``: the columns with a normal one) fitted
     on all demos or on the robust core (and then, with ``final``, refitted on the core through those
-    percentiles)."""
+    percentiles); ``alone``: the recording faults' columns, combined apart (``scores.combined_log10``)."""
     if core_p is None:
-        return -scores.combined_log10(scores.tail_probabilities(z, normal=normal)), np.ones(len(z), bool)
-    log_p, core = scores.robust_tails(z, core_p, normal=normal)
+        return -scores.combined_log10(scores.tail_probabilities(z, normal=normal), alone), np.ones(len(z), bool)
+    log_p, core = scores.robust_tails(z, core_p, normal=normal, alone=alone)
     if final is not None:
         saved = scores.TAIL_QUANTILES
         scores.TAIL_QUANTILES = final
@@ -173,7 +176,7 @@ def calibrate(z: np.ndarray, core_p: float | None, final: tuple[float, float] | 
             log_p = scores.tail_probabilities(z, core, normal)
         finally:
             scores.TAIL_QUANTILES = saved
-    return -scores.combined_log10(log_p), core
+    return -scores.combined_log10(log_p, alone), core
 
 
 def show(name: str, s: np.ndarray, core: np.ndarray, labels: np.ndarray, kinds: list[str]) -> None:
@@ -210,16 +213,17 @@ def main() -> None:
                         continue  # neither choice touches the model-free scores
                     z = ranking(table, cons, log_unc, model_free)
                     values = {c: table[c].to_numpy() for c in table if c in SCORERS} | {"consistency": cons}
-                    normal = scorers.normal_tails(ranked_names(values, table, model_free))
+                    names = ranked_names(values, table, model_free)
+                    normal, alone = scorers.normal_tails(names), scorers.alone_columns(names)
                     for core_p in CORES:
                         name = ("no model" if model_free else f"{form}{', log unc.' if log_unc else ''}") + \
                             f", core {'off' if core_p is None else f'{core_p:g}'}"
-                        show(name, *calibrate(z, core_p, normal=normal), labels, kinds)
+                        show(name, *calibrate(z, core_p, normal=normal, alone=alone), labels, kinds)
                     if form == "scaled kNN" and (log_unc or model_free):  # the shipped choices
                         who = "no model" if model_free else "shipped"
                         for final in FINAL_FITS:
                             show(f"{who}, final fit {final[0]:g}-{final[1]:g}",
-                                 *calibrate(z, scores.CORE_P, final, normal), labels, kinds)
+                                 *calibrate(z, scores.CORE_P, final, normal, alone), labels, kinds)
                         for how in VARIANTS:
                             show(f"{who}, {how}", *variant(how, table, cons, model_free), labels, kinds)
 

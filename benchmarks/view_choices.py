@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit import modelfree, scores
+from democheck.audit import modelfree, scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence
 from democheck.data import open_dataset
 
@@ -55,8 +55,8 @@ def judged(table: pd.DataFrame, view: np.ndarray | None, name: str = "view", mod
     else:
         cols[name] = view
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=cols)
-    _, log_p, core = ev.combination(model_free)  # as the audit ranks and flags
-    s = -scores.combined_log10(log_p)
+    names, log_p, core = ev.combination(model_free)  # as the audit ranks and flags
+    s = scorers.combine(names, log_p)
     kinds = sorted(set(labels) - {"clean"})
     au = [roc_auc_score(labels[(labels == k) | (labels == "clean")] == k, s[(labels == k) | (labels == "clean")])
           for k in kinds]

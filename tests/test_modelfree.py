@@ -244,6 +244,10 @@ def test_a_recording_fault_stands_apart_in_the_combination():
     with_alone, fisher = combined_log10(log_p, alone), combined_log10(log_p)
     assert with_alone[0] < np.log10(5e-5) and fisher[0] > np.log10(1e-3)
     np.testing.assert_allclose(combined_log10(log_p[:, :1], np.ones(1, bool)), log_p[:, 0] / np.log(10))
+    # A group that saw nothing in a row is no look there: with no fault scored, the rest's probability as it is.
+    no_faults = log_p.copy()
+    no_faults[:, alone] = np.nan
+    np.testing.assert_allclose(combined_log10(no_faults, alone), combined_log10(log_p[:, ~alone]))
     for fpr in (0.01, 0.05):
         flagged = int((with_alone[1:] <= np.log10(fpr)).sum())
         lo, hi = stats.binom.interval(0.999, n - 1, fpr)

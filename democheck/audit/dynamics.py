@@ -29,6 +29,7 @@ DYNAMICS_BLOCK = 128  # demos per fit (= the audit's decoding shard, ``shards.SH
 DYNAMICS_MIN_BLOCK = 32  # a last block of fewer demos is judged by the fit of the block before it
 DYNAMICS_WINDOW = 10  # the reason names the stretch of this many steps the state follows the actions worst
 LAG_MAX = 16  # steps either way the ``lag`` check moves a demo's actions (0.2 s at 80 fps, 0.5 s at 30 fps)
+LAG_NAMED = 1.2  # the reason says the actions were recorded late or early where the shift cuts the error this much
 
 
 def _dynamics_features(state: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -205,7 +206,10 @@ def lag(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
         elif k == 0:
             reasons.append("its actions go with its states as recorded")
         else:
-            reasons.append(f"its states follow its actions best with the actions {abs(k)} steps "
-                           f"{'earlier' if k > 0 else 'later'} ({np.exp(gain):.2g} x less error): "
-                           f"the actions were recorded {abs(k)} steps {'late' if k > 0 else 'early'}")
+            steps = f"{abs(k)} step{'s' if abs(k) > 1 else ''}"
+            reasons.append(f"its states follow its actions best with the actions {steps} "
+                           f"{'earlier' if k > 0 else 'later'} ({np.exp(gain):.2g} x less error)"
+                           # Named a recording fault only where the shift explains clearly more.
+                           + (f": the actions were recorded {steps} {'late' if k > 0 else 'early'}"
+                              if gain >= np.log(LAG_NAMED) else ""))
     return out, reasons

@@ -297,7 +297,7 @@ def frame_jump(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
         usual = np.maximum(np.nanmedian(around, axis=1), JUMP_FLOOR)
         ratio = d / usual
         at = int(np.argmax(ratio))
-        out[i] = float(np.log(max(ratio[at], 1e-9)))
+        out[i] = float(np.log(max(ratio[at], 1.0)))  # no step changes more than around it: 0 (a still camera)
         reasons.append(f"the frame jumps between frames {at} and {at + 1}: {ratio[at]:.1f} x the change around it "
                        f"({d[at]:.1f} grey levels against {usual[at]:.1f})")
     return out, reasons

@@ -404,9 +404,13 @@ def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None) -> np.nda
     sum its one small probability would be diluted by every ordinary one beside it."""
     alone = np.zeros(log_p.shape[1], bool) if alone is None else np.asarray(alone, bool)
     if alone.any():
-        rest = combined_log10(log_p[:, ~alone]) * np.log(10) if (~alone).any() else np.zeros((len(log_p), 0))
-        faults = sidak_log10(log_p[:, alone]) * np.log(10)
-        return sidak_log10(np.column_stack([rest, faults]))
+        # A group that saw nothing in a row (NaN throughout) is no look there, as a missing score is none above.
+        looks = []
+        for group, combine in ((~alone, combined_log10), (alone, sidak_log10)):
+            if group.any():
+                seen = ~np.isnan(log_p[:, group]).all(axis=1)
+                looks.append(np.where(seen, combine(log_p[:, group]) * np.log(10), np.nan))
+        return sidak_log10(np.column_stack(looks))
     if log_p.shape[1] == 0:
         return np.zeros(len(log_p))
     scale = brown_scale(log_p)
