@@ -229,6 +229,26 @@ def test_frame_jump_ranks_a_dropped_stretch_first_and_says_where():
     assert "between frames 39 and 40" in ev.reasons["frame_jump"][17], ev.reasons["frame_jump"][17]
 
 
+def test_the_frame_checks_read_the_same_numbers_at_any_decoded_size():
+    """A camera decoded at 128 px reads as the same frames area-shrunk to 64 px (what a model's decoding gives):
+    the frame checks shrink every frame to ``FRAME_CHECK_SIZE`` first."""
+    import cv2
+
+    from democheck.audit import modelfree
+
+    rng = np.random.default_rng(4)
+    big = np.stack([cv2.resize(_moving_square(t), (128, 128), interpolation=cv2.INTER_NEAREST) for t in range(T)])
+    big = np.clip(big.astype(np.int16) + rng.integers(-3, 4, big.shape), 0, 255).astype(np.uint8)  # codec noise
+    small = np.stack([cv2.resize(f, (64, 64), interpolation=cv2.INTER_AREA) for f in big])
+    demo = _demo(0, rng)
+    fed = []
+    for frames in (big, small):
+        fc = modelfree.FrameChanges()
+        fc.add(Demo(episode_index=0, task="push", frames=frames, state=demo.state, actions=demo.actions))
+        fed.append(fc.deltas[0])
+    np.testing.assert_allclose(fed[0], fed[1], atol=0.05)
+
+
 def test_a_recording_fault_stands_apart_in_the_combination():
     """The columns marked ``alone`` are combined by their Sidak minimum, and that with the others' Fisher-Brown
     probability by theirs: a demo extreme on one fault alone is not diluted by its ordinary scores (in Fisher's

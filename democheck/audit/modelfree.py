@@ -59,6 +59,7 @@ from democheck.data.demo import Demo
 STILL = 0.05  # a step is still when its change of action is under 5% of the median change
 FROZEN_LEVEL = 0.1  # grey levels (0-255): a frame this close to the previous one repeats it
 DUPLICATE_STEPS = 32
+FRAME_CHECK_SIZE = 64  # pixels: the frame checks read frames shrunk to this (``FrameChanges``)
 JUMP_NEIGHBOURS = 5  # steps either side of a frame change that say what the change there usually is
 JUMP_FLOOR = 0.5  # grey levels: the least usual change a jump is measured against (a still scene's sensor noise)
 TIMING_TOLERANCE = 0.5  # a time step off the usual one by more than half of it is irregular
@@ -248,16 +249,29 @@ def timing(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
 
 class FrameChanges(PerDemo):
     """Consumer of decoded demos: per step, the mean absolute grey-level change of the camera frame, and
-    whether the actions changed (the ``frozen_video`` check)."""
+    whether the actions changed (the ``frozen_video`` and ``frame_jump`` checks).  Frames larger than
+    ``FRAME_CHECK_SIZE`` on their longer side are first shrunk to it (area averaging): the checks then read the
+    same numbers whether or not a model had the frames decoded at its own size, and a video codec's per-pixel
+    noise, which hides a jump among the steps around it, averages out."""
 
     fields = ("deltas", "changes")
     deltas: list[np.ndarray]
     changes: list[np.ndarray]
 
     def add(self, demo: Demo) -> None:
-        grey = np.stack([cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2GRAY) for f in demo.frames])
+        grey = np.stack([_check_size(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2GRAY))
+                         for f in demo.frames])
         self.deltas.append(np.abs(np.diff(grey.astype(np.int16), axis=0)).mean(axis=(1, 2)).astype(np.float32))
         self.changes.append(np.abs(np.diff(np.asarray(demo.actions, np.float64), axis=0)))
+
+
+def _check_size(grey: np.ndarray) -> np.ndarray:
+    """A grey frame shrunk (area averaging) so that its longer side is at most ``FRAME_CHECK_SIZE``."""
+    h, w = grey.shape[:2]
+    scale = FRAME_CHECK_SIZE / max(h, w)
+    if scale >= 1.0:
+        return grey
+    return cv2.resize(grey, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
 
 
 def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
