@@ -234,7 +234,7 @@ def test_the_frame_checks_read_the_same_numbers_at_any_decoded_size():
     the frame checks shrink every frame to ``FRAME_CHECK_SIZE`` first."""
     import cv2
 
-    from democheck.audit import modelfree
+    from democheck.audit import frames
 
     rng = np.random.default_rng(4)
     big = np.stack([cv2.resize(_moving_square(t), (128, 128), interpolation=cv2.INTER_NEAREST) for t in range(T)])
@@ -242,9 +242,9 @@ def test_the_frame_checks_read_the_same_numbers_at_any_decoded_size():
     small = np.stack([cv2.resize(f, (64, 64), interpolation=cv2.INTER_AREA) for f in big])
     demo = _demo(0, rng)
     fed = []
-    for frames in (big, small):
-        fc = modelfree.FrameChanges()
-        fc.add(Demo(episode_index=0, task="push", frames=frames, state=demo.state, actions=demo.actions))
+    for video in (big, small):
+        fc = frames.FrameChanges()
+        fc.add(Demo(episode_index=0, task="push", frames=video, state=demo.state, actions=demo.actions))
         fed.append(fc.deltas[0])
     np.testing.assert_allclose(fed[0], fed[1], atol=0.05)
 

@@ -20,15 +20,8 @@ held shut, counts in units of 1% of the busiest dimension's, so it cannot make a
   also show, so the audit compares each demo's share with its task's.
 - ``jerk``: the log of the mean absolute third difference of the actions, in the same units: shaking,
   chattering or random commands.
-- ``frozen_video``: the longest stretch of steps at which the camera frame repeats (mean absolute grey-level
-  change under ``FROZEN_LEVEL``) while the actions change, as a share of the demo's steps: a camera that stopped
-  delivering while the arm moved.
-  With ``frame_jump`` below and ``dynamics.lag``, a recording fault: in the ranking apart from the other scores
-  (``scorers.Scorer.alone``).
-- ``frame_jump``: how much more the camera frame changes at one step than at the steps around it -- the largest
-  ratio of a step's mean absolute grey-level change to the median change of the ``JUMP_NEIGHBOURS`` steps either
-  side (at least ``JUMP_FLOOR`` grey levels), on a log scale: a stretch of frames dropped from the recording (and
-  the steps re-indexed, so that no timestamp shows it), or two recordings spliced.
+- ``frozen_video`` and ``frame_jump`` (``democheck.audit.frames``): a camera that stopped delivering, frames
+  dropped or spliced.
 - ``saturation``: the share of steps at which some action dimension sits at its smallest or largest value over
   all the demos (a command clipped at its limit).
 - ``dynamics`` (``democheck.audit.dynamics``): how badly the demo's state follows its actions.
@@ -57,11 +50,7 @@ from democheck.audit.scores import calibrated
 from democheck.data.demo import Demo
 
 STILL = 0.05  # a step is still when its change of action is under 5% of the median change
-FROZEN_LEVEL = 0.1  # grey levels (0-255): a frame this close to the previous one repeats it
 DUPLICATE_STEPS = 32
-FRAME_CHECK_SIZE = 64  # pixels: the frame checks read frames shrunk to this (``FrameChanges``)
-JUMP_NEIGHBOURS = 5  # steps either side of a frame change that say what the change there usually is
-JUMP_FLOOR = 0.5  # grey levels: the least usual change a jump is measured against (a still scene's sensor noise)
 TIMING_TOLERANCE = 0.5  # a time step off the usual one by more than half of it is irregular
 IDLE_MIN_SCALE = 0.05  # a robust standard deviation of the idle share stands for at least 5% of the steps
 
@@ -245,76 +234,6 @@ def _timing_of(t: np.ndarray | None, fps: float | None) -> tuple[float, str]:
 def timing(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
     """How far each demo's worst time step is off the frame period (see the module docstring), and where."""
     return np.array([v for v, _ in traces.timing], np.float64), [r for _, r in traces.timing]
-
-
-class FrameChanges(PerDemo):
-    """Consumer of decoded demos: per step, the mean absolute grey-level change of the camera frame, and
-    whether the actions changed (the ``frozen_video`` and ``frame_jump`` checks).  Frames larger than
-    ``FRAME_CHECK_SIZE`` on their longer side are first shrunk to it (area averaging): the checks then read the
-    same numbers whether or not a model had the frames decoded at its own size, and a video codec's per-pixel
-    noise, which hides a jump among the steps around it, averages out."""
-
-    fields = ("deltas", "changes")
-    deltas: list[np.ndarray]
-    changes: list[np.ndarray]
-
-    def add(self, demo: Demo) -> None:
-        grey = np.stack([_check_size(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2GRAY))
-                         for f in demo.frames])
-        self.deltas.append(np.abs(np.diff(grey.astype(np.int16), axis=0)).mean(axis=(1, 2)).astype(np.float32))
-        self.changes.append(np.abs(np.diff(np.asarray(demo.actions, np.float64), axis=0)))
-
-
-def _check_size(grey: np.ndarray) -> np.ndarray:
-    """A grey frame shrunk (area averaging) so that its longer side is at most ``FRAME_CHECK_SIZE``."""
-    h, w = grey.shape[:2]
-    scale = FRAME_CHECK_SIZE / max(h, w)
-    if scale >= 1.0:
-        return grey
-    return cv2.resize(grey, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
-
-
-def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
-    """The longest stretch of steps at which the frame repeats while the actions change, as a share of the demo's
-    steps, and where it is: a camera that stopped delivering repeats one frame for a stretch, where a video
-    codec's or a still scene's repeated frames are scattered (Meta-World's clean demos, AV1: 14% of their steps,
-    but never two in a row)."""
-    scale = change_scale(frames.changes)
-    out, reasons = np.zeros(len(frames.deltas)), []
-    for i, (d, c) in enumerate(zip(frames.deltas, frames.changes)):
-        n = min(len(d), len(c))
-        if not n:
-            reasons.append("a single frame")
-            continue
-        frozen = (d[:n] < FROZEN_LEVEL) & ((c[:n] / scale).mean(1) >= STILL)
-        start, length = longest_run(frozen)
-        out[i] = length / n
-        scattered = int(frozen.sum()) - length  # repeats elsewhere, outside the longest stretch
-        reasons.append(f"the frame repeats while the arm moves over {steps_text(start, start + length, n + 1)}"
-                       + (f"; {scattered} more repeated frames elsewhere" if scattered else "") if length
-                       else "frames change while the arm moves")
-    return out, reasons
-
-
-def frame_jump(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
-    """log of the largest ratio of a step's frame change to the median change around it (see the module
-    docstring), and the step where it is."""
-    out, reasons = np.full(len(frames.deltas), np.nan), []
-    k = JUMP_NEIGHBOURS
-    for i, d in enumerate(frames.deltas):
-        if len(d) < 2:
-            reasons.append("too short")
-            continue
-        padded = np.concatenate([np.full(k, np.nan), np.asarray(d, np.float64), np.full(k, np.nan)])
-        window = np.lib.stride_tricks.sliding_window_view(padded, 2 * k + 1)
-        around = np.delete(window, k, axis=1)  # the step's neighbours, not the step itself
-        usual = np.maximum(np.nanmedian(around, axis=1), JUMP_FLOOR)
-        ratio = d / usual
-        at = int(np.argmax(ratio))
-        out[i] = float(np.log(max(ratio[at], 1.0)))  # no step changes more than around it: 0 (a still camera)
-        reasons.append(f"the frame jumps between frames {at} and {at + 1}: {ratio[at]:.1f} x the change around it "
-                       f"({d[at]:.1f} grey levels against {usual[at]:.1f})")
-    return out, reasons
 
 
 class MotionStats(PerDemo):

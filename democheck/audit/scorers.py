@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
-from democheck.audit import colours, coupling, dynamics, modelfree, outcome
+from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_parts, ocsvm_margin,
                                     robust_tails)
@@ -252,9 +252,9 @@ def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
 
 
 # The least spread a robust standard deviation of a recording fault's score stands for in the ranking (a share of
-# the steps for the frozen video, a log ratio for the frame jump and the lag): a camera whose frames never repeat,
-# or actions that no shift explains better, leave a MAD of zero, which would call a single repeated frame many
-# standard deviations.  Chosen on the development sets (``benchmarks/fault_choices.py``).
+# the steps for the frozen video, a log ratio for the frame jump, the lag and the timing): a camera whose frames
+# never repeat, actions that no shift explains better or a clock that never slips leave a MAD of zero, which
+# would call a single repeated frame many standard deviations.  Chosen on the development sets (``benchmarks/fault_choices.py``).
 FAULT_MIN_SCALE = 0.02
 
 REASON_P = 0.05  # a score this surprising (tail probability) is named in the ranking's reason beside the first
@@ -338,11 +338,11 @@ def _timing(ev: Evidence) -> Scores:
 
 
 def _frozen_video(ev: Evidence) -> Scores:
-    return modelfree.frozen_video(ev.behaviour["frozen_video"])
+    return frames.frozen_video(ev.behaviour["frozen_video"])
 
 
 def _frame_jump(ev: Evidence) -> Scores:
-    return modelfree.frame_jump(ev.behaviour["frozen_video"])
+    return frames.frame_jump(ev.behaviour["frozen_video"])
 
 
 def _lag(ev: Evidence) -> Scores:
@@ -411,14 +411,14 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "NaN without timestamps)", ("demos",), _timing, in_suspicion=True, alone=True,
            ranking_min_scale=FAULT_MIN_SCALE, behaviour="actions", decode=_traces, short="time"),
     Scorer("frozen_video", "model-free: the longest stretch of steps at which the camera frame repeats while the "
-           "actions change, as a share of the demo's steps (a camera that stopped delivering)", ("demos",), _frozen_video, in_suspicion=True, alone=True,
-           ranking_min_scale=FAULT_MIN_SCALE,
-           decode=lambda ev, rows, device: modelfree.FrameChanges(), short="frozen"),
+           "actions change, as a share of the demo's steps (a camera that stopped delivering)", ("demos",),
+           _frozen_video, in_suspicion=True, alone=True, ranking_min_scale=FAULT_MIN_SCALE,
+           decode=lambda ev, rows, device: frames.FrameChanges(), short="frozen"),
     Scorer("frame_jump", "model-free: how much more the camera frame changes at one step than at the "
-           f"{modelfree.JUMP_NEIGHBOURS} steps either side (log of the largest ratio): frames dropped from the "
+           f"{frames.JUMP_NEIGHBOURS} steps either side (log of the largest ratio): frames dropped from the "
            "recording, or recordings spliced", ("demos",), _frame_jump, in_suspicion=True, alone=True,
            ranking_min_scale=FAULT_MIN_SCALE, behaviour="frozen_video",
-           decode=lambda ev, rows, device: modelfree.FrameChanges(), short="jump"),
+           decode=lambda ev, rows, device: frames.FrameChanges(), short="jump"),
     Scorer("view", "model-free: share of the demo's average picture (16x16) unlike its task's other demos' there "
            f"(over {modelfree.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
            "robust z within its task", ("demos",), _view, in_suspicion=True, in_robust_sd=True,

@@ -79,7 +79,7 @@ Every score is one number per demo, higher = more suspect:
   1.000/1.00, 0.996/0.83, 0.992/0.67; beside it 0.999/1.00, 1.000/1.00, 0.997/1.00, 0.999/1.00 (1 of 150 clean
   flagged either way, 1.5 expected); without a model, out 0.910/0.00, 0.879/0.17, 1.000/1.00, 0.924/0.00,
   beside 0.979/0.50, 1.000/1.00, 1.000/1.00, 0.997/1.00, and 0.994/1.00 for dropped (2 clean flagged) once the
-  frame checks read every camera at 64 px (``modelfree.FRAME_CHECK_SIZE``; a model's decoding already did).  The push-v1 draws audited alone: clean flagged
+  frame checks read every camera at 64 px (``frames.FRAME_CHECK_SIZE``; a model's decoding already did).  The push-v1 draws audited alone: clean flagged
   8 / 10 / 9 -> 8 / 9 / 7 of 614, every bad demo either way (in Fisher's sum 7 / 7 / 6); seed 2 with its probes
   pooled 7 -> 7, every bad demo (in Fisher's sum 4, gave-up and wrong-object 0.97); mw2-dev and mw2-one-dev
   unchanged, with a model and without.  Each fault a look of its own in one Sidak minimum with the others'
