@@ -12,7 +12,7 @@ import argparse
 
 import numpy as np
 
-from democheck.audit.scores import ocsvm_margin
+from democheck.audit.ocsvm import ocsvm_margin
 from democheck.data import open_dataset
 from democheck.petnet.checkpoint import load_checkpoint
 from democheck.petnet.model import encode, encode_demos

@@ -8,7 +8,8 @@ from typer.testing import CliRunner
 
 from democheck.audit.metrics import detection, precision_at_k
 from democheck.audit.run import score_posteriors
-from democheck.audit.scores import consistency_parts, fit_ocsvm, ocsvm_margin, task_neighbours
+from democheck.audit.ocsvm import fit_ocsvm, ocsvm_margin
+from democheck.audit.scores import consistency_parts, task_neighbours
 from democheck.cli import app
 from democheck.errors import DatasetError
 from democheck.petnet.posterior import TaskPosterior, product_of_others

@@ -19,8 +19,9 @@ import pandas as pd
 from democheck import pool
 from democheck.audit import scorers as registry, shards
 from democheck.audit.scorers import Evidence, Scorer
+from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.scores import (CORE_P, DEFAULT_FPR, conformal_p, exact_copies, expected_false_flags, flag_level,
-                                    flags, ocsvm_margin, rank_order)
+                                    flags, rank_order)
 from democheck.data.cache import dataset_fingerprint
 from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError

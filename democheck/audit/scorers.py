@@ -26,8 +26,8 @@ import pandas as pd
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
-from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_parts, ocsvm_margin,
-                                    robust_tails)
+from democheck.audit.ocsvm import ocsvm_margin
+from democheck.audit.scores import CONSISTENCY_K, calibrated, combined_log10, consistency_parts, robust_tails
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior

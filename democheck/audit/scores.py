@@ -126,13 +126,13 @@ Every score is one number per demo, higher = more suspect:
   pooled wrong-object 1.00 -> 0.95, 7 clean against 5), without one the ranking lost no-objects (0.96 ->
   0.87 pooled): ranks among a core that holds the bad demos a kind is not seen by value them as the core does.
   Exact copies of another demo are flagged too.  The paper's linear
-  one-class SVM stays a column (``ocsvm_margin``) and a bench scorer (``ocsvm_flag``): fitted on the training
+  one-class SVM stays a column (``democheck.audit.ocsvm``) and a bench scorer (``ocsvm_flag``): fitted on the training
   demos' precisions 1/sigma^2, it sees sigma only, which barely moves for an idle or flailing arm.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -246,38 +246,6 @@ def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, how: str = CALIBR
     return standardise(resid, {"median": 0.0, "scale": max(scale, min_scale)})
 
 
-
-
-# ---------------------------------------------------------------------------
-# one-class SVM (stored as plain numbers in the model's config.json)
-# ---------------------------------------------------------------------------
-
-def ocsvm_features(sigma: np.ndarray) -> np.ndarray:
-    return 1.0 / np.maximum(sigma, 1e-6) ** 2
-
-
-def fit_ocsvm(sigma: np.ndarray, nu: float = 0.01) -> dict[str, Any]:
-    """Fit the linear one-class SVM on training demos' sigma vectors; returns JSON-able parameters."""
-    from sklearn.svm import OneClassSVM
-
-    x = ocsvm_features(sigma)
-    scale = x.mean(0)  # features are precisions in the 1e2..1e8 range: put them near 1 for the solver
-    svm = OneClassSVM(kernel="linear", nu=nu).fit(x / scale)
-    return {"kernel": "linear", "feature": "precision", "nu": nu, "scale": scale.tolist(),
-            "coef": svm.coef_.ravel().tolist(), "offset": float(svm.offset_[0]), "n_fit": int(len(x)),
-            "flagged_fraction_on_fit": float((svm.decision_function(x / scale) < 0).mean())}
-
-
-def ocsvm_margin(params: dict[str, Any], sigma: np.ndarray) -> np.ndarray:
-    """Signed distance-like margin: negative = on the anomalous side of the hyperplane."""
-    x = ocsvm_features(sigma) / np.asarray(params["scale"])
-    return x @ np.asarray(params["coef"]) - params["offset"]
-
-
-def reference(post: TaskPosterior, tasks: np.ndarray, nu: float = 0.01) -> dict[str, Any]:
-    """What an audit of new data keeps from the training demos: the OCSVM, and their score scales (reported)."""
-    return {"score": robust_stats(post.task_uncertainty()), "consistency": robust_stats(consistency(post, tasks)),
-            "ocsvm": fit_ocsvm(post.sigma, nu)}
 
 
 def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np.ndarray | None = None

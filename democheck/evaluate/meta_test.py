@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from democheck import pool
-from democheck.audit.scores import ocsvm_margin
+from democheck.audit.ocsvm import ocsvm_margin
 from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
 from democheck.evaluate.rollout import ControllerPolicy, init_worker
