@@ -40,7 +40,7 @@ from privileged_bc import COLUMNS, load_frames, rollouts, train_policy  # noqa: 
 
 from democheck.audit.run import gather_evidence, score_table  # noqa: E402
 from democheck.audit.scorers import select  # noqa: E402
-from democheck.audit.scores import exact_copies, flags  # noqa: E402
+from democheck.audit.scores import flagged_regardless, flags  # noqa: E402
 from democheck.data import open_dataset  # noqa: E402
 from democheck.data.subset import write_subset  # noqa: E402
 from democheck.evaluate.meta_test import wilson  # noqa: E402
@@ -93,8 +93,7 @@ def main() -> None:
         pool = pd.concat(frames.values(), ignore_index=True)
     audit_s = time.perf_counter() - t0
     labels = table["label"].to_numpy()
-    copies = exact_copies(table)
-    flagged_at = {f: flags(table["p_value"].to_numpy(), f, copies) for f in fprs}
+    flagged_at = {f: flags(table["p_value"].to_numpy(), f, flagged_regardless(table)) for f in fprs}
     flagged = flagged_at[fprs[0]]
     linter_drop = table["heuristic"].to_numpy() > LINTER_Z
     n_drop = int(flagged.sum())

@@ -27,7 +27,7 @@ from democheck.audit.bench import bench, markdown as bench_markdown
 from democheck.audit.metrics import by_label
 from democheck.audit.run import audit, finish_summary, for_model, suspects, write_tables
 from democheck.audit.ocsvm import reference
-from democheck.audit.scores import DEFAULT_FPR, exact_copies, flags
+from democheck.audit.scores import DEFAULT_FPR, flagged_regardless, flags
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache, dataset_fingerprint
 from democheck.data.subset import write_subset
@@ -227,7 +227,7 @@ def episodes_to_drop(report: Path, drop: str) -> list[int]:
             raise DemocheckError(f"--drop {drop}: the level must lie between 0 and 1")
         # Reports written before the conformal flags have no p_reference: their combined tail probability.
         p = table["p_reference"] if "p_reference" in table else table["p_value"]
-        return table.loc[flags(p.to_numpy(), level, exact_copies(table)), "episode_index"].astype(int).tolist()
+        return table.loc[flags(p.to_numpy(), level, flagged_regardless(table)), "episode_index"].astype(int).tolist()
     if kind == "top" and arg.isdigit():
         return table.sort_values("rank").head(int(arg))["episode_index"].astype(int).tolist()
     if kind == "list" and arg:

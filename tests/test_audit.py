@@ -2,7 +2,6 @@ import json
 
 import numpy as np
 import pandas as pd
-import pytest
 import torch
 from typer.testing import CliRunner
 
@@ -11,7 +10,6 @@ from democheck.audit.run import score_posteriors
 from democheck.audit.ocsvm import fit_ocsvm, ocsvm_margin
 from democheck.audit.scores import consistency_parts, task_neighbours
 from democheck.cli import app
-from democheck.errors import DatasetError
 from democheck.petnet.posterior import TaskPosterior, product_of_others
 
 runner = CliRunner()
@@ -244,10 +242,20 @@ def test_robomimic_reader_and_audit(tiny_model, tmp_path):
     import h5py
 
     broken = shutil.copy(path, tmp_path / "broken.hdf5")
-    with h5py.File(broken, "a") as f:  # a sensor that dropped out at the last step: one clear line, not NaN scores
+    with h5py.File(broken, "a") as f:  # a sensor that dropped out at the last step: a broken demo, not NaN scores
         f["data/demo_4/obs/robot0_eef_pos"][-1, 0] = np.nan
-    with pytest.raises(DatasetError, match="episode 4 has a non-finite state at its last step"):
-        open_dataset(broken).end_states([3, 4])
+    ends = open_dataset(broken).end_states([3, 4])
+    demo = open_dataset(broken)[4]
+    np.testing.assert_array_equal(ends[1], demo.state[-1])
+    assert ends[1][0] == demo.state[-2, 0] and demo.damaged[0][0] == 1  # the last finite value carried on
+    res = runner.invoke(app, ["audit", str(broken), "--out", str(tmp_path / "b"), "--model", str(tiny_model),
+                              "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    table = pd.read_parquet(tmp_path / "b" / "scores.parquet")
+    first = table.iloc[0]
+    assert first["episode_index"] == 4 and first["is_anomaly"] and np.isinf(first["suspicion"])
+    assert first["reason"] == "broken: NaN or infinite values in 'obs (state keys)' at 1 of 8 frames, 7", first["reason"]
+    assert table["is_anomaly"].sum() == 1 + (table["duplicate"] == np.inf).sum()
     assert open_dataset(path, task="lift").tasks == ["another task", "lift"]
     res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
                               "--device", "cpu", "--json"])

@@ -90,6 +90,39 @@ def test_idle_ranks_first_and_names_the_frames_it_is_still():
     assert ev.scores["idle"][17] > 0.55 and np.median(ev.scores["idle"]) < 0.1
 
 
+def test_a_broken_recording_is_repaired_to_be_read_ranks_first_and_is_flagged_whatever_its_scores():
+    """NaN states at frames 40-44 of one demo (a sensor that dropped out) and an infinite action in another: the
+    reader carries each column's last finite value on, the check names the frames, and the combination puts the
+    demos first and flags them although every other score of theirs is ordinary."""
+    from democheck.audit.run import score_table
+    from democheck.data.demo import repair_non_finite
+
+    demos, _ = _planted("none")
+    episode = np.concatenate([np.full(T, d.episode_index) for d in demos])
+    state = np.concatenate([d.state for d in demos])
+    actions = np.concatenate([d.actions for d in demos])
+    clean_state = state.copy()
+    state[17 * T + 40:17 * T + 45, 2] = np.nan
+    actions[5 * T, 0] = np.inf  # the first frame: nothing before it, the first finite value after it
+    state, bad_state = repair_non_finite(state, "observation.state", episode)
+    actions, bad_actions = repair_non_finite(actions, "action", episode)
+    assert np.isfinite(state).all() and np.isfinite(actions).all() and set(bad_state) == {17} and set(bad_actions) == {5}
+    assert (state[17 * T + 40:17 * T + 45, 2] == clean_state[17 * T + 39, 2]).all()
+    assert actions[5 * T, 0] == actions[5 * T + 1, 0]
+    assert bad_state[17] == (5, "NaN or infinite values in 'observation.state' at 5 of 100 frames, 40-44")
+    assert bad_actions[5] == (1, "NaN or infinite values in 'action' at 1 of 100 frames, 0")
+    for i, d in enumerate(demos):
+        d.state, d.actions = state[i * T:(i + 1) * T], actions[i * T:(i + 1) * T]
+        d.damaged = [found[i] for found in (bad_state, bad_actions) if i in found]
+    ev = _evidence(demos, ["broken", "motion", "idle", "suspicion"])
+    assert ev.scores["broken"][17] == 0.05 and ev.scores["broken"][5] == 0.01
+    assert (np.delete(ev.scores["broken"], [5, 17]) == 0).all()
+    table = score_table(ev)
+    assert set(table["episode_index"][:2]) == {5, 17} and table["is_anomaly"][:2].all()
+    assert table["reason"][table["episode_index"] == 17].item() == f"broken: {bad_state[17][1]}"
+    assert not table["reference"][:2].any()  # no reference for the others' flags
+
+
 def test_jerk_and_saturation_rank_first():
     _ranks_first("jerk")
     ev = _ranks_first("saturation")

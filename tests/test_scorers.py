@@ -38,8 +38,8 @@ MEANT_FOR = {
 }
 CONTROLS = {"random"}
 # Checked on demos made for them in tests/test_modelfree.py: nothing in the pushing suite freezes its camera,
-# copies a demo, records its actions against another demo's state or out of step, or drops frames.
-ELSEWHERE = {"frozen_video", "frame_jump", "duplicate", "dynamics", "lag", "timing"}
+# copies a demo, records its actions against another demo's state or out of step, drops frames or records NaN.
+ELSEWHERE = {"frozen_video", "frame_jump", "duplicate", "dynamics", "lag", "timing", "broken"}
 
 
 @pytest.fixture(scope="module")

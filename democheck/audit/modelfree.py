@@ -33,6 +33,9 @@ held shut, counts in units of 1% of the busiest dimension's, so it cannot make a
   recording fault (``scorers.Scorer.alone``).
 - ``outcome`` (``democheck.audit.outcome``): how differently from its task's other demos the demo left the
   world (where the objects ended up).
+- ``broken``: the share of a demo's frames at which its state or actions held NaN or infinite values, which
+  the reader repaired so that the other checks can read the demo (``data.demo.repair_non_finite``); any makes the
+  demo suspect whatever its other scores.
 - ``duplicate``: how close the demo's actions come to another demo's: the log of the median nearest-neighbour
   distance over this demo's, the actions resampled to ``DUPLICATE_STEPS`` steps and put in each dimension's
   standard deviation; an exact copy (the same actions, state and frames, bit for bit) is named as such.
@@ -106,14 +109,17 @@ class ActionTraces(PerDemo):
     ``timing``, kept for the action checks (``idle``, ``jerk``, ``saturation``, ``duplicate``, ``timing``),
     which need the scales of all the demos."""
 
-    fields = ("actions", "digests", "timing")
+    fields = ("actions", "digests", "timing", "damaged")
     actions: list[np.ndarray]
     digests: list[str]
     timing: list[tuple[float, str]]
+    damaged: list[tuple[float, str]]
 
     def add(self, demo: Demo) -> None:
         a = np.asarray(demo.actions, np.float32)
         self.actions.append(a)
+        frames = max((n for n, _ in demo.damaged), default=0)
+        self.damaged.append((frames / max(len(a), 1), "; ".join(what for _, what in demo.damaged)))
         self.timing.append(_timing_of(demo.extra.get("timestamp"), demo.extra.get("fps")))
         h = hashlib.blake2b(digest_size=16)
         for x in (a, np.asarray(demo.state, np.float32), demo.frames):
@@ -136,6 +142,15 @@ def idle(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
         reasons.append(f"still at {100 * out[i]:.0f}% of steps; longest {steps_text(start, start + n, len(c) + 1)}"
                        if n else "never still")
     return out, reasons
+
+
+def broken(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
+    """The share of the demo's frames at which its state or its actions (the more damaged) held NaN or infinite
+    values (the reader repaired them so that every check could read the demo:
+    ``data.demo.repair_non_finite``), and where.  A recording that holds them is broken whatever its other scores:
+    it ranks first, is flagged, and is no reference for the others (``scorers._broken_rows``,
+    ``scores.flagged_regardless``)."""
+    return np.array([share for share, _ in traces.damaged], np.float64), [what for _, what in traces.damaged]
 
 
 def jerk(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:

@@ -20,7 +20,8 @@ from democheck import pool
 from democheck.audit import scorers as registry, shards
 from democheck.audit.scorers import Evidence, Scorer
 from democheck.audit.ocsvm import ocsvm_margin
-from democheck.audit.scores import (CORE_P, DEFAULT_FPR, conformal_p, exact_copies, expected_false_flags, flag_level,
+from democheck.audit.scores import (CORE_P, DEFAULT_FPR, broken_recordings, conformal_p, exact_copies,
+                                    expected_false_flags, flag_level, flagged_regardless,
                                     flags, rank_order)
 from democheck.data.cache import dataset_fingerprint
 from democheck.data.demo import DemoSet
@@ -162,7 +163,8 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
     """The ScoreTable: one row per demo, every computed score, ranked by suspicion (rank 1 = most suspect);
     ``p_value`` is the combined tail probability the suspicion is -log10 of, ``reference`` whether the demo is in
     the robust core those tails were fitted on, ``p_reference`` the share of that core at least as suspect
-    (``scores.conformal_p``) and ``is_anomaly`` a p_reference at most ``fpr`` (or an exact copy of another demo)."""
+    (``scores.conformal_p``) and ``is_anomaly`` a p_reference at most ``fpr`` (or a demo flagged regardless:
+    ``scores.flagged_regardless``)."""
     eps = ev.episodes
     table = pd.DataFrame({"episode_index": eps["episode_index"].to_numpy(np.int64), "task": ev.tasks})
     for name in registry.SCORERS:
@@ -177,7 +179,7 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
     table["p_reference"] = conformal_p(suspicion, table["reference"].to_numpy())
     table["reason"] = ev.reasons.get("suspicion", [""] * len(table))
     copies = exact_copies(table)
-    table["is_anomaly"] = flags(table["p_reference"].to_numpy(), fpr, copies)
+    table["is_anomaly"] = flags(table["p_reference"].to_numpy(), fpr, flagged_regardless(table))
     if copies is not None and copies.any():
         dup = ev.reasons["duplicate"]
         table["reason"] = [dup[i] if copies[i] else r for i, r in enumerate(table["reason"])]
@@ -252,8 +254,8 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
                          "the flags are calibrated on",
             "p_reference": "the share of the reference demos at least as suspect (conformal; beyond the most "
                            "suspect of them, the combined tail probability's own decay)",
-            "is_anomaly": f"p_reference at most the false-positive rate asked for ({fpr:g}), or an exact copy of "
-                          "another demo",
+            "is_anomaly": f"p_reference at most the false-positive rate asked for ({fpr:g}), an exact copy of "
+                          "another demo, or a broken recording",
             "score": "the old name of task_uncertainty, kept for one release"},
         "top_suspects": table.head(top)[["rank", "episode_index", "task",
                                          *[n for n in shown if n != "novelty"], "p_value",
@@ -279,15 +281,16 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
     """How the flags were set and what they should cost: the level, the number of false flags to expect were the
     unflagged demos clean, and, with labels, the observed recall per kind and share of clean demos flagged."""
     flagged = table["is_anomaly"].to_numpy(bool)
-    copies = exact_copies(table)
+    copies, broken = exact_copies(table), broken_recordings(table)
     reference = table["reference"].to_numpy(bool)
     out: dict[str, Any] = {
-        "fpr": fpr, "rule": f"at most {fpr:g} of the reference demos at least as suspect (p_reference), or an exact "
-                            "copy of another demo",
+        "fpr": fpr, "rule": f"at most {fpr:g} of the reference demos at least as suspect (p_reference), an exact "
+                            "copy of another demo, or a broken recording (NaN or infinite values recorded)",
         # If the reference demos are clean and the others like them, about fpr of them are flagged.
         "expected_false_flags": round(expected_false_flags(reference, fpr), 2),
         "p_value_at_level": flag_level(table, fpr),
         "exact_copies": 0 if copies is None else int(copies.sum()),
+        "broken_recordings": 0 if broken is None else int(broken.sum()),
         "reference": f"the audited demos' robust core ({int(reference.sum())} of {len(table)}): the demos whose "
                      f"combined tail probability is above {CORE_P:g} once each score's tail is fitted on them, "
                      "refitted until it no longer changes -- believed clean while the bad demos are a minority",

@@ -215,7 +215,14 @@ def ranking_tails(ev: Evidence, names: list[str]) -> tuple[np.ndarray, np.ndarra
     """The tail probabilities (natural logs, [N, K]) of the ranking's scores ``names`` and the robust core they
     are fitted on (``scores.robust_tails`` of ``ranking_z``), each score's tail of its scorer's family."""
     return robust_tails(lambda core: ranking_z(ev, names, core), normal=normal_tails(names),
-                        alone=alone_columns(names))
+                        alone=alone_columns(names), outside=_broken_rows(ev))
+
+
+def _broken_rows(ev: Evidence) -> np.ndarray:
+    """Which demos are broken recordings (``modelfree.broken``): bool [N], all False without that check."""
+    if "broken" not in ev.scores:
+        return np.zeros(len(ev.episodes), bool)
+    return np.nan_to_num(np.asarray(ev.scores["broken"], np.float64)) > 0
 
 
 def normal_tails(names: list[str]) -> np.ndarray:
@@ -276,6 +283,10 @@ def _combination(ev: Evidence, model_free: bool = False) -> Scores:
             own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
             parts.append(f"{names[j]}: {_odds(float(row[j]))}" + (f"; {own}" if own else ""))
         reasons.append("; also ".join(parts))
+    broken = _broken_rows(ev)
+    if broken.any():  # a broken recording is suspect whatever its other scores (``modelfree.broken``)
+        value = np.where(broken, np.inf, value)
+        reasons = [f"broken: {ev.reasons['broken'][i]}" if broken[i] else r for i, r in enumerate(reasons)]
     return value, reasons
 
 
@@ -315,6 +326,10 @@ def _colours(ev: Evidence) -> Scores:
 
 def _idle(ev: Evidence) -> Scores:
     return modelfree.idle(ev.behaviour["actions"])
+
+
+def _broken(ev: Evidence) -> Scores:
+    return modelfree.broken(ev.behaviour["actions"])
 
 
 def _jerk(ev: Evidence) -> Scores:
@@ -390,6 +405,9 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            f"{modelfree.STILL:g} x each dimension's median change), and the longest still stretch", ("demos",),
            _idle, in_suspicion=True, ranking_min_scale=modelfree.IDLE_MIN_SCALE, behaviour="actions",
            decode=_traces, short="idle"),
+    Scorer("broken", "model-free: the share of the demo's frames at which its states or actions held NaN or "
+           "infinite values (repaired to be read; any: the demo ranks first and is flagged)", ("demos",), _broken,
+           behaviour="actions", decode=_traces, short="broken"),
     Scorer("jerk", "model-free: log mean |third difference of actions| in median-change units (shaking, "
            "chatter)", ("demos",), _jerk, behaviour="actions", decode=_traces, short="jerk"),
     Scorer("saturation", "model-free: share of steps at which some action dimension sits at its limit over all "

@@ -282,8 +282,8 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np
 
 
 def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: float = CORE_P,
-                 rounds: int = CORE_ROUNDS, normal: np.ndarray | None = None, alone: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
+                 rounds: int = CORE_ROUNDS, normal: np.ndarray | None = None, alone: np.ndarray | None = None,
+                 outside: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``tail_probabilities`` fitted on the audited demos' robust core, and the core [N] (bool): starting from
     every demo, the tails are fitted, combined (``combined_log10``), and the demos whose combined probability is
     at most ``core_p`` left out of the next fit, until the core stops changing.  The core never shrinks below
@@ -292,13 +292,17 @@ def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: flo
     ``z``: the [N, K] scores in robust SD, or a function of the core (None: every demo) that computes them (the
     ranking's: each task's centre and the unit from the core's demos, ``calibrated``), called again at every
     round.  ``normal``: the columns with a normal tail (``tail_probabilities``); ``alone``: the columns combined
-    beside the others (``combined_log10``)."""
+    beside the others (``combined_log10``); ``outside``: demos never in the core (broken recordings, suspect
+    whatever their scores)."""
     z_of = z if callable(z) else (lambda core: z)
     zc = z_of(None)  # every demo
-    core = np.ones(len(zc), bool)
+    start = np.ones(len(zc), bool) if outside is None else ~np.asarray(outside, bool)
+    core = start
+    if not core.all():
+        zc = z_of(core)
     log_p = tail_probabilities(zc, core, normal)
     for _ in range(rounds):
-        new = ~(10.0 ** combined_log10(log_p, alone) <= core_p)
+        new = start & ~(10.0 ** combined_log10(log_p, alone) <= core_p)
         if (new == core).all() or new.sum() < len(zc) / 2:
             break
         core = new
@@ -314,8 +318,9 @@ def conformal_p(suspicion: np.ndarray, core: np.ndarray) -> np.ndarray:
     another one like them, P(p <= a) <= a.  Beyond the most suspect core demo, where the core has nothing to
     count, the combined probability's own tail carries on from 1 / (1 + core size): a tenth of that per unit of
     suspicion beyond it.  With no core, the combined probability itself."""
-    s = np.nan_to_num(np.asarray(suspicion, np.float64), nan=-np.inf)
-    core = np.asarray(core, bool) & np.isfinite(s)
+    s = np.asarray(suspicion, np.float64)
+    s = np.where(np.isnan(s), -np.inf, s)
+    core = np.asarray(core, bool) & np.isfinite(s)  # a demo suspect whatever its scores (+inf) is no reference
     ref = np.sort(s[core])
     if not len(ref):
         return 10.0 ** -s
@@ -408,6 +413,20 @@ def exact_copies(table: pd.DataFrame) -> np.ndarray | None:
     return np.isinf(table["duplicate"].to_numpy(np.float64)) if "duplicate" in table else None
 
 
+def flagged_regardless(table: pd.DataFrame) -> np.ndarray | None:
+    """Which rows of a score table are flagged whatever their p-value: bit-exact copies of another demo
+    (``exact_copies``) and broken recordings (``broken`` above 0: NaN or infinite values recorded); None when
+    the table has neither check."""
+    found = [m for m in (exact_copies(table), broken_recordings(table)) if m is not None]
+    return np.logical_or.reduce(found) if found else None
+
+
+def broken_recordings(table: pd.DataFrame) -> np.ndarray | None:
+    """Which rows of a score table are broken recordings (``broken`` above 0); None when the table has no such
+    check."""
+    return np.nan_to_num(table["broken"].to_numpy(np.float64)) > 0 if "broken" in table else None
+
+
 def expected_false_flags(core: np.ndarray, fpr: float) -> float:
     """The false flags to expect at ``fpr``: that share of the demos believed clean, the core (``robust_tails``);
     the clean demos left out of it are too few to count (their combined tail probability is under ``CORE_P``)."""
@@ -416,15 +435,16 @@ def expected_false_flags(core: np.ndarray, fpr: float) -> float:
 
 def flag_level(table: pd.DataFrame, fpr: float) -> float | None:
     """What the flags at ``fpr`` amount to on a score table: the largest ``p_value`` of a demo its ``p_reference``
-    flags (exact copies aside); None when none is."""
+    flags (those flagged regardless aside); None when none is."""
     flagged = flags(table["p_reference"].to_numpy(), fpr)
     return float(table["p_value"].to_numpy()[flagged].max()) if flagged.any() else None
 
 
-def flags(p_value: np.ndarray, fpr: float = DEFAULT_FPR, exact_copy: np.ndarray | None = None) -> np.ndarray:
-    """``is_anomaly``: a p-value (the audit's: ``conformal_p``) at most ``fpr``, or an exact copy of another demo."""
+def flags(p_value: np.ndarray, fpr: float = DEFAULT_FPR, regardless: np.ndarray | None = None) -> np.ndarray:
+    """``is_anomaly``: a p-value (the audit's: ``conformal_p``) at most ``fpr``, or flagged ``regardless`` (an
+    exact copy of another demo, a broken recording: ``flagged_regardless``)."""
     out = np.nan_to_num(p_value, nan=1.0) <= fpr
-    return out | exact_copy if exact_copy is not None else out
+    return out | regardless if regardless is not None else out
 
 
 def rank_order(suspicion: np.ndarray, episode_index: np.ndarray) -> np.ndarray:

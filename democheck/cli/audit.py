@@ -82,7 +82,8 @@ def print_audit(summary: dict, out: Path) -> None:
     for r in summary["top_suspects"]:
         driver = (r.get("reason") or "").split(":", 1)[0]
         table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"],
-                      "n/a" if r.get("suspicion") is None else short(r["suspicion"]),
+                      short(r["suspicion"]) if r.get("suspicion") is not None
+                      else "inf" if r.get("p_value") == 0 else "n/a",  # a broken recording: suspect regardless
                       "[red]yes[/]" if r["is_anomaly"] else "", driver)
     console.print(table)
     level = flag.get("p_value_at_level")

@@ -97,8 +97,10 @@ def build_cache(ds: DemoSet, cache_dir: Path | None = None,
                 if demo.frames.shape != (n, h, w, c) or len(demo.state) != n or len(demo.actions) != n:
                     raise DatasetError(f"{ds.root}: episode {e} has {len(demo.frames)} frames, {len(demo.state)} "
                                        f"states, {len(demo.actions)} actions; its metadata says {n}")
-                if not (np.isfinite(demo.state).all() and np.isfinite(demo.actions).all()):
-                    raise DatasetError(f"{ds.root}: episode {e} has NaN or infinite states or actions")
+                if demo.damaged:
+                    raise DatasetError(f"{ds.root}: episode {e} holds {demo.damaged[0][1]}: a model must not learn "
+                                       "from it (democheck audit --no-model flags every such episode; democheck "
+                                       "clean then writes the dataset without them)")
                 frames[o:o + n] = demo.frames
                 state[o:o + n] = demo.state
                 actions[o:o + n] = demo.actions

@@ -34,21 +34,45 @@ class Demo:
     env_state: np.ndarray | None = None
     source_episode: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    # What the reader found broken in the recording and repaired so that it can be read (``repair_non_finite``):
+    # (frames affected, where, in words), one entry per broken column.
+    damaged: list[tuple[int, str]] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.actions)
 
 
-def check_arrays(where: str | Path, key: str, x: np.ndarray, dim: int, episode: np.ndarray | None = None) -> None:
-    """One clear line when a state/action matrix has the wrong width or holds NaN or infinite values."""
+def check_arrays(where: str | Path, key: str, x: np.ndarray, dim: int) -> None:
+    """One clear line when a state/action matrix has the wrong width."""
     if x.ndim != 2 or x.shape[1] != dim:
         raise DatasetError(f"{where}: {key!r} has {x.shape[1] if x.ndim == 2 else x.shape} values per frame, "
                            f"the metadata says {dim}")
-    bad = ~np.isfinite(x).all(axis=1)
-    if bad.any():
-        row = int(np.argmax(bad))
-        ep = f" (episode {int(episode[row])})" if episode is not None else ""
-        raise DatasetError(f"{where}: NaN or infinite values in {key!r} at row {row}{ep}")
+
+
+def repair_non_finite(x: np.ndarray, key: str, episode: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, dict[int, tuple[int, str]]]:
+    """A recording with NaN or infinite values is a broken demo to report, not a dataset to refuse: ``x`` [T, D]
+    (its rows grouped by ``episode``, each episode's in frame order; one episode 0 when None) with every such
+    value replaced by the last finite value of its column before it in the same episode (the first after it
+    where none is before, 0 where the episode has none), so that every check can still read the demo; and, for
+    each episode that held any, (how many of its frames, where in words: "NaN or infinite values in 'action' at
+    3 of 100 frames, 40-42")."""
+    bad = ~np.isfinite(x)
+    if not bad.any():
+        return x, {}
+    episode = np.zeros(len(x), np.int64) if episode is None else np.asarray(episode)
+    frame = pd.Series(np.arange(len(x))).groupby(episode).cumcount().to_numpy()
+    length = pd.Series(episode).map(pd.Series(episode).value_counts()).to_numpy()
+    filled = pd.DataFrame(np.where(bad, np.nan, x)).groupby(episode).ffill()
+    filled = filled.groupby(episode).bfill().fillna(0.0).to_numpy(x.dtype)
+    rows = bad.any(1)
+    found: dict[int, tuple[int, str]] = {}
+    for e in np.unique(episode[rows]):
+        at = frame[rows & (episode == e)]
+        span = f"{at[0]}" if len(at) == 1 else f"{at[0]}-{at[-1]}"
+        of = int(length[np.argmax(episode == e)])
+        found[int(e)] = (len(at), f"NaN or infinite values in {key!r} at {len(at)} of {of} frames, {span}")
+    return filled, found
 
 
 def check_episodes(where: str | Path, episodes: pd.DataFrame) -> None:
@@ -208,8 +232,8 @@ class DemoSet:
         out = np.zeros((len(episode_indices), self.state_dim), np.float32)
         for i, e in enumerate(episode_indices):
             out[i] = one(int(e))
-            if not np.isfinite(out[i]).all():
-                raise DatasetError(f"{self.root}: episode {int(e)} has a non-finite state at its last step")
+            if not np.isfinite(out[i]).all():  # read as the whole demo is: repaired (``repair_non_finite``)
+                out[i] = self._src.load(int(e)).state[-1]
         return out
 
     def by_task(self) -> dict[str, list[int]]:

@@ -30,7 +30,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from democheck.data import video
-from democheck.data.demo import Demo, check_arrays, check_episodes
+from democheck.data.demo import Demo, check_arrays, check_episodes, repair_non_finite
 from democheck.errors import DatasetError
 
 CODEBASE_VERSION = "v3.0"
@@ -232,16 +232,25 @@ class LeRobotBase:
         uniq, starts, counts = np.unique(eps[order], return_index=True, return_counts=True)
         state = _column_matrix(table, self.state_key, path)[order]
         actions = _column_matrix(table, self.action_key, path)[order]
-        check_arrays(path, self.state_key, state, self.state_dim, eps[order])
-        check_arrays(path, self.action_key, actions, self.action_dim, eps[order])
+        check_arrays(path, self.state_key, state, self.state_dim)
+        check_arrays(path, self.action_key, actions, self.action_dim)
+        env_state = _column_matrix(table, ENV_STATE_KEY, path)[order] if ENV_STATE_KEY in table.column_names else None
+        damaged: dict[int, list[tuple[int, str]]] = {}
+        # The environment state may be NaN where an object is not in the scene (democheck's no-objects probes):
+        # only the robot's state and actions must be finite.
+        for key, x in ((self.state_key, state), (self.action_key, actions)):
+            x[:], found = repair_non_finite(x, key, eps[order])
+            for e, what in found.items():
+                damaged.setdefault(e, []).append(what)
         entry = {
             "state": state,
             "actions": actions,
-            "env_state": _column_matrix(table, ENV_STATE_KEY, path)[order] if ENV_STATE_KEY in table.column_names else None,
+            "env_state": env_state,
             "timestamp": (table.column("timestamp").to_numpy().astype(np.float64)[order]
                           if "timestamp" in table.column_names else None),
             "images": table.column(self.camera).to_pylist() if self.camera_dtype == "image" else None,
             "order": order,
+            "damaged": damaged,
             "ranges": {int(e): (int(s), int(s + c)) for e, s, c in zip(uniq, starts, counts)},
         }
         self._cache[path] = entry
@@ -296,6 +305,7 @@ class LeRobotBase:
             sim=_sim_record(sim, self.root, episode_index),
             env_state=None if entry["env_state"] is None else entry["env_state"][s:e],
             source_episode=None if src is None or pd.isna(src) or int(src) < 0 else int(src),
+            damaged=list(entry["damaged"].get(episode_index, [])),
             extra={**({} if entry["timestamp"] is None else {"timestamp": entry["timestamp"][s:e], "fps": self.fps}),
                    "state_names": self.state_names, "env_state_names": self.env_state_names},
         )

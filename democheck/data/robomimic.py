@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from democheck.data.demo import Demo, check_arrays, check_episodes
+from democheck.data.demo import Demo, check_arrays, check_episodes, repair_non_finite
 from democheck.errors import DatasetError
 
 
@@ -116,10 +116,13 @@ class Robomimic:
         where = f"{self.root}: data/{self.episodes.loc[episode_index, 'name']}"
         check_arrays(where, "obs (state keys)", state, self.state_dim)
         check_arrays(where, self.action_key, actions, self.action_dim)
+        state, bad_state = repair_non_finite(state, "obs (state keys)")
+        actions, bad_actions = repair_non_finite(actions, self.action_key)
         row = self.episodes.loc[episode_index]
         split = row.get("split") if "split" in row else None
         return Demo(episode_index=episode_index, task=str(row["task"]), frames=frames, state=state, actions=actions,
-                    split=split if isinstance(split, str) else None, env_state=env_state)
+                    split=split if isinstance(split, str) else None, env_state=env_state,
+                    damaged=[*bad_state.values(), *bad_actions.values()])
 
     def end_state(self, episode_index: int) -> np.ndarray:
         """The state at an episode's last step, float32 [S], reading one row of each state key."""

@@ -99,7 +99,7 @@ def short_reason(reason: str) -> str:
 
 def _cell(value) -> str:
     if isinstance(value, (float, np.floating)):
-        return "n/a" if not np.isfinite(value) else f"{value:.3g}"
+        return f"{value:.3g}" if np.isfinite(value) else "inf" if value > 0 else "n/a"
     return str(value)
 
 
@@ -214,8 +214,8 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
         _histogram(rec, f"scores/{name}", values, flagged)
         what = name.replace("_", " ") + (" (log10)" if log10 else "")
         level = flag_level(table, fpr) if name == "suspicion" and fpr is not None else None
-        if level is not None:
-            what += f": flagged from {-np.log10(level):.3g} up (fpr {fpr:g})"
+        if level is not None:  # a level of 0: every flagged demo's p_value is below what a float holds
+            what += (f": flagged from {-np.log10(level):.3g} up" if level > 0 else ": flagged far up") + f" (fpr {fpr:g})"
         hist_views.append(rrb.BarChartView(origin=f"scores/{name}", name=what, plot_legend=rrb.PlotLegend(visible=False)))
     sigma = np.stack(table["sigma"].to_numpy()) if len(table) and "sigma" in table else None
     typical = np.median(sigma[~flagged] if (~flagged).any() else sigma, axis=0) if sigma is not None else None
