@@ -125,7 +125,7 @@ class Scorer:
     # "normal" for a score that is a mean over many steps (the central limit theorem makes its clean spread normal,
     # and an exponential through its quartiles would call a demo six robust SD out one clean demo in a few hundred).
     tail: str = "exponential"
-    # A recording fault (a frozen camera, dropped frames, actions recorded out of step): the faults' tail
+    # A recording fault (a frozen camera, dropped frames, actions recorded out of step, a shaking command stream): the faults' tail
     # probabilities stand apart, beside the combination of the others (``scores.combined_log10``), instead of
     # adding up with them in Fisher's sum, where one small probability is diluted by every ordinary one beside it.
     alone: bool = False
@@ -409,7 +409,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "infinite values (repaired to be read; any: the demo ranks first and is flagged)", ("demos",), _broken,
            behaviour="actions", decode=_traces, short="broken"),
     Scorer("jerk", "model-free: log mean |third difference of actions| in median-change units (shaking, "
-           "chatter)", ("demos",), _jerk, behaviour="actions", decode=_traces, short="jerk"),
+           "chatter)", ("demos",), _jerk, in_suspicion=True, alone=True, ranking_min_scale=modelfree.JERK_MIN_SCALE,
+           behaviour="actions", decode=_traces, short="jerk"),
     Scorer("saturation", "model-free: share of steps at which some action dimension sits at its limit over all "
            "the demos", ("demos",), _saturation, behaviour="actions", decode=_traces, short="sat."),
     Scorer("duplicate", "model-free: how much nearer than usual the nearest other demo's actions are (log "
@@ -459,7 +460,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "consistency, action error (log), motion, idle, view, colours and outcome (one task: the last six; "
            "without the action error, the coupling too), each in robust standard deviations within its task, the "
            "tails fitted on the robust core; beside that, the smallest of the recording faults' (timing, frozen "
-           "video, frame jump, lag) (2 = as unusual as 1 clean demo in 100)", ("scores",),
+           "video, frame jump, lag, jerk) (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
            "view, colours, outcome, coupling, and the recording faults): what democheck says with no model",
