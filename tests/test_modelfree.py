@@ -38,6 +38,8 @@ def _planted(kind: str, n: int = 30, seed: int = 0) -> tuple[list[Demo], int]:
         d.actions += rng.normal(0, 0.5, d.actions.shape).astype(np.float32)
     elif kind == "saturation":  # commands clipped at their limit half the time
         d.actions[::2, 0] = 5.0
+    elif kind == "frozen_state":  # the state stream stops updating at frame 30 while the actions go on
+        d.state[30:] = d.state[30]
     elif kind == "frozen_video":  # the camera stops delivering at frame 30 while the arm goes on
         d.frames[30:] = d.frames[30]
     elif kind == "dynamics":  # actions recorded against another demo's state
@@ -216,6 +218,21 @@ def test_frozen_video_ranks_first_and_says_where():
     demos[5].frames[1::3] = demos[5].frames[0::3][:len(demos[5].frames[1::3])]
     ev = _evidence(demos, ["frozen_video"])
     assert ev.scores["frozen_video"][5] <= 1.5 / T and ev.scores["frozen_video"][bad] > 0.65
+
+
+def test_frozen_state_ranks_a_stopped_sensor_first_and_says_where():
+    ev = _ranks_first("frozen_state")
+    assert "frames 30-99 (70% of the demo)" in ev.reasons["frozen_state"][17], ev.reasons["frozen_state"][17]
+    assert (np.delete(ev.scores["frozen_state"], 17) == 0).all()
+    # One joint's encoder dead for the whole demo reads as frozen as it gets; a dimension that holds still in
+    # most of its task's demos (a goal, an object no demo touches) is not live there and reads nothing.
+    demos, _ = _planted("none")
+    demos[4].state[:, 1] = demos[4].state[0, 1]
+    for d in demos:
+        d.state[:, -1] = 0.5
+    ev = _evidence(demos, ["frozen_state"])
+    assert ev.scores["frozen_state"][4] == 1.0 and "state[1]" in ev.reasons["frozen_state"][4]
+    assert (np.delete(ev.scores["frozen_state"], 4) == 0).all()
 
 
 def test_lag_ranks_actions_recorded_late_first_and_says_by_how_much():

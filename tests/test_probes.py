@@ -283,7 +283,7 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     assert kinds <= set(doc["kinds"])
     assert list(doc["scorers"]) == ["task_uncertainty", "task_uncertainty_head", "novelty", "consistency",
                                     "action_error", "motion", "idle", "broken", "jerk", "saturation", "duplicate",
-                                    "dynamics", "lag", "timing", "frozen_video", "frame_jump", "view", "colours",
+                                    "dynamics", "lag", "timing", "frozen_video", "frame_jump", "frozen_state", "view", "colours",
                                     "outcome", "coupling",
                                     "suspicion",
                                     "model_free",

@@ -38,8 +38,9 @@ MEANT_FOR = {
 }
 CONTROLS = {"random"}
 # Checked on demos made for them in tests/test_modelfree.py: nothing in the pushing suite freezes its camera,
-# copies a demo, records its actions against another demo's state or out of step, drops frames or records NaN.
-ELSEWHERE = {"frozen_video", "frame_jump", "duplicate", "dynamics", "lag", "timing", "broken"}
+# copies a demo, records its actions against another demo's state or out of step, drops frames, records NaN or
+# freezes a sensor.
+ELSEWHERE = {"frozen_video", "frame_jump", "duplicate", "dynamics", "lag", "timing", "broken", "frozen_state"}
 
 
 @pytest.fixture(scope="module")

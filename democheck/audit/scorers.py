@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
-from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome
+from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, sensors
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.scores import CONSISTENCY_K, calibrated, combined_log10, consistency_parts, robust_tails
@@ -364,6 +364,10 @@ def _lag(ev: Evidence) -> Scores:
     return dynamics.lag(ev.behaviour["dynamics"])
 
 
+def _frozen_state(ev: Evidence) -> Scores:
+    return sensors.frozen_state(ev.behaviour["frozen_state"], ev.tasks)
+
+
 def _outcome(ev: Evidence) -> Scores:
     return outcome.outcome(ev.behaviour["outcome"], ev.tasks)
 
@@ -438,6 +442,11 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "recording, or recordings spliced", ("demos",), _frame_jump, in_suspicion=True, alone=True,
            ranking_min_scale=FAULT_MIN_SCALE, behaviour="frozen_video",
            decode=lambda ev, rows, device: frames.FrameChanges(), short="jump"),
+    Scorer("frozen_state", "model-free: the longest stretch of steps at which a state dimension repeats its "
+           "value exactly while the actions change, as a share of the demo (the largest over the dimensions that "
+           "move in its task's demos): a sensor that stopped updating", ("demos",), _frozen_state,
+           in_suspicion=True, alone=True, ranking_min_scale=sensors.FROZEN_STATE_MIN_SCALE,
+           decode=lambda ev, rows, device: sensors.StateRepeats(), short="frz.st"),
     Scorer("view", "model-free: share of the demo's average picture (16x16) unlike its task's other demos' there "
            f"(over {modelfree.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
            "robust z within its task", ("demos",), _view, in_suspicion=True, in_robust_sd=True,
@@ -460,7 +469,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "consistency, action error (log), motion, idle, view, colours and outcome (one task: the last six; "
            "without the action error, the coupling too), each in robust standard deviations within its task, the "
            "tails fitted on the robust core; beside that, the smallest of the recording faults' (timing, frozen "
-           "video, frame jump, lag, jerk) (2 = as unusual as 1 clean demo in 100)", ("scores",),
+           "video, frame jump, frozen state, lag, jerk) (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
            "view, colours, outcome, coupling, and the recording faults): what democheck says with no model",

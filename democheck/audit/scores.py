@@ -69,7 +69,7 @@ Every score is one number per demo, higher = more suspect:
   core, the exponential beyond its largest (no-objects 0.988 -> 0.967, flagged 0.34 -> 0.18); each task's centre
   from its core demos alone, without the ``colours`` check (push-v1-dev alone: 9 clean flagged, 1.47%, against
   5, by the combined probability's own level; kept since, with the conformal flags below).
-  The recording faults (``Scorer.alone``: timing, frozen video, frame jump, lag; since, the jerk) are not added into Fisher's sum: their
+  The recording faults (``Scorer.alone``: timing, frozen video, frame jump, lag; since, the jerk and the frozen state) are not added into Fisher's sum: their
   own Sidak minimum (is the recording faulty?) stands beside the sum's combined probability (is the behaviour
   unusual?), the ranking the Sidak minimum of the two (``combined_log10``'s ``alone``).  Chosen with
   ``benchmarks/fault_choices.py`` on a Meta-World set with the faults planted (mw3-dev: 150 clean, 6 each of
@@ -91,8 +91,9 @@ Every score is one number per demo, higher = more suspect:
   lagged 0.989/0.50.  Normal tails for the faults flagged 7 of 150 and 14 of 200.  Timing (every development
   set's timestamps are regular: a constant 0 there, which changed none of the numbers above) measured on a copy
   of mw3-dev whose parquet puts 6 clean demos' frames from a step on 1-5 frame periods later, without a model:
-  AUROC 0.42 -> 1.00, flagged 0.00 -> 1.00, 1 clean demo flagged either way.  The jerk joined the faults since
-  (``modelfree.JERK_MIN_SCALE`` says what it did on the development sets).
+  AUROC 0.42 -> 1.00, flagged 0.00 -> 1.00, 1 clean demo flagged either way.  The jerk and the frozen state joined
+  the faults since (``modelfree.JERK_MIN_SCALE`` and ``democheck.audit.sensors`` say what each did on the
+  development sets).
 - ``is_anomaly``: the demo's conformal p-value against the robust core (``conformal_p``: the share of the core
   at least as suspect) at most the false-positive rate asked for (``audit --fpr``, default ``DEFAULT_FPR``):
   if the core's demos are clean and a clean demo is like them, about that share of clean demos is flagged,
