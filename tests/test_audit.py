@@ -265,6 +265,33 @@ def test_robomimic_reader_and_audit(tiny_model, tmp_path):
     assert np.isfinite(table["outcome"]).sum() == 5  # the objects' ends compared within the task of five
 
 
+def test_a_missing_video_file_breaks_its_episodes_and_the_audit_goes_on(tiny_dataset, tiny_model, tmp_path):
+    """Four episodes' frames in a video file that is not there (a partial download): they rank first as broken
+    recordings, flagged, and the others are audited."""
+    import shutil
+
+    import pyarrow.parquet as pq
+
+    src, _ = tiny_dataset
+    ds = tmp_path / "partial"
+    shutil.copytree(src, ds)
+    meta = next((ds / "meta" / "episodes").rglob("*.parquet"))
+    eps = pq.read_table(meta).to_pandas()
+    lost = eps["episode_index"].isin([1, 4, 6, 9])
+    eps.loc[lost, "videos/observation.images.main/file_index"] = 1  # file-001.mp4: never written
+    eps.to_parquet(meta, index=False)
+    res = runner.invoke(app, ["audit", str(ds), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
+                              "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    table = pd.read_parquet(tmp_path / "r" / "scores.parquet")
+    assert set(table["episode_index"][:4]) == {1, 4, 6, 9} and table["is_anomaly"][:4].all()
+    assert (table["broken"][:4] == 1.0).all() and (table["broken"][4:] == 0).all()
+    assert table["reason"][:4].str.startswith("broken: unreadable frames (").all(), table["reason"][:4].tolist()
+    assert "file-001.mp4" in table["reason"][0]
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert summary["flag"]["broken_recordings"] == 4
+
+
 def test_audit_mismatch_and_fail_on(tiny_dataset, tiny_model, tmp_path):
     # Another image size is read at the model's, as its training read its own data.
     path = tmp_path / "big.hdf5"

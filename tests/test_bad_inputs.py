@@ -10,6 +10,8 @@ def test_bad_input_is_one_clear_line(case, tiny_dataset, tiny_model, tmp_path):
     ds, _ = tiny_dataset
     argv, code, output, exc = run_case(case, tmp_path, ds, tiny_model)
     assert code == 2, f"{argv}: exit {code}, {output!r}, {exc!r}"
+    if case.after_progress:
+        output = output.splitlines()[-1]
     assert output.startswith("error:") and "\n" not in output, output
     assert "Traceback" not in output
     assert case.expect in output, output

@@ -25,7 +25,7 @@ from democheck.audit.scores import (CORE_P, DEFAULT_FPR, broken_recordings, conf
                                     flags, rank_order)
 from democheck.data.cache import dataset_fingerprint
 from democheck.data.demo import DemoSet
-from democheck.errors import DemocheckError
+from democheck.errors import DatasetError, DemocheckError
 from democheck.fsutil import to_json
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.model import encode_demos
@@ -227,6 +227,10 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
     ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers,
                          engine=engine, ray_address=ray_address)
+    broken = np.nan_to_num(np.asarray(ev.scores.get("broken", [0.0]), np.float64)) > 0
+    if broken.all():  # nothing left to compare a demo with: the dataset, not a demo, is what is broken
+        raise DatasetError(f"{ds.root}: every episode is broken, e.g. episode "
+                           f"{int(ev.episodes['episode_index'].iloc[0])}: {ev.reasons['broken'][0]}")
     table = score_table(ev, fpr)
     for old, new in registry.RENAMED.items():
         if new in table:

@@ -409,8 +409,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            f"{modelfree.STILL:g} x each dimension's median change), and the longest still stretch", ("demos",),
            _idle, in_suspicion=True, ranking_min_scale=modelfree.IDLE_MIN_SCALE, behaviour="actions",
            decode=_traces, short="idle"),
-    Scorer("broken", "model-free: the share of the demo's frames at which its states or actions held NaN or "
-           "infinite values (repaired to be read; any: the demo ranks first and is flagged)", ("demos",), _broken,
+    Scorer("broken", "model-free: the share of the demo's frames that could not be decoded, or whose states or "
+           "actions held NaN or infinite values (repaired to be read; any: the demo ranks first and is flagged)", ("demos",), _broken,
            behaviour="actions", decode=_traces, short="broken"),
     Scorer("jerk", "model-free: log mean |third difference of actions| in median-change units (shaking, "
            "chatter)", ("demos",), _jerk, in_suspicion=True, alone=True, ranking_min_scale=modelfree.JERK_MIN_SCALE,

@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -291,7 +291,17 @@ class LeRobotBase:
                 raise DatasetError(f"{path}: unreadable image in {self.camera!r} ({exc})") from None
         return np.stack(out)
 
-    def _make_demo(self, episode_index: int, frames: np.ndarray, entry: dict[str, Any], s: int, e: int) -> Demo:
+    def _readable(self, read: Callable[[], np.ndarray], n: int) -> tuple[np.ndarray, list[tuple[int, str]]]:
+        """The frames ``read`` decodes, or -- where they cannot be decoded (a truncated or corrupt file, a missing
+        one) -- ``n`` black frames and what went wrong: a broken demo the audit reports, not a dataset it refuses
+        (``modelfree.broken``)."""
+        try:
+            return read(), []
+        except DatasetError as exc:
+            return np.zeros((n, *self.image_shape), np.uint8), [(n, f"unreadable frames ({exc})")]
+
+    def _make_demo(self, episode_index: int, frames: np.ndarray, entry: dict[str, Any], s: int, e: int,
+                   unreadable: list[tuple[int, str]] | None = None) -> Demo:
         row = self.episodes.loc[episode_index]
         sim = row.get("sim") if "sim" in row else None
         src = row.get("source_episode") if "source_episode" in row else None
@@ -305,7 +315,7 @@ class LeRobotBase:
             sim=_sim_record(sim, self.root, episode_index),
             env_state=None if entry["env_state"] is None else entry["env_state"][s:e],
             source_episode=None if src is None or pd.isna(src) or int(src) < 0 else int(src),
-            damaged=list(entry["damaged"].get(episode_index, [])),
+            damaged=[*(unreadable or []), *entry["damaged"].get(episode_index, [])],
             extra={**({} if entry["timestamp"] is None else {"timestamp": entry["timestamp"][s:e], "fps": self.fps}),
                    "state_names": self.state_names, "env_state_names": self.env_state_names},
         )
@@ -366,10 +376,10 @@ class LeRobotV3(LeRobotBase):
         entry, s, e = self._rows(path, episode_index)
         if self.camera_dtype == "video":
             vpath, start, stop = self._video_span(episode_index)
-            frames = video.read_range(vpath, start, stop, self.fps)
+            frames, unreadable = self._readable(lambda: video.read_range(vpath, start, stop, self.fps), e - s)
         else:
-            frames = self._decode_images(entry, s, e, path)
-        return self._make_demo(episode_index, frames, entry, s, e)
+            frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s)
+        return self._make_demo(episode_index, frames, entry, s, e, unreadable)
 
     def cues(self, episode_indices: list[int]) -> np.ndarray:
         """First and last frames of many episodes, decoding each video file in one pass."""
@@ -383,7 +393,12 @@ class LeRobotV3(LeRobotBase):
             by_file.setdefault(vpath, []).append((i, start, stop - 1))
         for vpath, items in by_file.items():
             wanted = sorted({f for _, a, b in items for f in (a, b)})
-            frames = dict(zip(wanted, video.read_frames(vpath, wanted, self.fps)))
+            try:
+                frames = dict(zip(wanted, video.read_frames(vpath, wanted, self.fps)))
+            except DatasetError:  # a file that cannot be read whole: each episode's own, black where it fails
+                for i, _, _ in items:
+                    out[i] = self.cue_frames(episode_indices[i])
+                continue
             for i, a, b in items:
                 out[i, 0], out[i, 1] = frames[a], frames[b]
         return out
@@ -391,10 +406,11 @@ class LeRobotV3(LeRobotBase):
     def cue_frames(self, episode_index: int) -> np.ndarray:
         if self.camera_dtype == "video":
             vpath, start, stop = self._video_span(episode_index)
-            return video.read_frames(vpath, [start, stop - 1], self.fps)
+            return self._readable(lambda: video.read_frames(vpath, [start, stop - 1], self.fps), 2)[0]
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
-        return np.stack([self._decode_images(entry, s, s + 1, path)[0], self._decode_images(entry, e - 1, e, path)[0]])
+        return self._readable(lambda: np.stack([self._decode_images(entry, s, s + 1, path)[0],
+                                                 self._decode_images(entry, e - 1, e, path)[0]]), 2)[0]
 
 
 def open_lerobot(root: Path, camera: str | None = None, state_key: str | None = None,

@@ -54,18 +54,21 @@ class LeRobotV21(LeRobotBase):
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
         if self.camera_dtype == "video":
-            frames = video.read_range(self._path("video_path", episode_index), 0, e - s, self.fps)
+            vpath = self._path("video_path", episode_index)
+            frames, unreadable = self._readable(lambda: video.read_range(vpath, 0, e - s, self.fps), e - s)
         else:
-            frames = self._decode_images(entry, s, e, path)
-        return self._make_demo(episode_index, frames, entry, s, e)
+            frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s)
+        return self._make_demo(episode_index, frames, entry, s, e, unreadable)
 
     def cue_frames(self, episode_index: int) -> np.ndarray:
         n = int(self.episodes.loc[episode_index, "length"])
         if self.camera_dtype == "video":
-            return video.read_frames(self._path("video_path", episode_index), [0, n - 1], self.fps)
+            vpath = self._path("video_path", episode_index)
+            return self._readable(lambda: video.read_frames(vpath, [0, n - 1], self.fps), 2)[0]
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
-        return np.stack([self._decode_images(entry, s, s + 1, path)[0], self._decode_images(entry, e - 1, e, path)[0]])
+        return self._readable(lambda: np.stack([self._decode_images(entry, s, s + 1, path)[0],
+                                                 self._decode_images(entry, e - 1, e, path)[0]]), 2)[0]
 
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:
