@@ -212,7 +212,7 @@ def write_episode_list(path: str | Path, table: pd.DataFrame, flagged: bool) -> 
 
 def episodes_to_drop(report: Path, drop: str) -> list[int]:
     """The episodes ``democheck clean --drop`` names: ``flagged`` (the report's flags), ``fpr:X`` (those the
-    report would flag at --fpr X: a p_reference at most X, or an exact copy), ``top:K`` (its K most suspect) or
+    report would flag at --fpr X: a p_reference at most X, an exact copy or a broken recording), ``top:K`` (its K most suspect) or
     ``list:FILE`` (episode indices as ``[3, 17]`` or one per line)."""
     table = pd.read_parquet(report / "scores.parquet")
     if drop == "flagged":

@@ -2,6 +2,7 @@ import json
 
 import numpy as np
 import pandas as pd
+import pytest
 import torch
 from typer.testing import CliRunner
 
@@ -287,9 +288,48 @@ def test_a_missing_video_file_breaks_its_episodes_and_the_audit_goes_on(tiny_dat
     assert set(table["episode_index"][:4]) == {1, 4, 6, 9} and table["is_anomaly"][:4].all()
     assert (table["broken"][:4] == 1.0).all() and (table["broken"][4:] == 0).all()
     assert table["reason"][:4].str.startswith("broken: unreadable frames (").all(), table["reason"][:4].tolist()
-    assert "file-001.mp4" in table["reason"][0]
+    assert "file-001.mp4" in table["reason"][0] and not table["reference"][:4].any()
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert summary["flag"]["broken_recordings"] == 4
+
+
+def test_nan_in_a_lerobot_episode_is_repaired_reported_and_refused_where_nothing_would_report_it(
+        tiny_dataset, tiny_model, tmp_path):
+    """Three NaN actions in episode 2 of a LeRobot dataset: the reader carries the last finite value over them
+    and says where; the audit ranks the demo first as broken; an audit of the cues alone (--no-actions), which
+    decodes no demo and so could not report it, refuses the dataset with the same words."""
+    import shutil
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from democheck.data import open_dataset
+    from democheck.errors import DatasetError
+
+    src, _ = tiny_dataset
+    ds = tmp_path / "nan"
+    shutil.copytree(src, ds)
+    data = next((ds / "data").rglob("*.parquet"))
+    table = pq.read_table(data)
+    actions = np.stack(table.column("action").to_pylist()).astype(np.float32)
+    rows = np.flatnonzero(table.column("episode_index").to_numpy() == 2)
+    actions[rows[3:6], 1] = np.nan
+    column = pa.FixedSizeListArray.from_arrays(pa.array(actions.reshape(-1)), actions.shape[1])
+    pq.write_table(table.set_column(table.column_names.index("action"), "action", column), data)
+    demo = open_dataset(ds)[2]
+    assert np.isfinite(demo.actions).all() and (demo.actions[3:6, 1] == actions[rows[2], 1]).all()
+    assert demo.damaged == [(3, f"NaN or infinite values in 'action' at 3 of {len(rows)} frames, 3-5")]
+    assert not open_dataset(ds)[1].damaged
+    res = runner.invoke(app, ["audit", str(ds), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
+                              "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    scores = pd.read_parquet(tmp_path / "r" / "scores.parquet")
+    assert scores["episode_index"][0] == 2 and scores["is_anomaly"][0] and scores["reason"][0].startswith("broken: ")
+    res = runner.invoke(app, ["audit", str(ds), "--out", str(tmp_path / "c"), "--model", str(tiny_model),
+                              "--device", "cpu", "--no-actions"])
+    assert res.exit_code == 2 and "episode 2 holds NaN or infinite values in 'action'" in res.output, res.output
+    with pytest.raises(DatasetError, match="episode 2 holds NaN"):
+        open_dataset(ds).strict()[2]
 
 
 def test_audit_mismatch_and_fail_on(tiny_dataset, tiny_model, tmp_path):

@@ -10,10 +10,11 @@ def test_bad_input_is_one_clear_line(case, tiny_dataset, tiny_model, tmp_path):
     ds, _ = tiny_dataset
     argv, code, output, exc = run_case(case, tmp_path, ds, tiny_model)
     assert code == 2, f"{argv}: exit {code}, {output!r}, {exc!r}"
-    if case.after_progress:
-        output = output.splitlines()[-1]
-    assert output.startswith("error:") and "\n" not in output, output
     assert "Traceback" not in output
+    if case.after_progress:  # the decoding's progress, then the one line
+        *progress, output = output.splitlines()
+        assert all(" demos" in line for line in progress), progress
+    assert output.startswith("error:") and "\n" not in output, output
     assert case.expect in output, output
     assert not (tmp_path / "out").exists()  # nothing written
 

@@ -6,7 +6,7 @@ import pytest
 import pandas as pd
 from scipy import stats
 
-from democheck.audit import dynamics
+from democheck.audit import dynamics, modelfree, sensors
 from democheck.audit.scorers import SCORERS, Evidence, compute, select
 from democheck.audit.scores import (combined_log10, conformal_p, flags, robust_tails, sidak_log10,
                                     tail_probabilities)
@@ -126,7 +126,12 @@ def test_a_broken_recording_is_repaired_to_be_read_ranks_first_and_is_flagged_wh
 
 
 def test_jerk_and_saturation_rank_first():
-    _ranks_first("jerk")
+    ev = _ranks_first("jerk")
+    # In the ranking, the jerk stands beside the recording faults with its own floor, as the frozen state does.
+    for name, floor in (("jerk", modelfree.JERK_MIN_SCALE), ("frozen_state", sensors.FROZEN_STATE_MIN_SCALE)):
+        assert SCORERS[name].in_suspicion and SCORERS[name].alone and SCORERS[name].ranking_min_scale == floor
+    ev = _evidence(_planted("jerk")[0], ["jerk", "motion", "idle", "suspicion"])
+    assert np.argmax(ev.scores["suspicion"]) == 17 and "jerk: far beyond" in ev.reasons["suspicion"][17]
     ev = _ranks_first("saturation")
     assert "dimension 0" in ev.reasons["saturation"][17]
 

@@ -223,12 +223,14 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         ds = for_model(ds, ckpt)
     elif not actions:
         raise DemocheckError("without a model every score decodes the demos: --no-actions leaves nothing to score")
+    if not actions:  # no decoding pass reports a broken recording: refuse it, as before the readers repaired it
+        ds.strict()
     t = dict(timings or {})
     chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
     ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers,
                          engine=engine, ray_address=ray_address)
-    broken = np.nan_to_num(np.asarray(ev.scores.get("broken", [0.0]), np.float64)) > 0
-    if broken.all():  # nothing left to compare a demo with: the dataset, not a demo, is what is broken
+    broken = registry.broken_rows(ev)
+    if len(broken) and broken.all():  # nothing left to compare a demo with: the dataset, not a demo, is what is broken
         raise DatasetError(f"{ds.root}: every episode is broken, e.g. episode "
                            f"{int(ev.episodes['episode_index'].iloc[0])}: {ev.reasons['broken'][0]}")
     table = score_table(ev, fpr)
@@ -289,7 +291,8 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
     reference = table["reference"].to_numpy(bool)
     out: dict[str, Any] = {
         "fpr": fpr, "rule": f"at most {fpr:g} of the reference demos at least as suspect (p_reference), an exact "
-                            "copy of another demo, or a broken recording (NaN or infinite values recorded)",
+                            "copy of another demo, or a broken recording (frames that cannot be decoded, NaN or infinite states or "
+                            "actions)",
         # If the reference demos are clean and the others like them, about fpr of them are flagged.
         "expected_false_flags": round(expected_false_flags(reference, fpr), 2),
         "p_value_at_level": flag_level(table, fpr),

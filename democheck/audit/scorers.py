@@ -27,7 +27,8 @@ from democheck.audit.baselines import MotionFeatures, score_heuristic, score_ran
 from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, sensors
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.ocsvm import ocsvm_margin
-from democheck.audit.scores import CONSISTENCY_K, calibrated, combined_log10, consistency_parts, robust_tails
+from democheck.audit.scores import (CONSISTENCY_K, broken_recordings, calibrated, combined_log10, consistency_parts,
+                                    robust_tails)
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -215,14 +216,14 @@ def ranking_tails(ev: Evidence, names: list[str]) -> tuple[np.ndarray, np.ndarra
     """The tail probabilities (natural logs, [N, K]) of the ranking's scores ``names`` and the robust core they
     are fitted on (``scores.robust_tails`` of ``ranking_z``), each score's tail of its scorer's family."""
     return robust_tails(lambda core: ranking_z(ev, names, core), normal=normal_tails(names),
-                        alone=alone_columns(names), outside=_broken_rows(ev))
+                        alone=alone_columns(names), outside=broken_rows(ev))
 
 
-def _broken_rows(ev: Evidence) -> np.ndarray:
-    """Which demos are broken recordings (``modelfree.broken``): bool [N], all False without that check."""
-    if "broken" not in ev.scores:
-        return np.zeros(len(ev.episodes), bool)
-    return np.nan_to_num(np.asarray(ev.scores["broken"], np.float64)) > 0
+def broken_rows(ev: Evidence) -> np.ndarray:
+    """Which demos are broken recordings (``modelfree.broken``; ``scores.broken_recordings`` on a table): bool [N],
+    all False without that check."""
+    return broken_recordings(pd.DataFrame({"broken": ev.scores["broken"]})) if "broken" in ev.scores \
+        else np.zeros(len(ev.episodes), bool)
 
 
 def normal_tails(names: list[str]) -> np.ndarray:
@@ -283,7 +284,7 @@ def _combination(ev: Evidence, model_free: bool = False) -> Scores:
             own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
             parts.append(f"{names[j]}: {_odds(float(row[j]))}" + (f"; {own}" if own else ""))
         reasons.append("; also ".join(parts))
-    broken = _broken_rows(ev)
+    broken = broken_rows(ev)
     if broken.any():  # a broken recording is suspect whatever its other scores (``modelfree.broken``)
         value = np.where(broken, np.inf, value)
         reasons = [f"broken: {ev.reasons['broken'][i]}" if broken[i] else r for i, r in enumerate(reasons)]

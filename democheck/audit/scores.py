@@ -287,9 +287,10 @@ def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: flo
                  rounds: int = CORE_ROUNDS, normal: np.ndarray | None = None, alone: np.ndarray | None = None,
                  outside: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``tail_probabilities`` fitted on the audited demos' robust core, and the core [N] (bool): starting from
-    every demo, the tails are fitted, combined (``combined_log10``), and the demos whose combined probability is
-    at most ``core_p`` left out of the next fit, until the core stops changing.  The core never shrinks below
-    half the demos (beyond that the bad demos would be the majority the calibration assumes they are not).
+    every demo (but those ``outside``), the tails are fitted, combined (``combined_log10``), and the demos whose
+    combined probability is at most ``core_p`` left out of the next fit, until the core stops changing.  The core
+    never shrinks below half the demos it started from (beyond that the bad demos would be the majority the
+    calibration assumes they are not).
 
     ``z``: the [N, K] scores in robust SD, or a function of the core (None: every demo) that computes them (the
     ranking's: each task's centre and the unit from the core's demos, ``calibrated``), called again at every
@@ -305,7 +306,7 @@ def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: flo
     log_p = tail_probabilities(zc, core, normal)
     for _ in range(rounds):
         new = start & ~(10.0 ** combined_log10(log_p, alone) <= core_p)
-        if (new == core).all() or new.sum() < len(zc) / 2:
+        if (new == core).all() or new.sum() < start.sum() / 2:
             break
         core = new
         zc = z_of(core)
@@ -417,15 +418,14 @@ def exact_copies(table: pd.DataFrame) -> np.ndarray | None:
 
 def flagged_regardless(table: pd.DataFrame) -> np.ndarray | None:
     """Which rows of a score table are flagged whatever their p-value: bit-exact copies of another demo
-    (``exact_copies``) and broken recordings (``broken`` above 0: NaN or infinite values recorded); None when
-    the table has neither check."""
+    (``exact_copies``) and broken recordings (``broken_recordings``); None when the table has neither check."""
     found = [m for m in (exact_copies(table), broken_recordings(table)) if m is not None]
     return np.logical_or.reduce(found) if found else None
 
 
 def broken_recordings(table: pd.DataFrame) -> np.ndarray | None:
-    """Which rows of a score table are broken recordings (``broken`` above 0); None when the table has no such
-    check."""
+    """Which rows of a score table are broken recordings (``broken`` above 0: frames that could not be decoded, NaN
+    or infinite states or actions); None when the table has no such check."""
     return np.nan_to_num(table["broken"].to_numpy(np.float64)) > 0 if "broken" in table else None
 
 
@@ -438,7 +438,7 @@ def expected_false_flags(core: np.ndarray, fpr: float) -> float:
 def flag_level(table: pd.DataFrame, fpr: float) -> float | None:
     """What the flags at ``fpr`` amount to on a score table: the largest ``p_value`` of a demo its ``p_reference``
     flags (those flagged regardless aside); None when none is."""
-    flagged = flags(table["p_reference"].to_numpy(), fpr)
+    flagged = flags(table["p_reference"].to_numpy(), fpr) & np.isfinite(table["suspicion"].to_numpy(np.float64))
     return float(table["p_value"].to_numpy()[flagged].max()) if flagged.any() else None
 
 

@@ -99,8 +99,8 @@ def build_cache(ds: DemoSet, cache_dir: Path | None = None,
                                        f"states, {len(demo.actions)} actions; its metadata says {n}")
                 if demo.damaged:
                     raise DatasetError(f"{ds.root}: episode {e} holds {demo.damaged[0][1]}: a model must not learn "
-                                       "from it (democheck audit --no-model flags every such episode; democheck "
-                                       "clean then writes the dataset without them)")
+                                       "from it (democheck audit --no-model flags every such episode; for a "
+                                       "LeRobot v3.0 dataset democheck clean then writes it without them)")
                 frames[o:o + n] = demo.frames
                 state[o:o + n] = demo.state
                 actions[o:o + n] = demo.actions

@@ -34,8 +34,9 @@ class Demo:
     env_state: np.ndarray | None = None
     source_episode: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
-    # What the reader found broken in the recording and repaired so that it can be read (``repair_non_finite``):
-    # (frames affected, where, in words), one entry per broken column.
+    # What the reader found broken in the recording and repaired so that it can be read: (frames affected, what
+    # and where, in words), one entry per broken stream -- the state's or the actions' NaN or infinite values
+    # (``repair_non_finite``), frames that could not be decoded (given as black).
     damaged: list[tuple[int, str]] = field(default_factory=list)
 
     def __len__(self) -> int:
@@ -69,7 +70,8 @@ def repair_non_finite(x: np.ndarray, key: str, episode: np.ndarray | None = None
     found: dict[int, tuple[int, str]] = {}
     for e in np.unique(episode[rows]):
         at = frame[rows & (episode == e)]
-        span = f"{at[0]}" if len(at) == 1 else f"{at[0]}-{at[-1]}"
+        span = (f"{at[0]}" if len(at) == 1 else f"{at[0]}-{at[-1]}" if at[-1] - at[0] + 1 == len(at)
+                else f"between {at[0]} and {at[-1]}")
         of = int(length[np.argmax(episode == e)])
         found[int(e)] = (len(at), f"NaN or infinite values in {key!r} at {len(at)} of {of} frames, {span}")
     return filled, found
@@ -128,6 +130,14 @@ class DemoSet:
         self._src = source
         native = source.image_shape
         self.image_size = None if image_size is None or native[:2] == (image_size, image_size) else int(image_size)
+
+    def strict(self) -> "DemoSet":
+        """Make a broken recording (NaN or infinite states or actions, frames that cannot be decoded) an error
+        instead of a demo repaired to be read and reported (``Demo.damaged``): for reads that no decoding pass
+        reports, such as an audit of the cues alone.  The source is shared: every set over it turns strict."""
+        if hasattr(self._src, "strict"):
+            self._src.strict = True
+        return self
 
     def resized(self, image_size: int | None) -> "DemoSet":
         """The same demos, frames at ``image_size`` (None: the camera's own)."""
@@ -232,7 +242,7 @@ class DemoSet:
         out = np.zeros((len(episode_indices), self.state_dim), np.float32)
         for i, e in enumerate(episode_indices):
             out[i] = one(int(e))
-            if not np.isfinite(out[i]).all():  # read as the whole demo is: repaired (``repair_non_finite``)
+            if not np.isfinite(out[i]).all():  # read as the whole demo is: repaired, or refused when strict
                 out[i] = self._src.load(int(e)).state[-1]
         return out
 

@@ -145,6 +145,8 @@ def _column_matrix(table: pa.Table, key: str, path: Path) -> np.ndarray:
 class LeRobotBase:
     """What v2.1 and v3.0 readers share: info.json, feature keys, episode table, sidecar."""
 
+    strict = False  # a broken recording raises instead of being repaired and reported (``DemoSet.strict``)
+
     format = "lerobot"
 
     def __init__(self, root: Path, info: dict[str, Any], camera: str | None, state_key: str | None,
@@ -237,9 +239,13 @@ class LeRobotBase:
         env_state = _column_matrix(table, ENV_STATE_KEY, path)[order] if ENV_STATE_KEY in table.column_names else None
         damaged: dict[int, list[tuple[int, str]]] = {}
         # The environment state may be NaN where an object is not in the scene (democheck's no-objects probes):
-        # only the robot's state and actions must be finite.
+        # only the robot's state and actions are repaired (``repair_non_finite``) and reported.
         for key, x in ((self.state_key, state), (self.action_key, actions)):
-            x[:], found = repair_non_finite(x, key, eps[order])
+            filled, found = repair_non_finite(x, key, eps[order])
+            if found and self.strict:
+                e, (_, what) = next(iter(found.items()))
+                raise DatasetError(f"{path}: episode {e} holds {what}")
+            x[:] = filled
             for e, what in found.items():
                 damaged.setdefault(e, []).append(what)
         entry = {
@@ -298,7 +304,16 @@ class LeRobotBase:
         try:
             return read(), []
         except DatasetError as exc:
+            if self.strict:
+                raise
             return np.zeros((n, *self.image_shape), np.uint8), [(n, f"unreadable frames ({exc})")]
+
+    def _image_cues(self, episode_index: int) -> np.ndarray:
+        """First and last frame of an episode stored as images (not video), black where they cannot be read."""
+        path = self._data_path(episode_index)
+        entry, s, e = self._rows(path, episode_index)
+        return self._readable(lambda: np.stack([self._decode_images(entry, s, s + 1, path)[0],
+                                                 self._decode_images(entry, e - 1, e, path)[0]]), 2)[0]
 
     def _make_demo(self, episode_index: int, frames: np.ndarray, entry: dict[str, Any], s: int, e: int,
                    unreadable: list[tuple[int, str]] | None = None) -> Demo:
@@ -407,10 +422,7 @@ class LeRobotV3(LeRobotBase):
         if self.camera_dtype == "video":
             vpath, start, stop = self._video_span(episode_index)
             return self._readable(lambda: video.read_frames(vpath, [start, stop - 1], self.fps), 2)[0]
-        path = self._data_path(episode_index)
-        entry, s, e = self._rows(path, episode_index)
-        return self._readable(lambda: np.stack([self._decode_images(entry, s, s + 1, path)[0],
-                                                 self._decode_images(entry, e - 1, e, path)[0]]), 2)[0]
+        return self._image_cues(episode_index)
 
 
 def open_lerobot(root: Path, camera: str | None = None, state_key: str | None = None,

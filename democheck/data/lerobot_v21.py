@@ -65,10 +65,7 @@ class LeRobotV21(LeRobotBase):
         if self.camera_dtype == "video":
             vpath = self._path("video_path", episode_index)
             return self._readable(lambda: video.read_frames(vpath, [0, n - 1], self.fps), 2)[0]
-        path = self._data_path(episode_index)
-        entry, s, e = self._rows(path, episode_index)
-        return self._readable(lambda: np.stack([self._decode_images(entry, s, s + 1, path)[0],
-                                                 self._decode_images(entry, e - 1, e, path)[0]]), 2)[0]
+        return self._image_cues(episode_index)
 
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:

@@ -29,6 +29,7 @@ def _decode(x) -> str:
 
 class Robomimic:
     format = "robomimic"
+    strict = False  # a broken recording raises instead of being repaired and reported (``DemoSet.strict``)
 
     def __init__(self, path: Path, camera: str | None = None, state_key: str | None = None,
                  action_key: str | None = None, task: str | None = None):
@@ -118,6 +119,8 @@ class Robomimic:
         check_arrays(where, self.action_key, actions, self.action_dim)
         state, bad_state = repair_non_finite(state, "obs (state keys)")
         actions, bad_actions = repair_non_finite(actions, self.action_key)
+        if self.strict and (bad_state or bad_actions):
+            raise DatasetError(f"{where}: holds {[*bad_state.values(), *bad_actions.values()][0][1]}")
         row = self.episodes.loc[episode_index]
         split = row.get("split") if "split" in row else None
         return Demo(episode_index=episode_index, task=str(row["task"]), frames=frames, state=state, actions=actions,

@@ -119,7 +119,7 @@ def suspects_markdown(table: pd.DataFrame, top: int, title: str, fpr: float | No
     lines += ["", f"{int(table['is_anomaly'].sum())} of {len(table)} demos flagged.", "",
               *[f"- {c.replace('_', ' ')}: {SCORERS[c].description}" for c in ["suspicion", *cols]],
               f"- flagged: a share of the reference demos (the audited demos' robust core, believed clean) at least as "
-              f"suspect (p_reference) {level}, or an exact copy of another demo (summary.json, flag)",
+              f"suspect (p_reference) {level}, an exact copy of another demo, or a broken recording (summary.json, flag)",
               "- why: the score that drove the ranking, how rare among clean demos, and where in the demo"]
     return "\n".join(lines)
 
