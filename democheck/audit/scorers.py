@@ -444,8 +444,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            ranking_min_scale=FAULT_MIN_SCALE, behaviour="frozen_video",
            decode=lambda ev, rows, device: frames.FrameChanges(), short="jump"),
     Scorer("frozen_state", "model-free: the longest stretch of steps at which a state dimension repeats its "
-           "value exactly while the actions change, as a share of the demo (the largest over the dimensions that "
-           "move in its task's demos): a sensor that stopped updating", ("demos",), _frozen_state,
+           "value exactly while the actions change, as a share of the demo (the largest over the dimensions still "
+           "in hardly any of its task's demos): a sensor that stopped updating", ("demos",), _frozen_state,
            in_suspicion=True, alone=True, ranking_min_scale=sensors.FROZEN_STATE_MIN_SCALE,
            decode=lambda ev, rows, device: sensors.StateRepeats(), short="frz.st"),
     Scorer("view", "model-free: share of the demo's average picture (16x16) unlike its task's other demos' there "
