@@ -546,6 +546,40 @@ def test_audit_without_a_model_on_data_the_shipped_model_cannot_read(tmp_path):
     assert res.exit_code == 2 and "nothing to score" in res.output
 
 
+def test_sensor_faults_planted_in_a_dataset_lerobot_wrote_are_found(tmp_path):
+    """benchmarks/foreign/plant_faults.py on the Meta-World set LeRobot's writer made: a NaN stretch ranks first
+    as a broken recording, a state stream frozen from a step on reads frozen longer than any clean demo, and every
+    planted demo is flagged (the model-free audit)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from democheck.cli import app
+
+    root = Path(__file__).resolve().parents[1]
+    data = root / "benchmarks/foreign/data/mw-tiny"
+    out = tmp_path / "planted"
+    subprocess.run([sys.executable, str(root / "benchmarks/foreign/plant_faults.py"), str(data),
+                    str(data.with_name("mw-tiny.labels.csv")), str(out), "--seed", "3", "--per-kind", "1",
+                    "--kinds", "dead-dim,frozen-state,sensor-nan"], check=True, capture_output=True)
+    labels = pd.read_csv(tmp_path / "planted.labels.csv").set_index("episode_index")["label"]
+    res = CliRunner().invoke(app, ["audit", str(out), "--out", str(tmp_path / "r"), "--no-model"])
+    assert res.exit_code == 0, res.output
+    table = pd.read_parquet(tmp_path / "r" / "scores.parquet").set_index("episode_index")
+    kind = labels[table.index].to_numpy()
+    first = table.index[0]
+    assert labels[first] == "sensor-nan" and table.loc[first, "reason"].startswith("broken: NaN or infinite values")
+    frozen = table.index[kind == "frozen-state"][0]
+    assert table.loc[frozen, "frozen_state"] > table["frozen_state"][kind == "clean"].max()
+    assert "holds one value while the arm is driven" in table.loc[frozen, "reason"]
+    assert table["is_anomaly"][np.isin(kind, ["dead-dim", "frozen-state", "sensor-nan"])].all()
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert summary["flag"]["broken_recordings"] == 1
+
+
 def test_the_decoding_pass_in_two_worker_processes_gives_the_same_scores(tmp_path, monkeypatch):
     """Shards decoded in spawned workers, merged before the checks finish: every score as in one process."""
     from democheck.audit import shards
