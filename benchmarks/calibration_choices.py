@@ -14,7 +14,7 @@ its task as ``democheck audit`` does, and then:
   or ``scaled kNN`` (the shipped form, ``scores.consistency``);
 - ``log unc.``: the task uncertainty on a log scale in the ranking, or not;
 - the flag rule: ``model`` (the combined tail probability at most the fpr) or ``conformal`` (the share of the
-  core at least as suspect at most the fpr, ``scores.conformal_p``; the shipped rule);
+  core at least as suspect at most the fpr, ``flagging.conformal_p``; the shipped rule);
 - ``final fit LO-HI`` (the shipped choices otherwise): once the core is found, each tail refitted through the
   core's LO and HI percentiles instead of ``TAIL_QUANTILES`` -- upper percentiles, which the core leaves to the
   clean demos, for scores whose clean tail is lighter or heavier than the quartiles say;
@@ -32,7 +32,7 @@ its task as ``democheck audit`` does, and then:
   (``benchmarks/colour_choices.py``); every other row centres each task on all its demos, the choice before.
 
 Printed per variant: the ranking's AUROC per kind and its mean; at each fpr the share of clean demos flagged
-against the number the audit states it expects (``scores.expected_false_flags``), and each kind's share
+against the number the audit states it expects (``flagging.expected_false_flags``), and each kind's share
 flagged.  ``--no-model`` rows rank the model-free scores alone.  ``--only`` keeps the rows of one of the bench's
 datasets (what an audit of that dataset alone would see).
 """
@@ -43,7 +43,7 @@ import dataclasses
 
 import numpy as np
 
-from democheck.audit import scorers, scores
+from democheck.audit import flagging, scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence, ranking_z
 from democheck.petnet.posterior import TaskPosterior
 from suspicion_choices import aurocs, bench_tables
@@ -186,9 +186,9 @@ def show(name: str, s: np.ndarray, core: np.ndarray, labels: np.ndarray, kinds: 
     print(f"  {name:<38} AUROC " + " ".join(f"{au[k]:.3f}" for k in kinds)
           + f" | {np.mean(list(au.values())):.3f}  core {core.mean():.2f}")
     for fpr in FPRS:
-        for rule, p in (("model", 10.0 ** -s), ("conformal", scores.conformal_p(s, core))):
+        for rule, p in (("model", 10.0 ** -s), ("conformal", flagging.conformal_p(s, core))):
             flagged = p <= fpr
-            expected = scores.expected_false_flags(core, fpr)
+            expected = flagging.expected_false_flags(core, fpr)
             print(f"      fpr {fpr:<5g} {rule:<9} clean {flagged[clean].sum():3d} "
                   f"({flagged[clean].mean():.2%}, expected {expected:5.1f})  recall "
                   + " ".join(f"{flagged[labels == k].mean():.2f}" for k in kinds))

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 from suspicion_choices import aurocs, bench_tables
 
-from democheck.audit import colours, scorers, scores
+from democheck.audit import colours, flagging, scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence, ranking_z
 from democheck.data import open_dataset
 
@@ -78,10 +78,10 @@ def judged(table: pd.DataFrame, colour: np.ndarray | None, mode: str, centring: 
     s = scorers.combine(names, log_p)
     au = aurocs(s, labels)
     kinds = sorted(set(labels) - {"clean"})
-    flagged = scores.conformal_p(s, core) <= scores.DEFAULT_FPR
+    flagged = flagging.conformal_p(s, core) <= flagging.DEFAULT_FPR
     clean = labels == "clean"
     return (" ".join(f"{au[k]:.3f}" for k in kinds) + f" | clean {flagged[clean].sum():3d} (expected "
-            f"{scores.expected_false_flags(core, scores.DEFAULT_FPR):4.1f}) "
+            f"{flagging.expected_false_flags(core, flagging.DEFAULT_FPR):4.1f}) "
             + " ".join(f"{flagged[labels == k].mean():.2f}" for k in kinds))
 
 

@@ -38,9 +38,9 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).parent))
 from privileged_bc import COLUMNS, load_frames, rollouts, train_policy  # noqa: E402
 
+from democheck.audit.flagging import flagged_regardless, flags  # noqa: E402
 from democheck.audit.run import gather_evidence, score_table  # noqa: E402
 from democheck.audit.scorers import select  # noqa: E402
-from democheck.audit.scores import flagged_regardless, flags  # noqa: E402
 from democheck.data import open_dataset  # noqa: E402
 from democheck.data.subset import write_subset  # noqa: E402
 from democheck.evaluate.meta_test import wilson  # noqa: E402

@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit import scorers, scores
+from democheck.audit import flagging, scorers, scores
 from democheck.audit.scorers import FAULT_MIN_SCALE, SCORERS, Evidence
 
 FAULTS = ("timing", "frozen_video", "frame_jump", "lag")
@@ -79,15 +79,15 @@ def recombined(table: pd.DataFrame, model_free: bool, fpr: float) -> tuple[np.nd
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=values)
     log_p, core = scorers.ranking_tails(ev, names)
     suspicion = scorers.combine(names, log_p)
-    flagged = scores.flags(scores.conformal_p(suspicion, core), fpr, scores.flagged_regardless(table))
-    return suspicion, flagged, scores.expected_false_flags(core, fpr)
+    flagged = flagging.flags(flagging.conformal_p(suspicion, core), fpr, flagging.flagged_regardless(table))
+    return suspicion, flagged, flagging.expected_false_flags(core, fpr)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("tables", nargs="+")
     ap.add_argument("--no-model", action="store_true")
-    ap.add_argument("--fpr", type=float, default=scores.DEFAULT_FPR)
+    ap.add_argument("--fpr", type=float, default=flagging.DEFAULT_FPR)
     args = ap.parse_args()
     warnings.filterwarnings("ignore", category=RuntimeWarning)
     for spec in args.tables:

@@ -6,10 +6,10 @@ TABLE_DIR is a ``democheck bench`` or a labelled ``democheck audit`` output (its
 scorer's score, each demo's task and label).  The ranking is combined as ``democheck audit`` combines it
 (``Evidence.combination``: each score in robust SD within its task from the robust core, exponential tails,
 Fisher-Brown) and printed per variant: the ranking's AUROC per kind, the clean demos flagged at --fpr 0.01 against
-the number the audit expects (``scores.expected_false_flags``), how many bad demos the robust core holds, and each
+the number the audit expects (``flagging.expected_false_flags``), how many bad demos the robust core holds, and each
 kind's share flagged; the ``nm`` rows rank the model-free scores alone.  The variants:
 
-- ``shipped``: the conformal flags (``scores.conformal_p``: the share of the core at least as suspect).
+- ``shipped``: the conformal flags (``flagging.conformal_p``: the share of the core at least as suspect).
 - ``bulk LO-HI``: the flag level extrapolated from the bulk of the core instead of read off its top: log10 of the
   core's survival function fitted as a line in the suspicion between its LO and HI quantiles, the level where it
   reaches the fpr.  The idea: bad demos left in the core sit at its top and raise the conformal level; the bulk
@@ -32,7 +32,7 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from democheck.audit import scorers, scores
+from democheck.audit import flagging, scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence, ranking_z
 from calibration_choices import empirical_tails
 from suspicion_choices import aurocs
@@ -109,21 +109,21 @@ def main() -> None:
             au = aurocs(s, labels)
             print(f"  {name:<20} " + " ".join(f"{au[k]:.3f}" for k in kinds)
                   + f" | clean {flagged[clean].sum():3d} ({flagged[clean].mean():.1%}, expected "
-                  f"{scores.expected_false_flags(core, FPR):4.1f}), bad in core {(core & ~clean).sum():3d} | "
+                  f"{flagging.expected_false_flags(core, FPR):4.1f}), bad in core {(core & ~clean).sum():3d} | "
                   + " ".join(f"{flagged[labels == k].mean():.2f}" for k in kinds) + extra, flush=True)
 
         for model_free in (False, True):
             who = "nm " if model_free else ""
             s, core = combined(table, model_free)
-            show(f"{who}shipped", s, core, scores.conformal_p(s, core) <= FPR)
+            show(f"{who}shipped", s, core, flagging.conformal_p(s, core) <= FPR)
             for lo, hi in BULKS:
                 flagged, level = bulk_flags(s, core, lo, hi)
                 show(f"{who}bulk {lo:g}-{hi:g}", s, core, flagged, f"  (level {level:.2f})")
             for q in POT_QUANTILES:
                 s_q, core_q = combined(table, model_free, pot_tails(q))
-                show(f"{who}tail POT {q:g}", s_q, core_q, scores.conformal_p(s_q, core_q) <= FPR)
+                show(f"{who}tail POT {q:g}", s_q, core_q, flagging.conformal_p(s_q, core_q) <= FPR)
             s_e, core_e = combined(table, model_free, empirical=True)
-            show(f"{who}empirical", s_e, core_e, scores.conformal_p(s_e, core_e) <= FPR)
+            show(f"{who}empirical", s_e, core_e, flagging.conformal_p(s_e, core_e) <= FPR)
 
 
 if __name__ == "__main__":

@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit import scorers, scores
+from democheck.audit import flagging, scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence, ranking_z
 
 FPRS = (0.001, 0.005, 0.01, 0.02, 0.05)
@@ -115,7 +115,7 @@ def main() -> None:
             print(f"  flags with {what} (conformal on the robust core, as the audit flags): fpr asked -> clean "
                   "share flagged (x asked), recall per kind")
             for fpr in FPRS:
-                flagged = scores.conformal_p(s, core) <= fpr
+                flagged = flagging.conformal_p(s, core) <= fpr
                 recall = " ".join(f"{k[:8]} {flagged[labels == k].mean():.2f}" for k in kinds)
                 print(f"    {fpr:<6g} -> {flagged[clean].mean():.4f} (x{flagged[clean].mean() / fpr:.2f})  {recall}")
 

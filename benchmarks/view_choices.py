@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit import modelfree, scorers, scores
+from democheck.audit import flagging, modelfree, scorers, scores
 from democheck.audit.scorers import SCORERS, Evidence
 from democheck.data import open_dataset
 
@@ -60,7 +60,7 @@ def judged(table: pd.DataFrame, view: np.ndarray | None, name: str = "view", mod
     kinds = sorted(set(labels) - {"clean"})
     au = [roc_auc_score(labels[(labels == k) | (labels == "clean")] == k, s[(labels == k) | (labels == "clean")])
           for k in kinds]
-    flagged = scores.conformal_p(s, core) <= scores.DEFAULT_FPR
+    flagged = flagging.conformal_p(s, core) <= flagging.DEFAULT_FPR
     return (" ".join(f"{a:.3f}" for a in au) + f" | clean {flagged[labels == 'clean'].mean():.3f} | "
             + " ".join(f"{flagged[labels == k].mean():.2f}" for k in kinds))
 

@@ -27,7 +27,7 @@ from democheck.audit.bench import bench, markdown as bench_markdown
 from democheck.audit.metrics import by_label
 from democheck.audit.run import audit, finish_summary, for_model, suspects, write_tables
 from democheck.audit.ocsvm import reference
-from democheck.audit.scores import DEFAULT_FPR, flagged_regardless, flags
+from democheck.audit.flagging import DEFAULT_FPR, flagged_regardless, flags
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache, dataset_fingerprint
 from democheck.data.subset import write_subset

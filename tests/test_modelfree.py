@@ -8,8 +8,8 @@ from scipy import stats
 
 from democheck.audit import dynamics, modelfree, sensors
 from democheck.audit.scorers import SCORERS, Evidence, compute, select
-from democheck.audit.scores import (combined_log10, conformal_p, flags, robust_tails, sidak_log10,
-                                    tail_probabilities)
+from democheck.audit.flagging import conformal_p, flags
+from democheck.audit.scores import combined_log10, robust_tails, sidak_log10, tail_probabilities
 from democheck.data.demo import Demo
 
 T, A, S = 100, 6, 9

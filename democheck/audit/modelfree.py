@@ -34,8 +34,8 @@ held shut, counts in units of 1% of the busiest dimension's, so it cannot make a
 - ``outcome`` (``democheck.audit.outcome``): how differently from its task's other demos the demo left the
   world (where the objects ended up).
 - ``broken``: the share of a demo's frames that could not be decoded (read as black) or whose state or actions
-  held NaN or infinite values (the most damaged of these), which the reader repaired so that the other checks can read the demo
-  (``data.demo.repair_non_finite``); any makes the demo suspect whatever its other scores.
+  held NaN or infinite values (the most damaged of these), which the reader repaired so that the other checks
+  can read the demo (``data.demo.repair_non_finite``); any makes the demo suspect whatever its other scores.
 - ``duplicate``: how close the demo's actions come to another demo's: the log of the median nearest-neighbour
   distance over this demo's, the actions resampled to ``DUPLICATE_STEPS`` steps and put in each dimension's
   standard deviation; an exact copy (the same actions, state and frames, bit for bit) is named as such.
@@ -158,7 +158,7 @@ def broken(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
     state or actions held NaN or infinite values (repaired by ``data.demo.repair_non_finite``), the most damaged
     of these, and where: the readers make every demo readable so that every check can run.  A recording that is
     broken so ranks first whatever its other scores, is flagged, and is no reference for the others
-    (``scorers.broken_rows``, ``scores.flagged_regardless``)."""
+    (``scorers.broken_rows``, ``flagging.flagged_regardless``)."""
     return np.array([share for share, _ in traces.damaged], np.float64), [what for _, what in traces.damaged]
 
 

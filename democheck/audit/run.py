@@ -20,9 +20,9 @@ from democheck import pool
 from democheck.audit import scorers as registry, shards
 from democheck.audit.scorers import Evidence, Scorer
 from democheck.audit.ocsvm import ocsvm_margin
-from democheck.audit.scores import (CORE_P, DEFAULT_FPR, broken_recordings, conformal_p, exact_copies,
-                                    expected_false_flags, flag_level, flagged_regardless,
-                                    flags, rank_order)
+from democheck.audit.flagging import (DEFAULT_FPR, broken_recordings, conformal_p, exact_copies, expected_false_flags,
+                                      flag_level, flagged_regardless, flags)
+from democheck.audit.scores import CORE_P, rank_order
 from democheck.data.cache import dataset_fingerprint
 from democheck.data.demo import DemoSet
 from democheck.errors import DatasetError, DemocheckError
@@ -163,8 +163,8 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
     """The ScoreTable: one row per demo, every computed score, ranked by suspicion (rank 1 = most suspect);
     ``p_value`` is the combined tail probability the suspicion is -log10 of, ``reference`` whether the demo is in
     the robust core those tails were fitted on, ``p_reference`` the share of that core at least as suspect
-    (``scores.conformal_p``) and ``is_anomaly`` a p_reference at most ``fpr`` (or a demo flagged regardless:
-    ``scores.flagged_regardless``)."""
+    (``flagging.conformal_p``) and ``is_anomaly`` a p_reference at most ``fpr`` (or a demo flagged regardless:
+    ``flagging.flagged_regardless``)."""
     eps = ev.episodes
     table = pd.DataFrame({"episode_index": eps["episode_index"].to_numpy(np.int64), "task": ev.tasks})
     for name in registry.SCORERS:
@@ -291,8 +291,8 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
     reference = table["reference"].to_numpy(bool)
     out: dict[str, Any] = {
         "fpr": fpr, "rule": f"at most {fpr:g} of the reference demos at least as suspect (p_reference), an exact "
-                            "copy of another demo, or a broken recording (frames that cannot be decoded, NaN or infinite states or "
-                            "actions)",
+                            "copy of another demo, or a broken recording (frames that cannot be decoded, NaN or "
+                            "infinite states or actions)",
         # If the reference demos are clean and the others like them, about fpr of them are flagged.
         "expected_false_flags": round(expected_false_flags(reference, fpr), 2),
         "p_value_at_level": flag_level(table, fpr),

@@ -27,8 +27,8 @@ from democheck.audit.baselines import MotionFeatures, score_heuristic, score_ran
 from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, sensors
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.ocsvm import ocsvm_margin
-from democheck.audit.scores import (CONSISTENCY_K, broken_recordings, calibrated, combined_log10, consistency_parts,
-                                    robust_tails)
+from democheck.audit.flagging import is_broken
+from democheck.audit.scores import CONSISTENCY_K, calibrated, combined_log10, consistency_parts, robust_tails
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -126,9 +126,10 @@ class Scorer:
     # "normal" for a score that is a mean over many steps (the central limit theorem makes its clean spread normal,
     # and an exponential through its quartiles would call a demo six robust SD out one clean demo in a few hundred).
     tail: str = "exponential"
-    # A recording fault (a frozen camera, dropped frames, actions recorded out of step, a shaking command stream): the faults' tail
-    # probabilities stand apart, beside the combination of the others (``scores.combined_log10``), instead of
-    # adding up with them in Fisher's sum, where one small probability is diluted by every ordinary one beside it.
+    # A recording fault (a frozen camera, dropped frames, actions recorded out of step, a shaking command stream,
+    # a frozen sensor): the faults' tail probabilities stand apart, beside the combination of the others
+    # (``scores.combined_log10``), instead of adding up with them in Fisher's sum, where one small probability is
+    # diluted by every ordinary one beside it.
     alone: bool = False
     # Where its decoding pass's result lands in ``Evidence.behaviour`` (default: its name); scorers that give
     # the same key share one consumer.
@@ -220,10 +221,9 @@ def ranking_tails(ev: Evidence, names: list[str]) -> tuple[np.ndarray, np.ndarra
 
 
 def broken_rows(ev: Evidence) -> np.ndarray:
-    """Which demos are broken recordings (``modelfree.broken``; ``scores.broken_recordings`` on a table): bool [N],
-    all False without that check."""
-    return broken_recordings(pd.DataFrame({"broken": ev.scores["broken"]})) if "broken" in ev.scores \
-        else np.zeros(len(ev.episodes), bool)
+    """Which demos are broken recordings (``flagging.is_broken``; ``flagging.broken_recordings`` on a table): bool
+    [N], all False without that check."""
+    return is_broken(ev.scores["broken"]) if "broken" in ev.scores else np.zeros(len(ev.episodes), bool)
 
 
 def normal_tails(names: list[str]) -> np.ndarray:
@@ -411,8 +411,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            _idle, in_suspicion=True, ranking_min_scale=modelfree.IDLE_MIN_SCALE, behaviour="actions",
            decode=_traces, short="idle"),
     Scorer("broken", "model-free: the share of the demo's frames that could not be decoded, or whose states or "
-           "actions held NaN or infinite values (repaired to be read; any: the demo ranks first and is flagged)", ("demos",), _broken,
-           behaviour="actions", decode=_traces, short="broken"),
+           "actions held NaN or infinite values (repaired to be read; any: the demo ranks first and is flagged)",
+           ("demos",), _broken, behaviour="actions", decode=_traces, short="broken"),
     Scorer("jerk", "model-free: log mean |third difference of actions| in median-change units (shaking, "
            "chatter)", ("demos",), _jerk, in_suspicion=True, alone=True, ranking_min_scale=modelfree.JERK_MIN_SCALE,
            behaviour="actions", decode=_traces, short="jerk"),

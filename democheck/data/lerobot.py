@@ -236,7 +236,6 @@ class LeRobotBase:
         actions = _column_matrix(table, self.action_key, path)[order]
         check_arrays(path, self.state_key, state, self.state_dim)
         check_arrays(path, self.action_key, actions, self.action_dim)
-        env_state = _column_matrix(table, ENV_STATE_KEY, path)[order] if ENV_STATE_KEY in table.column_names else None
         damaged: dict[int, list[tuple[int, str]]] = {}
         # The environment state may be NaN where an object is not in the scene (democheck's no-objects probes):
         # only the robot's state and actions are repaired (``repair_non_finite``) and reported.
@@ -251,7 +250,7 @@ class LeRobotBase:
         entry = {
             "state": state,
             "actions": actions,
-            "env_state": env_state,
+            "env_state": _column_matrix(table, ENV_STATE_KEY, path)[order] if ENV_STATE_KEY in table.column_names else None,
             "timestamp": (table.column("timestamp").to_numpy().astype(np.float64)[order]
                           if "timestamp" in table.column_names else None),
             "images": table.column(self.camera).to_pylist() if self.camera_dtype == "image" else None,

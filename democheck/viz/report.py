@@ -34,8 +34,8 @@ import pandas as pd
 import rerun as rr
 import rerun.blueprint as rrb
 
+from democheck.audit.flagging import flag_level
 from democheck.audit.scorers import SCORERS
-from democheck.audit.scores import flag_level
 from democheck.data.demo import Demo
 from democheck.data.video import VideoWriter
 from democheck.evaluate.meta_test import fmt_rate
