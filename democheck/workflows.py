@@ -54,7 +54,7 @@ def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: b
 
     ``recipe``: the resolved training recipe ``tc`` came from (``petnet.recipe.load_recipe``), recorded in the
     model's config.json and card."""
-    ds = open_dataset(dataset, camera=camera, image_size=tc.image_size)
+    ds = open_dataset(dataset, camera=camera, image_size=tc.image_size).require_camera("PETNet")
     if ds.episodes.groupby("task").size().max() < 2:
         raise DatasetError(f"{ds.root}: every task has a single demo; training needs two or more per task (a cue and "
                            "a trajectory to imitate); democheck audit can still score these demos with a trained model")
@@ -166,6 +166,9 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
     ckpt, why = None, None
     if no_model:
         why = "audited with the model-free checks alone (--no-model)"
+    elif model is None and not ds.has_camera:
+        why = ("the dataset records no camera, and the model reads a demo by its frames: audited with the model-free "
+               "checks of its states and actions alone")
     else:
         ckpt = load_checkpoint(model, device=dev)
         if model is None:

@@ -833,3 +833,77 @@ def test_outcome_compares_an_end_with_the_demos_that_started_on_its_side():
     assert int(np.argmax(by_side)) == 13 and by_side[10:13].max() < 3 < 10 < by_side[13]
     assert whole[10:13].min() > 10  # against the whole task the three that started below read far out
     assert "target.y at the end" in reasons[13] and "started on its side" in reasons[13]
+
+
+def _camera_less_copies(data, tmp_path):
+    """The Meta-World set LeRobot's writer made, as a state-only LeRobot dataset (its video feature and files
+    removed), as a robomimic low-dimensional file (robot0_eef_pos, robot0_gripper_qpos and the objects under
+    obs/object, no images; each demo naming its task) and as a robomimic raw file (no obs group: its ``states``)."""
+    import json
+    import shutil
+
+    import h5py
+
+    lerobot = tmp_path / "no-camera"
+    shutil.copytree(data, lerobot, ignore=shutil.ignore_patterns("videos"))
+    info = json.loads((lerobot / "meta/info.json").read_text())
+    info["features"] = {k: f for k, f in info["features"].items() if f["dtype"] not in ("video", "image")}
+    (lerobot / "meta/info.json").write_text(json.dumps(info))
+    frame = pd.read_parquet(data / "data/chunk-000/file-000.parquet")
+    tasks = pd.read_parquet(data / "meta/tasks.parquet")
+    names = dict(zip(tasks["task_index"], tasks.index))
+    low, raw = tmp_path / "low_dim.hdf5", tmp_path / "demo.hdf5"
+    for path in (low, raw):
+        with h5py.File(path, "w") as f:
+            for e, rows in frame.groupby("episode_index"):
+                g = f.create_group(f"data/demo_{e}")
+                g.attrs["task"] = names[int(rows["task_index"].iloc[0])]
+                g.create_dataset("actions", data=np.stack(rows["action"].to_numpy()))
+                state = np.stack(rows["observation.state"].to_numpy())
+                if path == raw:
+                    g.create_dataset("states", data=state)
+                    continue
+                g.create_dataset("obs/robot0_eef_pos", data=state[:, :3])
+                g.create_dataset("obs/robot0_gripper_qpos", data=state[:, 3:4])
+                g.create_dataset("obs/object", data=state[:, 4:])
+    return lerobot, low, raw
+
+
+def test_a_dataset_without_a_camera_is_audited_on_its_states_and_actions(tmp_path):
+    """A dataset that records no camera -- a state-only LeRobot dataset, robomimic's low-dimensional and raw
+    files -- is audited with the model-free checks of its states and actions (automatically, saying why): every
+    planted demo the frames are not needed for (a still, random and stopped arm, another task's recording) is
+    flagged, the checks of the frames are left out, and what needs frames (the model, training, probes) refuses
+    in one line."""
+    import json
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from democheck.cli import app
+    from democheck.data import open_dataset
+
+    data = Path(__file__).resolve().parents[1] / "benchmarks/foreign/data/mw-tiny"
+    labels = pd.read_csv(data.with_name("mw-tiny.labels.csv")).set_index("episode_index")["label"]
+    runner = CliRunner()
+    for source in _camera_less_copies(data, tmp_path):
+        ds = open_dataset(source)
+        assert ds.camera is None and not ds.has_camera and ds[3].frames.shape == (len(ds[3]), 0, 0, 3)
+        out = tmp_path / f"audit-{source.name}"
+        res = runner.invoke(app, ["audit", str(source), "--out", str(out)])
+        assert res.exit_code == 0, res.output
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["model"] is None and "records no camera" in summary["warnings"][0]
+        table = pd.read_parquet(out / "scores.parquet")
+        assert not {"view", "colours", "frozen_video", "frame_jump"} & set(table)
+        assert {"motion", "idle", "outcome", "lag", "coupling"} <= set(table)
+        flagged = table.loc[table["is_anomaly"], "episode_index"].tolist()
+        assert set(labels[flagged]) - {"clean"} == {"idle", "random", "gave-up", "wrong-task"}, source
+        assert (labels[flagged] == "clean").sum() <= 1
+        assert (out / "report.rrd").stat().st_size > 0
+        shipped = Path(__file__).resolve().parents[1] / "democheck/models/petnet-push-v1"
+        for command in (["audit", str(source), "--out", str(tmp_path / "m"), "--model", str(shipped)],
+                        ["train", str(source), "--out", str(tmp_path / "t")],
+                        ["probe", str(source), "--out", str(tmp_path / "p")]):
+            res = runner.invoke(app, command)
+            assert res.exit_code != 0 and "records no camera" in res.output, (command, res.output)

@@ -38,6 +38,7 @@ def for_model(ds: DemoSet, ckpt: Checkpoint) -> DemoSet:
     """``ds`` as ``ckpt`` reads it -- frames resized to the model's input size, as its training resized them --
     or one clear line when the model cannot read this dataset at all."""
     cfg = ckpt.config
+    ds.require_camera("the model")
     train = f"train a model on this data: democheck train {ds.root} --out models/<name>"
     if cfg.model_type != "petnet":
         raise DemocheckError(f"{ckpt.path}: a {cfg.model_type} model has no task uncertainty; audit needs a PETNet model")
@@ -122,7 +123,8 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
         t["score_s"] = time.perf_counter() - t0
         if episodes is None:
             episodes = pd.concat([ds.episodes.reset_index() for ds in sets], ignore_index=True)
-        ev = Evidence(episodes=episodes, posterior=post, model=ckpt, embedding=embedding, seed=seed)
+        ev = Evidence(episodes=episodes, posterior=post, model=ckpt, embedding=embedding, seed=seed,
+                      frames=all(ds.has_camera for ds in sets))
         decoding = {}
         for s in scorers:  # scorers that share a behaviour key share its consumer
             if s.can_decode(ev):

@@ -42,6 +42,7 @@ NEEDS = {
     "tecnet": "a TecNets model trained on the same data (democheck bench --tecnet)",
     "scores": "other scorers' scores",
     "many": "more than one demo",
+    "frames": "camera frames (a dataset that records no camera has none: ``NO_CAMERA``)",
 }
 
 
@@ -57,6 +58,7 @@ class Evidence:
     scores: dict[str, np.ndarray] = field(default_factory=dict)  # computed so far, by scorer name
     reasons: dict[str, list[str]] = field(default_factory=dict)
     seed: int = 0
+    frames: bool = True  # the demos have camera frames (False: a dataset that records no camera, ``NO_CAMERA``)
     _z: np.ndarray | None = field(default=None, repr=False)
     _combinations: dict[tuple, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
@@ -86,7 +88,7 @@ class Evidence:
                 "novelty": self.model is not None and bool(self.model.config.novelty),
                 "reference": self.model is not None and bool((self.model.meta.get("reference") or {}).get("ocsvm")),
                 "tecnet": self.embedding is not None, "demos": True, "scores": True,
-                "many": len(self.episodes) > 1}[need]
+                "many": len(self.episodes) > 1, "frames": self.frames}[need]
 
 
 Scores = tuple[np.ndarray, list[str] | None]  # one number per demo, and a reason per demo (or None)
@@ -151,8 +153,8 @@ class Scorer:
     def can_run(self, ev: Evidence) -> bool:
         """Whether ``ev`` has what this scorer needs: for one that needs every frame, its decoding pass's result
         (``ev.behaviour``); for the others, every need."""
-        if "demos" in self.needs:  # what it needs besides the frames was needed by the decoding pass
-            return self.source in ev.behaviour and ("many" not in self.needs or ev.has("many"))
+        if "demos" in self.needs:  # what it needs besides the decoded demos was needed by the decoding pass
+            return self.source in ev.behaviour and all(ev.has(n) for n in self.needs if n in ("many", "frames"))
         return all(ev.has(n) for n in self.needs)
 
     def can_decode(self, ev: Evidence) -> bool:
@@ -435,12 +437,12 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "NaN without timestamps)", ("demos",), _timing, in_suspicion=True, alone=True,
            ranking_min_scale=FAULT_MIN_SCALE, behaviour="actions", decode=_traces, short="time"),
     Scorer("frozen_video", "model-free: the longest stretch of steps at which the camera frame repeats while the "
-           "actions change, as a share of the demo's steps (a camera that stopped delivering)", ("demos",),
+           "actions change, as a share of the demo's steps (a camera that stopped delivering)", ("demos", "frames"),
            _frozen_video, in_suspicion=True, alone=True, ranking_min_scale=FAULT_MIN_SCALE,
            decode=lambda ev, rows, device: frames.FrameChanges(), short="frozen"),
     Scorer("frame_jump", "model-free: how much more the camera frame changes at one step than at the "
            f"{frames.JUMP_NEIGHBOURS} steps either side (log of the largest ratio): frames dropped from the "
-           "recording, or recordings spliced", ("demos",), _frame_jump, in_suspicion=True, alone=True,
+           "recording, or recordings spliced", ("demos", "frames"), _frame_jump, in_suspicion=True, alone=True,
            ranking_min_scale=FAULT_MIN_SCALE, behaviour="frozen_video",
            decode=lambda ev, rows, device: frames.FrameChanges(), short="jump"),
     Scorer("frozen_state", "model-free: the longest stretch of steps at which a state dimension repeats its "
@@ -450,13 +452,13 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            decode=lambda ev, rows, device: sensors.StateRepeats(), short="frz.st"),
     Scorer("view", "model-free: share of the demo's average picture (16x16) unlike its task's other demos' there "
            f"(over {modelfree.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
-           "robust z within its task", ("demos",), _view, in_suspicion=True, in_robust_sd=True,
+           "robust z within its task", ("demos", "frames"), _view, in_suspicion=True, in_robust_sd=True,
            decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
     Scorer("colours", "model-free: how differently from its task's other demos the frames are coloured, wherever "
            f"the colours are in the view (every {modelfree.VIEW_EVERY}th frame's pixels in "
            f"{colours.COLOUR_LEVELS ** 3} colour bins, each bin's log share in robust SD within its task, RMS "
            "over the colours shown): an object missing or another one, a covered camera; robust z within its "
-           "task", ("demos",), _colours, in_suspicion=True, in_robust_sd=True,
+           "task", ("demos", "frames"), _colours, in_suspicion=True, in_robust_sd=True,
            decode=lambda ev, rows, device: colours.ColourStats(), short="colour"),
     Scorer("outcome", "model-free: how differently from its task's other demos the demo left the world (the "
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "

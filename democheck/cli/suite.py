@@ -107,7 +107,8 @@ def info(
         table.add_row("episodes / tasks", f"{len(ds)} / {len(ds.tasks)}")
         table.add_row("frames", f"{int(eps['length'].sum())} at {ds.fps:g} fps")
         h, w, c = ds.image_shape
-        table.add_row("camera", f"{ds.camera} ({h}x{w}x{c})")
+        table.add_row("camera", f"{ds.camera} ({h}x{w}x{c})" if ds.has_camera else
+                      "none (states and actions only: democheck audit --no-model)")
         table.add_row("state / action dims", f"{ds.state_dim} / {ds.action_dim}")
         for col in ("split", "label"):
             if col in eps:

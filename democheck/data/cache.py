@@ -38,7 +38,7 @@ def dataset_fingerprint(ds: DemoSet) -> str:
     for sub in ("data", "videos"):
         for path in sorted(p for p in (root / sub).rglob("*") if p.is_file()):
             h.update(f"{path.relative_to(root)}:{path.stat().st_size}".encode())
-    h.update(ds.camera.encode())
+    h.update((ds.camera or "").encode())
     return h.hexdigest()[:16]
 
 

@@ -18,9 +18,21 @@ import pandas as pd
 from democheck.errors import DatasetError
 
 
+# The frame shape of a dataset that records no camera (robomimic's low-dimensional files, a state-only LeRobot
+# dataset): its demos' frames are [T, 0, 0, 3].  The model-free checks of states and actions read it; those of
+# the frames give NaN; the model, which reads a demo by its frames, cannot.
+NO_CAMERA = (0, 0, 3)
+
+
+def no_frames(n: int) -> np.ndarray:
+    """The frames of ``n`` steps of a dataset without a camera (``NO_CAMERA``)."""
+    return np.zeros((n, *NO_CAMERA), np.uint8)
+
+
 @dataclass
 class Demo:
-    """One demonstration: frames uint8 [T,H,W,3], state float32 [T,S], actions float32 [T,A]."""
+    """One demonstration: frames uint8 [T,H,W,3] ([T,0,0,3] where no camera is recorded: ``NO_CAMERA``), state
+    float32 [T,S], actions float32 [T,A]."""
 
     episode_index: int
     task: str
@@ -129,7 +141,8 @@ class DemoSet:
     def __init__(self, source: DemoSource, image_size: int | None = None):
         self._src = source
         native = source.image_shape
-        self.image_size = None if image_size is None or native[:2] == (image_size, image_size) else int(image_size)
+        self.image_size = (None if image_size is None or native[:2] in ((image_size, image_size), NO_CAMERA[:2])
+                           else int(image_size))
 
     def strict(self) -> "DemoSet":
         """Make a broken recording (NaN or infinite states or actions, frames that cannot be decoded) an error
@@ -162,8 +175,20 @@ class DemoSet:
         return self._src.fps
 
     @property
-    def camera(self) -> str:
+    def camera(self) -> str | None:
+        """The camera read (None: the dataset records none, ``NO_CAMERA``)."""
         return self._src.camera
+
+    @property
+    def has_camera(self) -> bool:
+        return self._src.image_shape[:2] != NO_CAMERA[:2]
+
+    def require_camera(self, what: str) -> "DemoSet":
+        """This set, or one clear line where the dataset records no camera and ``what`` reads demos by frames."""
+        if not self.has_camera:
+            raise DatasetError(f"{self.root}: records no camera (no image or video feature), and {what} reads a demo "
+                               "by its frames; democheck audit --no-model checks its states and actions")
+        return self
 
     @property
     def image_shape(self) -> tuple[int, int, int]:

@@ -30,7 +30,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from democheck.data import video
-from democheck.data.demo import Demo, check_arrays, check_episodes, repair_non_finite
+from democheck.data.demo import NO_CAMERA, Demo, check_arrays, check_episodes, no_frames, repair_non_finite
 from democheck.errors import DatasetError
 
 CODEBASE_VERSION = "v3.0"
@@ -161,9 +161,9 @@ class LeRobotBase:
         if not (np.isfinite(self.fps) and self.fps > 0):
             raise DatasetError(f"{root / 'meta/info.json'}: fps must be a positive number, not {info['fps']!r}")
         self.camera = self._pick_camera(camera)
-        feat = self.features[self.camera]
-        self.camera_dtype = feat.get("dtype")
-        self.image_shape = self._hwc(feat.get("shape", []), feat.get("names"))
+        feat = self.features[self.camera] if self.camera else {}
+        self.camera_dtype = feat.get("dtype")  # None: the dataset records no camera (``NO_CAMERA``)
+        self.image_shape = self._hwc(feat.get("shape", []), feat.get("names")) if self.camera else NO_CAMERA
         self.state_key = self._pick_key(state_key, [STATE_KEY, "state", "observation.qpos"], "state", "--state-key")
         self.action_key = self._pick_key(action_key, [ACTION_KEY, "actions"], "action", "--action-key")
         self.state_dim = int(np.prod(self.features[self.state_key].get("shape", [1])))
@@ -175,12 +175,12 @@ class LeRobotBase:
                                 if isinstance(env, dict) else None)
         self._cache: OrderedDict[Path, dict[str, Any]] = OrderedDict()
 
-    def _pick_camera(self, camera: str | None) -> str:
+    def _pick_camera(self, camera: str | None) -> str | None:
         cams = [k for k, f in self.features.items() if isinstance(f, dict) and f.get("dtype") in ("video", "image")]
-        if not cams:
-            raise DatasetError(f"{self.root / 'meta/info.json'}: no image or video feature")
+        if not cams and camera is not None:
+            raise DatasetError(f"{self.root / 'meta/info.json'}: no camera {camera!r}: no image or video feature")
         if camera is None:
-            return cams[0]
+            return cams[0] if cams else None
         for key in (camera, f"observation.images.{camera}"):
             if key in cams:
                 return key
@@ -388,7 +388,9 @@ class LeRobotV3(LeRobotBase):
     def load(self, episode_index: int) -> Demo:
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
-        if self.camera_dtype == "video":
+        if self.camera is None:
+            frames, unreadable = no_frames(e - s), []
+        elif self.camera_dtype == "video":
             vpath, start, stop = self._video_span(episode_index)
             frames, unreadable = self._readable(lambda: video.read_range(vpath, start, stop, self.fps), e - s)
         else:
@@ -397,7 +399,7 @@ class LeRobotV3(LeRobotBase):
 
     def cues(self, episode_indices: list[int]) -> np.ndarray:
         """First and last frames of many episodes, decoding each video file in one pass."""
-        if self.camera_dtype != "video":
+        if self.camera_dtype != "video":  # images, or no camera
             return np.stack([self.cue_frames(e) for e in episode_indices])
         h, w, c = self.image_shape
         out = np.empty((len(episode_indices), 2, h, w, c), np.uint8)
@@ -418,6 +420,8 @@ class LeRobotV3(LeRobotBase):
         return out
 
     def cue_frames(self, episode_index: int) -> np.ndarray:
+        if self.camera is None:
+            return no_frames(2)
         if self.camera_dtype == "video":
             vpath, start, stop = self._video_span(episode_index)
             return self._readable(lambda: video.read_frames(vpath, [start, stop - 1], self.fps), 2)[0]

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from democheck.data import video
-from democheck.data.demo import Demo, check_episodes
+from democheck.data.demo import Demo, check_episodes, no_frames
 from democheck.data.lerobot import CHUNKS_SIZE, LeRobotBase, inside_root, path_template
 from democheck.errors import DatasetError
 
@@ -53,7 +53,9 @@ class LeRobotV21(LeRobotBase):
     def load(self, episode_index: int) -> Demo:
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
-        if self.camera_dtype == "video":
+        if self.camera is None:
+            frames, unreadable = no_frames(e - s), []
+        elif self.camera_dtype == "video":
             vpath = self._path("video_path", episode_index)
             frames, unreadable = self._readable(lambda: video.read_range(vpath, 0, e - s, self.fps), e - s)
         else:
@@ -62,6 +64,8 @@ class LeRobotV21(LeRobotBase):
 
     def cue_frames(self, episode_index: int) -> np.ndarray:
         n = int(self.episodes.loc[episode_index, "length"])
+        if self.camera is None:
+            return no_frames(2)
         if self.camera_dtype == "video":
             vpath = self._path("video_path", episode_index)
             return self._readable(lambda: video.read_frames(vpath, [0, n - 1], self.fps), 2)[0]

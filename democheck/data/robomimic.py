@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from democheck.data.demo import Demo, check_arrays, check_episodes, repair_non_finite
+from democheck.data.demo import NO_CAMERA, Demo, check_arrays, check_episodes, no_frames, repair_non_finite
 from democheck.errors import DatasetError
 
 
@@ -49,25 +49,29 @@ class Robomimic:
             if not names:
                 raise DatasetError(f"{path}: no data/demo_N groups")
             first = data[names[0]]
-            if "obs" not in first:
-                raise DatasetError(f"{path}: {names[0]} has no obs group")
-            obs = first["obs"]
-            cams = sorted(k for k in obs if obs[k].ndim == 4 and obs[k].shape[-1] == 3)
-            if not cams:
-                raise DatasetError(f"{path}: no image observations (obs/<key> of shape [T, H, W, 3])")
+            # robomimic's raw files (demo.hdf5) have no obs group: the simulator's flattened state is the state.
+            obs = first["obs"] if "obs" in first else None
+            if obs is None and "states" not in first:
+                raise DatasetError(f"{path}: {names[0]} has no obs group (nor states)")
+            obs_keys = list(obs) if obs is not None else []
+            cams = sorted(k for k in obs_keys if obs[k].ndim == 4 and obs[k].shape[-1] == 3)
             if camera is None:
-                self.camera = cams[0]
+                self.camera = cams[0] if cams else None  # none: robomimic's low-dimensional files (``NO_CAMERA``)
             else:
                 matches = [c for c in (camera, f"{camera}_image") if c in cams]
                 if not matches:
-                    raise DatasetError(f"{path}: no camera {camera!r}; choose one of {', '.join(cams)}")
+                    raise DatasetError(f"{path}: no camera {camera!r}; "
+                                       + (f"choose one of {', '.join(cams)}" if cams else "it records no images"))
                 self.camera = matches[0]
-            low = sorted(k for k in obs if obs[k].ndim == 2 and k not in cams)
+            low = sorted(k for k in obs_keys if obs[k].ndim == 2 and k not in cams)
+            self.obs = obs is not None
             if state_key is not None:
                 self.state_keys = [k.strip() for k in state_key.split(",")]
-                missing = [k for k in self.state_keys if k not in obs]
+                missing = [k for k in self.state_keys if k not in (obs if self.obs else first)]
                 if missing:
-                    raise DatasetError(f"{path}: no obs key {missing[0]!r} (--state-key)")
+                    raise DatasetError(f"{path}: no {'obs ' if self.obs else ''}key {missing[0]!r} (--state-key)")
+            elif not self.obs:
+                self.state_keys = ["states"]
             else:
                 robot = [k for k in low if k.startswith("robot")]
                 self.state_keys = robot or low
@@ -76,8 +80,8 @@ class Robomimic:
             self.action_key = action_key or "actions"
             if self.action_key not in first:
                 raise DatasetError(f"{path}: {names[0]} has no {self.action_key!r}")
-            self.image_shape = tuple(int(v) for v in obs[self.camera].shape[1:])
-            self.state_dim = int(sum(obs[k].shape[1] for k in self.state_keys))
+            self.image_shape = tuple(int(v) for v in obs[self.camera].shape[1:]) if self.camera else NO_CAMERA
+            self.state_dim = int(sum(self._state_group(first)[k].shape[1] for k in self.state_keys))
             self.action_dim = int(first[self.action_key].shape[1])
             try:
                 env_args = json.loads(_decode(data.attrs.get("env_args", "{}")))
@@ -105,14 +109,20 @@ class Robomimic:
     def _group(self, f, episode_index: int):
         return f["data"][self.episodes.loc[episode_index, "name"]]
 
+    def _state_group(self, g):
+        """Where a demo's state keys are: its obs group, or the demo itself in a raw file (its ``states``)."""
+        return g["obs"] if self.obs else g
+
     def load(self, episode_index: int) -> Demo:
         with self._h5.File(self.root, "r") as f:
             g = self._group(f, episode_index)
-            frames = np.asarray(g["obs"][self.camera][()], dtype=np.uint8)
-            state = np.concatenate([np.asarray(g["obs"][k][()], np.float32).reshape(len(frames), -1)
-                                    for k in self.state_keys], axis=1) if self.state_keys else np.zeros((len(frames), 0), np.float32)
             actions = np.asarray(g[self.action_key][()], np.float32)
-            env_state = (np.asarray(g["obs"][self.env_key][()], np.float32).reshape(len(frames), -1)
+            n = len(actions)
+            frames = np.asarray(g["obs"][self.camera][()], dtype=np.uint8) if self.camera else no_frames(n)
+            where_state = self._state_group(g)
+            state = np.concatenate([np.asarray(where_state[k][()], np.float32).reshape(n, -1)
+                                    for k in self.state_keys], axis=1) if self.state_keys else np.zeros((n, 0), np.float32)
+            env_state = (np.asarray(g["obs"][self.env_key][()], np.float32).reshape(n, -1)
                          if self.env_key else None)
         where = f"{self.root}: data/{self.episodes.loc[episode_index, 'name']}"
         check_arrays(where, "obs (state keys)", state, self.state_dim)
@@ -130,11 +140,13 @@ class Robomimic:
     def end_state(self, episode_index: int) -> np.ndarray:
         """The state at an episode's last step, float32 [S], reading one row of each state key."""
         with self._h5.File(self.root, "r") as f:
-            obs = self._group(f, episode_index)["obs"]
+            obs = self._state_group(self._group(f, episode_index))
             parts = [np.asarray(obs[k][obs[k].shape[0] - 1], np.float32).reshape(-1) for k in self.state_keys]
         return np.concatenate(parts) if parts else np.zeros(0, np.float32)
 
     def cue_frames(self, episode_index: int) -> np.ndarray:
+        if self.camera is None:
+            return no_frames(2)
         with self._h5.File(self.root, "r") as f:
             img = self._group(f, episode_index)["obs"][self.camera]
             return np.stack([img[0], img[img.shape[0] - 1]]).astype(np.uint8)

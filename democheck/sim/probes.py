@@ -149,7 +149,7 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
     The probes keep the source's camera name, and their video is lossless, so a probe's frames equal its
     source's bit for bit wherever the probe does not change them; the frames a probe renders anew have been
     through the source's encoder first (``source_codec``)."""
-    ds = open_dataset(source, camera=camera)
+    ds = open_dataset(source, camera=camera).require_camera("a probe")
     has_sim = "sim" in ds.episodes and bool(ds.episodes["sim"].fillna("").astype(str).str.len().gt(0).all())
     kinds = list(kinds or (PROBES if has_sim else IMAGE_PROBES))
     unknown = [k for k in kinds if k not in PROBES]

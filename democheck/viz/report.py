@@ -151,21 +151,8 @@ def _histogram(rec: rr.RecordingStream, path: str, values: np.ndarray, flagged: 
 def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray | None, fps: float,
               names: dict[str, list[str]] | None = None) -> None:
     t = np.arange(len(demo))
-    with tempfile.TemporaryDirectory() as tmp:
-        size = demo.frames.shape[1]
-        pix = "yuv420p" if size % 2 == 0 and demo.frames.shape[2] == size else "yuv444p"
-        if demo.frames.shape[1] == demo.frames.shape[2]:
-            with VideoWriter(Path(tmp) / "v.mp4", int(round(fps)), size, pix_fmt=pix, crf=18) as vw:
-                vw.write(demo.frames)
-            asset = rr.AssetVideo(contents=(Path(tmp) / "v.mp4").read_bytes(), media_type="video/mp4")
-            rec.log(f"{base}/video", asset, static=True)
-            stamps = asset.read_frame_timestamps_nanos()
-            rec.send_columns(f"{base}/video", indexes=[rr.TimeColumn("frame", sequence=t[:len(stamps)])],
-                             columns=rr.VideoFrameReference.columns_nanos(stamps))
-        else:  # non-square frames: plain images
-            for i, img in enumerate(demo.frames):
-                rec.set_time("frame", sequence=i)
-                rec.log(f"{base}/video", rr.Image(img))
+    if demo.frames.size:  # else a dataset without a camera (``NO_CAMERA``): its state and actions alone
+        _log_video(rec, f"{base}/video", demo.frames, fps, t)
     if sigma is not None:
         rec.log(f"{base}/sigma", rr.BarChart(sigma), static=True)
     frame = [rr.TimeColumn("frame", sequence=t)]
@@ -174,6 +161,25 @@ def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray 
         if given and len(given) == values.shape[1]:
             rec.log(f"{base}/{what}", rr.SeriesLines(names=given), static=True)
         rec.send_columns(f"{base}/{what}", indexes=frame, columns=rr.Scalars.columns(scalars=values))
+
+
+def _log_video(rec: rr.RecordingStream, path: str, frames: np.ndarray, fps: float, t: np.ndarray) -> None:
+    """A demo's frames as an H.264 video asset (square frames) or as images, on the ``frame`` timeline."""
+    with tempfile.TemporaryDirectory() as tmp:
+        size = frames.shape[1]
+        pix = "yuv420p" if size % 2 == 0 and frames.shape[2] == size else "yuv444p"
+        if frames.shape[1] == frames.shape[2]:
+            with VideoWriter(Path(tmp) / "v.mp4", int(round(fps)), size, pix_fmt=pix, crf=18) as vw:
+                vw.write(frames)
+            asset = rr.AssetVideo(contents=(Path(tmp) / "v.mp4").read_bytes(), media_type="video/mp4")
+            rec.log(path, asset, static=True)
+            stamps = asset.read_frame_timestamps_nanos()
+            rec.send_columns(path, indexes=[rr.TimeColumn("frame", sequence=t[:len(stamps)])],
+                             columns=rr.VideoFrameReference.columns_nanos(stamps))
+        else:  # non-square frames: plain images
+            for i, img in enumerate(frames):
+                rec.set_time("frame", sequence=i)
+                rec.log(path, rr.Image(img))
 
 
 def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embedding: np.ndarray,
@@ -233,9 +239,10 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embe
         if sigma is not None:
             plots.insert(0, rrb.BarChartView(origin=f"{base}/sigma", name="sigma / median of unflagged (1 = typical)",
                                              plot_legend=rrb.PlotLegend(visible=False)))
+        why = rrb.TextDocumentView(origin=f"{base}/about", name="why")
         tabs.append(rrb.Vertical(
-            rrb.Horizontal(rrb.TextDocumentView(origin=f"{base}/about", name="why"),
-                           rrb.Spatial2DView(origin=f"{base}/video", name="video"), column_shares=[1, 1]),
+            rrb.Horizontal(why, rrb.Spatial2DView(origin=f"{base}/video", name="video"), column_shares=[1, 1])
+            if demo.frames.size else why,
             rrb.Horizontal(*plots), row_shares=[3, 2],
             name=f"#{row['rank']} ep{row['episode_index']}{' FLAGGED' if row['is_anomaly'] else ''}"))
     # Only the list itself: each suspect's "about" document lives under it too.
