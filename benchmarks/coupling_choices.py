@@ -4,11 +4,11 @@
 
 BENCH_DIR is a ``democheck bench`` output (scores.parquet).  Every demo the bench read is decoded once more for its
 state-action mutual information (``coupling.CouplingStats``), and the ranking combined as ``democheck audit``
-combines it (``view_choices.judged``) four ways: with the model's scores, without and with the coupling (as the
-ranking has it, the coupling only where the action error is not; forced in beside it; ``merged`` with it, the two
-one piece of evidence -- the Sidak minimum of their tail probabilities, 1 - (1 - min p)^2, in the action error's
-column -- since both ask whether the actions are explained), and with the model-free scores alone
-(``model_free``), without and with it.  Printed per way: the ranking's AUROC per kind, the share of clean
+combines it (``view_choices.judged``) five ways: with the model's scores, without the coupling (as the ranking had
+it before, the coupling only where the action error was not), with it as the ranking has it (one look with the
+action error, ``Scorer.look``: the Sidak minimum of their two tail probabilities, since both ask whether the
+actions are explained) and ``beside`` it (a look of its own in Fisher's sum); and with the model-free scores
+alone (``model_free``), without and with it.  Printed per way: the ranking's AUROC per kind, the share of clean
 demos flagged at --fpr 0.01 and each kind's; first, the coupling's own AUROC per kind.  ``--only`` keeps the
 rows of one of the bench's datasets (the demos an audit of that dataset alone would see).
 """
@@ -20,8 +20,8 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 
-from democheck.audit import coupling, scores
-from democheck.audit.scorers import SCORERS, ranked
+from democheck.audit import coupling
+from democheck.audit.scorers import SCORERS
 from democheck.data import open_dataset
 from suspicion_choices import aurocs, bench_tables
 from view_choices import judged
@@ -34,21 +34,6 @@ def coupling_scores(table: pd.DataFrame) -> np.ndarray:
     for path, source in zip(table["dataset"], table["source_index"]):
         stats.add(sets[path][int(source)])
     return coupling.coupling(stats, table["task"].to_numpy())[0]
-
-
-def merged_tails(names: list[str]):
-    """``scores.tail_probabilities`` with the coupling's column folded into the action error's: the Sidak minimum
-    of the two (natural logs), the coupling's own column left out (NaN)."""
-    shipped, a, c = scores.tail_probabilities, names.index("action_error"), names.index("coupling")
-
-    def tails(z: np.ndarray, core: np.ndarray | None = None, normal: np.ndarray | None = None) -> np.ndarray:
-        log_p = shipped(z, core, normal)
-        low = np.fmin(log_p[:, a], log_p[:, c])
-        with np.errstate(all="ignore"):  # log(1 - (1 - p)^2), which is log(2p) where p is tiny
-            sidak = np.where(low < -30, low + np.log(2), np.log1p(-np.exp(2 * np.log1p(-np.exp(low)))))
-        log_p[:, a], log_p[:, c] = np.where(np.isnan(low), np.nan, sidak), np.nan
-        return log_p
-    return tails
 
 
 def main() -> None:
@@ -64,18 +49,12 @@ def main() -> None:
             what = "no model" if model_free else "with the model"
             print(f"  {what + ', without':<24} {judged(table, None, 'coupling', model_free)}")
             print(f"  {what + ', with':<24} {judged(table, value, 'coupling', model_free)}", flush=True)
-            if not model_free:
-                SCORERS["coupling"] = replace(shipped, stands_in_for="")
-                tails = scores.tail_probabilities
+            if not model_free:  # "with" is the shipped look, merged with the action error; "beside": a look of its own
+                SCORERS["coupling"] = replace(shipped, look="")
                 try:
-                    print(f"  {what + ', forced in':<24} {judged(table, value, 'coupling', model_free)}")
-                    cols = {c: table[c].to_numpy(float) for c in table if c in SCORERS} | {"coupling": value}
-                    scores.tail_probabilities = merged_tails(ranked(cols, table["task"].to_numpy()))
-                    print(f"  {what + ', merged':<24} {judged(table, value, 'coupling', model_free)}")
+                    print(f"  {what + ', beside':<24} {judged(table, value, 'coupling', model_free)}")
                 finally:
                     SCORERS["coupling"] = shipped
-                    scores.tail_probabilities = tails
-
 
 if __name__ == "__main__":
     main()

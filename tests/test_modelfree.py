@@ -792,8 +792,8 @@ def test_ksg_mutual_information_matches_the_gaussian_formula():
     assert stats.information[0] == ksg_mutual_information(long.state[steps], long.actions[steps])
 
 
-def test_coupling_ranks_the_arm_let_go_of_first_and_stands_in_for_the_action_error():
-    from democheck.audit.scorers import ranked
+def test_coupling_ranks_the_arm_let_go_of_first_and_is_one_look_with_the_action_error():
+    from democheck.audit.scorers import combine, look_columns, ranked
 
     demos, bad = _planted("idle")
     d = demos[bad]
@@ -803,12 +803,19 @@ def test_coupling_ranks_the_arm_let_go_of_first_and_stands_in_for_the_action_err
     values = ev.scores["coupling"]
     assert values[bad] > np.nanmax(np.delete(values, bad))
     assert "mutual information" in ev.reasons["coupling"][bad]
-    # In the ranking where the model's action error is not, and only there.
+    # In the ranking with the model's action error or without it, one look with it: the Sidak minimum of the two.
     available = {"motion": values, "idle": values, "coupling": values}
     tasks = np.array(["push"] * len(values))
-    assert "coupling" in ranked(available, tasks)
-    assert "coupling" not in ranked(available | {"action_error": values}, tasks)
-    assert "coupling" in ranked(available | {"action_error": values}, tasks, model_free=True)
+    names = ranked(available | {"action_error": values}, tasks)
+    assert "coupling" in ranked(available, tasks) and {"coupling", "action_error"} <= set(names)
+    looks = look_columns(names)
+    assert len(set(looks)) == len(names) - 1 and looks[names.index("coupling")] == looks[names.index("action_error")]
+    log_p = np.log(np.array([[0.5, 0.5, 1e-6, 0.5], [0.5, 0.5, 0.5, 0.5]]))  # one row surprising on one of the two
+    order = [names.index(n) for n in ("motion", "idle", "action_error", "coupling")]
+    log_p = log_p[:, np.argsort(order)]
+    merged = combine(names, log_p)
+    alone = combine([n for n in names if n != "coupling"], np.delete(log_p, names.index("coupling"), axis=1))
+    np.testing.assert_allclose(merged[0], alone[0] - np.log10(2), rtol=1e-3)  # 1 - (1 - p)^2 is about 2p
 
 
 def test_outcome_compares_an_end_with_the_demos_that_started_on_its_side():

@@ -119,9 +119,10 @@ class Scorer:
     # otherwise put clean demos many robust standard deviations up.
     log_in_ranking: bool = False
     in_robust_sd: bool = False  # its score is already a robust z within the task: the ranking takes it as it is
-    # In the ranking only where this other score is not (the state-action coupling where the model's action error
-    # is not: without a model, or with ``model_free``); see ``democheck.audit.coupling``.
-    stands_in_for: str = ""
+    # Scorers of one look ask one question of a demo (whether its actions are explained: by the model's controller,
+    # or by its state): where the ranking has more than one of them they are one piece of evidence, the Sidak
+    # minimum of their tail probabilities (``scores.merge_looks``); see ``democheck.audit.coupling``.
+    look: str = ""
     # The least spread a robust standard deviation of this score stands for in the ranking, in its units.
     ranking_min_scale: float = 0.0
     # The family of its clean right tail in the ranking (``scores.tail_probabilities``): "exponential", or
@@ -219,7 +220,7 @@ def ranking_tails(ev: Evidence, names: list[str]) -> tuple[np.ndarray, np.ndarra
     """The tail probabilities (natural logs, [N, K]) of the ranking's scores ``names`` and the robust core they
     are fitted on (``scores.robust_tails`` of ``ranking_z``), each score's tail of its scorer's family."""
     return robust_tails(lambda core: ranking_z(ev, names, core), normal=normal_tails(names),
-                        alone=alone_columns(names), outside=broken_rows(ev))
+                        alone=alone_columns(names), outside=broken_rows(ev), looks=look_columns(names))
 
 
 def broken_rows(ev: Evidence) -> np.ndarray:
@@ -238,28 +239,35 @@ def alone_columns(names: list[str]) -> np.ndarray:
     return np.array([SCORERS[n].alone for n in names], bool)
 
 
+def look_columns(names: list[str]) -> np.ndarray:
+    """Which look each of the ranking's scores ``names`` is (``Scorer.look``; a scorer without one, its own): [K]
+    numbers, equal for the columns of one look."""
+    looks = [SCORERS[n].look or n for n in names]
+    return np.array([looks.index(k) for k in looks])
+
+
 def combine(names: list[str], log_p: np.ndarray) -> np.ndarray:
     """The ranking: -log10 of the combined tail probability of the scores ``names`` (``scores.combined_log10``,
-    the recording faults beside the rest)."""
-    return -combined_log10(log_p, alone_columns(names))
+    the recording faults beside the rest, the scores of one look merged)."""
+    return -combined_log10(log_p, alone_columns(names), look_columns(names))
 
 
 def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
     """The scores the ranking combines, of those ``available`` (names, or columns by name): every
     ``in_suspicion`` scorer's, less the task embedding's on a dataset of one task (``in_single_task_ranking``),
     less the model's with ``model_free``, less a column with no score at all (the outcome of a dataset whose
-    tasks are all too small to compare): a look that cannot see anything must not cost the others' correction;
-    less one that stands in for a score the ranking has (``stands_in_for``)."""
+    tasks are all too small to compare): a look that cannot see anything must not cost the others' correction."""
     one_task = len(np.unique(tasks)) == 1
     columns = isinstance(available, (dict, pd.DataFrame))
 
     def scored(n: str) -> bool:
         return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
 
-    names = [n for n, s in SCORERS.items() if s.in_suspicion and n in available
-             and (s.model_free or not model_free) and (s.in_single_task_ranking or not one_task) and scored(n)]
-    return [n for n in names if SCORERS[n].stands_in_for not in names]
+    return [n for n, s in SCORERS.items() if s.in_suspicion and n in available
+            and (s.model_free or not model_free) and (s.in_single_task_ranking or not one_task) and scored(n)]
 
+
+ACTIONS_EXPLAINED = "actions explained"  # the look of the action error and the coupling (``Scorer.look``)
 
 # The least spread a robust standard deviation of a recording fault's score stands for in the ranking (a share of
 # the steps for the frozen video, a log ratio for the frame jump, the lag and the timing): a camera whose frames
@@ -404,7 +412,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            in_suspicion=True, in_single_task_ranking=False, short="cons."),
     Scorer("action_error", f"how badly PETNet's controller, told the task by the other demos of the task, explains "
            f"the demo's normalised actions (MSE at {ACTION_STEPS} evenly spaced timesteps)", ("demos", "model"),
-           _action_error, in_suspicion=True, log_in_ranking=True, decode=_decode_action_error, short="act."),
+           _action_error, in_suspicion=True, log_in_ranking=True, look=ACTIONS_EXPLAINED, decode=_decode_action_error,
+           short="act."),
     Scorer("motion", "model-free: how unusually much or little the demo's actions move (mean |action| and mean "
            "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True,
            in_robust_sd=True, decode=lambda ev, rows, device: modelfree.MotionStats(), short="mot."),
@@ -465,12 +474,13 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "z within its task)", ("demos",), _outcome, in_suspicion=True,
            decode=lambda ev, rows, device: outcome.OutcomeStats(), short="outc."),
     Scorer("coupling", "model-free: how little the demo's actions go with its state (minus their mutual "
-           "information over its steps, KSG estimate, nats); in the ranking where the action error is not",
-           ("demos",), _coupling, in_suspicion=True, stands_in_for="action_error", tail="normal",
+           "information over its steps, KSG estimate, nats); one look with the action error in the ranking",
+           ("demos",), _coupling, in_suspicion=True, look=ACTIONS_EXPLAINED, tail="normal",
            decode=lambda ev, rows, device: coupling.CouplingStats(), short="coupl."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
-           "consistency, action error (log), motion, idle, view, colours and outcome (one task: the last six; "
-           "without the action error, the coupling too), each in robust standard deviations within its task, the "
+           "consistency, motion, idle, view, colours, outcome and whether the actions are explained (the action "
+           "error (log) and the coupling, one look: the Sidak minimum of the two) (one task: without the first "
+           "two), each in robust standard deviations within its task, the "
            "tails fitted on the robust core; beside that, the smallest of the recording faults' (timing, frozen "
            "video, frame jump, frozen state, lag, jerk) (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),

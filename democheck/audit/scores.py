@@ -250,7 +250,7 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np
 
 def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: float = CORE_P,
                  rounds: int = CORE_ROUNDS, normal: np.ndarray | None = None, alone: np.ndarray | None = None,
-                 outside: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 outside: np.ndarray | None = None, looks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``tail_probabilities`` fitted on the audited demos' robust core, and the core [N] (bool): starting from
     every demo (but those ``outside``), the tails are fitted, combined (``combined_log10``), and the demos whose
     combined probability is at most ``core_p`` left out of the next fit, until the core stops changing.  The core
@@ -259,8 +259,8 @@ def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: flo
 
     ``z``: the [N, K] scores in robust SD, or a function of the core (None: every demo) that computes them (the
     ranking's: each task's centre and the unit from the core's demos, ``calibrated``), called again at every
-    round.  ``normal``: the columns with a normal tail (``tail_probabilities``); ``alone``: the columns combined
-    beside the others (``combined_log10``); ``outside``: demos never in the core (broken recordings, suspect
+    round.  ``normal``: the columns with a normal tail (``tail_probabilities``); ``alone`` and ``looks``: how the
+    columns are combined (``combined_log10``); ``outside``: demos never in the core (broken recordings, suspect
     whatever their scores)."""
     z_of = z if callable(z) else (lambda core: z)
     zc = z_of(None)  # every demo
@@ -270,7 +270,7 @@ def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: flo
         zc = z_of(core)
     log_p = tail_probabilities(zc, core, normal)
     for _ in range(rounds):
-        new = start & ~(10.0 ** combined_log10(log_p, alone) <= core_p)
+        new = start & ~(10.0 ** combined_log10(log_p, alone, looks) <= core_p)
         if (new == core).all() or new.sum() < start.sum() / 2:
             break
         core = new
@@ -311,7 +311,27 @@ def brown_scale(log_p: np.ndarray) -> tuple[float, float] | None:
     return var / (4.0 * k), 8.0 * k * k / var
 
 
-def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None) -> np.ndarray:
+def merge_looks(log_p: np.ndarray, looks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The columns of [N, K] tail probabilities (natural logs) that are one look at a demo (``looks`` [K]: the
+    same number) merged into one column, their Sidak minimum -- two scores that ask one question, such as whether
+    the actions are explained (by the model's controller, or by the state), are one piece of evidence, which
+    Fisher's sum would count twice -- and, for each merged column, the first of its columns [L]."""
+    looks = np.asarray(looks)
+    _, first = np.unique(looks, return_index=True)
+    first = np.sort(first)
+    cols = []
+    for j in first:
+        group = looks == looks[j]
+        if group.sum() == 1:
+            cols.append(log_p[:, j])
+            continue
+        seen = ~np.isnan(log_p[:, group]).all(axis=1)
+        cols.append(np.where(seen, sidak_log10(log_p[:, group]) * np.log(10), np.nan))
+    return (np.column_stack(cols) if cols else np.zeros((len(log_p), 0))), first
+
+
+def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None, looks: np.ndarray | None = None
+                   ) -> np.ndarray:
     """log10 of the combined tail probability of each row's K tail probabilities (given as natural logs):
     Fisher's -2 sum log p against Brown's scaled chi-square (``brown_scale``: the scores' dependence measured on
     the audited demos themselves), or, with too few demos to measure it, the Sidak minimum.  A row's missing
@@ -322,8 +342,12 @@ def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None) -> np.nda
     ``alone`` (bool [K]) marks the columns that stand apart (the recording faults, ``Scorer.alone``): the others
     are combined as above, the marked ones by their Sidak minimum (is the recording faulty?), and those two
     probabilities by theirs -- a camera that froze is a defect whatever the demo's behaviour says, and in Fisher's
-    sum its one small probability would be diluted by every ordinary one beside it."""
+    sum its one small probability would be diluted by every ordinary one beside it.  ``looks`` ([K] numbers): the
+    columns of one look are first merged into one (``merge_looks``)."""
     alone = np.zeros(log_p.shape[1], bool) if alone is None else np.asarray(alone, bool)
+    if looks is not None and len(np.unique(looks)) < log_p.shape[1]:
+        log_p, first = merge_looks(log_p, looks)
+        alone = alone[first]
     if alone.any():
         # A group that saw nothing in a row (NaN throughout) is no look there, as a missing score is none above.
         looks = []
