@@ -908,6 +908,11 @@ def test_a_dataset_without_a_camera_is_audited_on_its_states_and_actions(tmp_pat
         assert set(labels[flagged]) - {"clean"} == {"idle", "random", "gave-up", "wrong-task"}, source
         assert (labels[flagged] == "clean").sum() <= 1
         assert (out / "report.rrd").stat().st_size > 0
+        if source.is_dir():  # democheck clean writes it without the flagged demos, still without a camera
+            res = runner.invoke(app, ["clean", str(source), "--report", str(out), "--out", str(tmp_path / "clean")])
+            assert res.exit_code == 0, res.output
+            kept = open_dataset(tmp_path / "clean")
+            assert len(kept) == len(ds) - len(flagged) and not kept.has_camera
         shipped = Path(__file__).resolve().parents[1] / "democheck/models/petnet-push-v1"
         for command in (["audit", str(source), "--out", str(tmp_path / "m"), "--model", str(shipped)],
                         ["train", str(source), "--out", str(tmp_path / "t")],

@@ -109,6 +109,21 @@ class Robomimic:
     def _group(self, f, episode_index: int):
         return f["data"][self.episodes.loc[episode_index, "name"]]
 
+    def _frames(self, g, n: int) -> tuple[np.ndarray, list[tuple[int, str]]]:
+        """A demo's frames, or -- where the file's image data cannot be read (a corrupt chunk) -- ``n`` black
+        frames and what went wrong: a broken demo the audit reports (``modelfree.broken``), unless strict."""
+        try:
+            frames = np.asarray(g["obs"][self.camera][()], dtype=np.uint8)
+            problem = "" if frames.shape == (n, *self.image_shape) else \
+                f"{frames.shape[0]} frames of {frames.shape[1:]} for {n} steps of {self.image_shape}"
+        except (OSError, KeyError, ValueError) as exc:
+            problem = str(exc)
+        if not problem:
+            return frames, []
+        if self.strict:
+            raise DatasetError(f"{self.root}: {g.name}: unreadable frames in obs/{self.camera} ({problem})")
+        return np.zeros((n, *self.image_shape), np.uint8), [(n, f"unreadable frames in obs/{self.camera} ({problem})")]
+
     def _state_group(self, g):
         """Where a demo's state keys are: its obs group, or the demo itself in a raw file (its ``states``)."""
         return g["obs"] if self.obs else g
@@ -118,7 +133,7 @@ class Robomimic:
             g = self._group(f, episode_index)
             actions = np.asarray(g[self.action_key][()], np.float32)
             n = len(actions)
-            frames = np.asarray(g["obs"][self.camera][()], dtype=np.uint8) if self.camera else no_frames(n)
+            frames, unreadable = (self._frames(g, n) if self.camera else (no_frames(n), []))
             where_state = self._state_group(g)
             state = np.concatenate([np.asarray(where_state[k][()], np.float32).reshape(n, -1)
                                     for k in self.state_keys], axis=1) if self.state_keys else np.zeros((n, 0), np.float32)
@@ -135,7 +150,7 @@ class Robomimic:
         split = row.get("split") if "split" in row else None
         return Demo(episode_index=episode_index, task=str(row["task"]), frames=frames, state=state, actions=actions,
                     split=split if isinstance(split, str) else None, env_state=env_state,
-                    damaged=[*bad_state.values(), *bad_actions.values()])
+                    damaged=[*unreadable, *bad_state.values(), *bad_actions.values()])
 
     def end_state(self, episode_index: int) -> np.ndarray:
         """The state at an episode's last step, float32 [S], reading one row of each state key."""
@@ -148,5 +163,11 @@ class Robomimic:
         if self.camera is None:
             return no_frames(2)
         with self._h5.File(self.root, "r") as f:
-            img = self._group(f, episode_index)["obs"][self.camera]
-            return np.stack([img[0], img[img.shape[0] - 1]]).astype(np.uint8)
+            g = self._group(f, episode_index)
+            try:
+                img = g["obs"][self.camera]
+                return np.stack([img[0], img[img.shape[0] - 1]]).astype(np.uint8)
+            except (OSError, KeyError, ValueError, IndexError) as exc:
+                if self.strict:
+                    raise DatasetError(f"{self.root}: {g.name}: unreadable frames in obs/{self.camera} ({exc})") from None
+                return np.zeros((2, *self.image_shape), np.uint8)  # black: the decoding pass reports it (``_frames``)

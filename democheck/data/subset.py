@@ -127,9 +127,9 @@ def write_subset(src: Path, keep: list[int], out: Path) -> dict[str, Any]:
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(table, out / rel)
 
-    # Videos: the files the kept episodes point into, whole.
-    for key in [c[len("videos/"):-len("/chunk_index")] for c in kept.columns
-                if c.startswith("videos/") and c.endswith("/chunk_index")]:
+    # Videos: the files the kept episodes point into, whole (of the video features info.json names).
+    for key in [k for k, f in info.get("features", {}).items()
+                if isinstance(f, dict) and f.get("dtype") == "video" and f"videos/{k}/chunk_index" in kept]:
         template = info.get("video_path", "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4")
         for chunk, file in kept[[f"videos/{key}/chunk_index", f"videos/{key}/file_index"]].drop_duplicates() \
                 .itertuples(index=False):
