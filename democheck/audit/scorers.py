@@ -476,6 +476,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("coupling", "model-free: how little the demo's actions go with its state (minus their mutual "
            "information over its steps, KSG estimate, nats); one look with the action error in the ranking",
            ("demos",), _coupling, in_suspicion=True, look=ACTIONS_EXPLAINED, tail="normal",
+           ranking_min_scale=coupling.COUPLING_MIN_SCALE,
            decode=lambda ev, rows, device: coupling.CouplingStats(), short="coupl."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
            "consistency, motion, idle, view, colours, outcome and whether the actions are explained (the action "
