@@ -676,28 +676,10 @@ def test_colours_rank_the_demo_whose_object_is_missing_first_wherever_the_object
         demos.append(_demo(i, rng, frames=frames))
     ev = _evidence(demos, ["colours", "view"])
     z = ev.scores["colours"]
-    assert z[17] > 4 and np.abs(np.delete(z, 17)).max() < 1, np.sort(z)[-3:]
+    assert z[17] > 5 and np.abs(np.delete(z, 17)).max() < 2, np.sort(z)[-3:]
     assert ev.reasons["colours"][17].startswith("less of the colour #20e0e0 than its task's other demos: 0% of")
     # The block moves from demo to demo, so where the picture differs says little: view does not see it.
     assert ev.scores["view"][17] < 3
-    # A camera whose exposure moves each demo's picture a few grey levels, some across a colour bin's edge (64):
-    # the missing block still stands out, and no demo reads another colour for it.
-    for d in demos:
-        d.frames = np.clip(d.frames.astype(np.int16) + int(rng.integers(-6, 7)), 0, 255).astype(np.uint8)
-    z = _evidence(demos, ["colours"]).scores["colours"]
-    assert int(np.argmax(z)) == 17 and np.abs(np.delete(z, 17)).max() < 3, np.sort(z)[-3:]
-
-
-def test_colour_bins_share_a_pixel_between_the_nearest_centres():
-    from democheck.audit.colours import COLOUR_LEVELS, colour_hex, soft_histogram
-
-    centre = np.array([[32, 96, 160]], np.uint8)  # the middle of one bin, each channel
-    assert soft_histogram(centre).max() == 1.0 and colour_hex(int(np.argmax(soft_histogram(centre)))) == "#2060a0"
-    either_side = [soft_histogram(np.full((10, 3), v, np.uint8)) for v in (62, 66)]  # 64 is a bin's edge
-    assert np.abs(either_side[0] - either_side[1]).sum() < 0.2  # a hard edge moves every pixel: 2.0
-    rng = np.random.default_rng(0)
-    shares = soft_histogram(rng.integers(0, 256, (500, 3), dtype=np.uint8))
-    assert shares.shape == (COLOUR_LEVELS ** 3,) and np.isclose(shares.sum(), 1.0) and (shares >= 0).all()
 
 
 def test_the_ray_engine_gives_the_local_engines_scores(tmp_path, monkeypatch, tiny_model):

@@ -71,8 +71,8 @@ COUPLING_MAX_STEPS = 300  # see the module docstring; every development set's de
 # is no real change in how the actions go with the state (a gave-up push demo reads a nat or more below its task's
 # median).  Clean demos spread 0.16 nats within a push-v1 task, 0.09-0.10 within a Meta-World one, and no
 # development set's ranking or flags changed with the floor; a set of smooth scripted demos (the peers' harness's
-# generator, 26 clean demos) spread 0.04, and a clean demo 0.15 nats below its task's median read as unusual as one
-# clean demo in 10 million and was flagged.
+# generator, seed 5, 26 clean demos) spread 0.04, and a clean demo 0.15 nats below its task's median read as
+# unusual as one clean demo in 10 million and was flagged (not with the floor; a fresh draw, seed 8: none either way).
 COUPLING_MIN_SCALE = 0.1
 
 
