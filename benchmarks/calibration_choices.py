@@ -128,9 +128,10 @@ def variant(how: str, table, cons: np.ndarray, model_free: bool) -> tuple[np.nda
     values = {c: table[c].to_numpy() for c in table if c in SCORERS} | {"consistency": cons}
     names = ranked_names(values, table, model_free)
     alone = scorers.alone_columns(names)  # the recording faults stand apart, as the audit combines them
+    looks = scorers.look_columns(names)  # and the scores of one look are merged
 
     def combine(log_p: np.ndarray) -> np.ndarray:
-        return cauchy_log10(log_p) if how == "Cauchy" else scores.combined_log10(log_p, alone)
+        return cauchy_log10(log_p) if how == "Cauchy" else scores.combined_log10(log_p, alone, looks)
 
     def tails(z: np.ndarray, core: np.ndarray) -> np.ndarray:
         normal = scorers.normal_tails(names)  # the scorers' own families (``Scorer.tail``), then the variant's
@@ -162,13 +163,15 @@ def variant(how: str, table, cons: np.ndarray, model_free: bool) -> tuple[np.nda
 
 
 def calibrate(z: np.ndarray, core_p: float | None, final: tuple[float, float] | None = None,
-              normal: np.ndarray | None = None, alone: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+              normal: np.ndarray | None = None, alone: np.ndarray | None = None, looks: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """(-log10 combined tail probability, core) with the tails (``normal``: the columns with a normal one) fitted
     on all demos or on the robust core (and then, with ``final``, refitted on the core through those
-    percentiles); ``alone``: the recording faults' columns, combined apart (``scores.combined_log10``)."""
+    percentiles); ``alone`` and ``looks``: how the columns are combined (``scores.combined_log10``)."""
     if core_p is None:
-        return -scores.combined_log10(scores.tail_probabilities(z, normal=normal), alone), np.ones(len(z), bool)
-    log_p, core = scores.robust_tails(z, core_p, normal=normal, alone=alone)
+        return (-scores.combined_log10(scores.tail_probabilities(z, normal=normal), alone, looks),
+                np.ones(len(z), bool))
+    log_p, core = scores.robust_tails(z, core_p, normal=normal, alone=alone, looks=looks)
     if final is not None:
         saved = scores.TAIL_QUANTILES
         scores.TAIL_QUANTILES = final
@@ -176,7 +179,7 @@ def calibrate(z: np.ndarray, core_p: float | None, final: tuple[float, float] | 
             log_p = scores.tail_probabilities(z, core, normal)
         finally:
             scores.TAIL_QUANTILES = saved
-    return -scores.combined_log10(log_p, alone), core
+    return -scores.combined_log10(log_p, alone, looks), core
 
 
 def show(name: str, s: np.ndarray, core: np.ndarray, labels: np.ndarray, kinds: list[str]) -> None:
@@ -215,15 +218,16 @@ def main() -> None:
                     values = {c: table[c].to_numpy() for c in table if c in SCORERS} | {"consistency": cons}
                     names = ranked_names(values, table, model_free)
                     normal, alone = scorers.normal_tails(names), scorers.alone_columns(names)
+                    looks = scorers.look_columns(names)
                     for core_p in CORES:
                         name = ("no model" if model_free else f"{form}{', log unc.' if log_unc else ''}") + \
                             f", core {'off' if core_p is None else f'{core_p:g}'}"
-                        show(name, *calibrate(z, core_p, normal=normal, alone=alone), labels, kinds)
+                        show(name, *calibrate(z, core_p, normal=normal, alone=alone, looks=looks), labels, kinds)
                     if form == "scaled kNN" and (log_unc or model_free):  # the shipped choices
                         who = "no model" if model_free else "shipped"
                         for final in FINAL_FITS:
                             show(f"{who}, final fit {final[0]:g}-{final[1]:g}",
-                                 *calibrate(z, scores.CORE_P, final, normal, alone), labels, kinds)
+                                 *calibrate(z, scores.CORE_P, final, normal, alone, looks), labels, kinds)
                         for how in VARIANTS:
                             show(f"{who}, {how}", *variant(how, table, cons, model_free), labels, kinds)
 

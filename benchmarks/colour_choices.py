@@ -74,7 +74,8 @@ def judged(table: pd.DataFrame, colour: np.ndarray | None, mode: str, centring: 
             values["view"] = colour
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=values)
     z = (lambda core: ranking_z(ev, names, core)) if centring == "core" else ranking_z(ev, names)
-    log_p, core = scores.robust_tails(z, normal=scorers.normal_tails(names), alone=scorers.alone_columns(names))
+    log_p, core = scores.robust_tails(z, normal=scorers.normal_tails(names), alone=scorers.alone_columns(names),
+                                      looks=scorers.look_columns(names))
     s = scorers.combine(names, log_p)
     au = aurocs(s, labels)
     kinds = sorted(set(labels) - {"clean"})

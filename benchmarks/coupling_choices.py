@@ -56,5 +56,6 @@ def main() -> None:
                 finally:
                     SCORERS["coupling"] = shipped
 
+
 if __name__ == "__main__":
     main()

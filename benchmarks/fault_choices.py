@@ -50,9 +50,13 @@ VARIANTS = {
 SHIPPED_COMBINED = scores.combined_log10
 
 
-def each_its_own_look(log_p: np.ndarray, alone: np.ndarray | None = None) -> np.ndarray:
+def each_its_own_look(log_p: np.ndarray, alone: np.ndarray | None = None, looks: np.ndarray | None = None
+                      ) -> np.ndarray:
     """``scores.combined_log10`` with every fault a look of its own in the last Sidak minimum."""
     alone = np.zeros(log_p.shape[1], bool) if alone is None else np.asarray(alone, bool)
+    if looks is not None:  # the scores of one look merged first, as the audit does
+        log_p, first = scores.merge_looks(log_p, looks)
+        alone = alone[first]
     if not alone.any():
         return SHIPPED_COMBINED(log_p)
     rest = SHIPPED_COMBINED(log_p[:, ~alone]) * np.log(10)

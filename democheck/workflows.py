@@ -54,7 +54,7 @@ def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: b
 
     ``recipe``: the resolved training recipe ``tc`` came from (``petnet.recipe.load_recipe``), recorded in the
     model's config.json and card."""
-    ds = open_dataset(dataset, camera=camera, image_size=tc.image_size).require_camera("PETNet")
+    ds = open_dataset(dataset, camera=camera, image_size=tc.image_size).require_camera("training")
     if ds.episodes.groupby("task").size().max() < 2:
         raise DatasetError(f"{ds.root}: every task has a single demo; training needs two or more per task (a cue and "
                            "a trajectory to imitate); democheck audit can still score these demos with a trained model")
@@ -324,7 +324,7 @@ def evaluate_model(model: str | Path | None, dataset: str | Path, out: str | Pat
     refuse_existing(out, force)
     dev = resolve_device(device)
     ckpt = load_checkpoint(model, device=dev)
-    ds = open_dataset(dataset)
+    ds = open_dataset(dataset).require_camera("the meta-test")
     result = meta_test(ckpt, ds, split=split, trials=trials, shots=shots, workers=workers, seed=seed, device=dev,
                        on_progress=on_progress)
     with atomic_output_dir(out, force=force) as tmp:

@@ -259,15 +259,16 @@ def test_robomimic_reader_and_audit(tiny_model, tmp_path):
     assert table["is_anomaly"].sum() == 1 + (table["duplicate"] == np.inf).sum()
     assert open_dataset(path, task="lift").tasks == ["another task", "lift"]
     lost = shutil.copy(path, tmp_path / "lost.hdf5")
-    with h5py.File(lost, "a") as f:  # a demo whose images were lost: black frames and a broken demo, not a crash
-        del f["data/demo_1/obs/agentview_image"]
-    demo = open_dataset(lost)[1]
+    with h5py.File(lost, "a") as f:  # the first demo's images lost: a broken demo, not a crash or a camera-less file
+        del f["data/demo_0/obs/agentview_image"]
+    assert open_dataset(lost).camera == "agentview_image"
+    demo = open_dataset(lost)[0]
     assert not demo.frames.any() and demo.frames.shape == (8, 16, 16, 3) and "unreadable frames" in demo.damaged[0][1]
-    assert not open_dataset(lost).cue_frames(1).any()
+    assert not open_dataset(lost).cue_frames(0).any()
     res = runner.invoke(app, ["audit", str(lost), "--out", str(tmp_path / "l"), "--no-model"])
     assert res.exit_code == 0, res.output
     first = pd.read_parquet(tmp_path / "l" / "scores.parquet").iloc[0]
-    assert first["episode_index"] == 1 and first["is_anomaly"] and "unreadable frames" in first["reason"]
+    assert first["episode_index"] == 0 and first["is_anomaly"] and "unreadable frames" in first["reason"]
     res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
                               "--device", "cpu", "--json"])
     assert res.exit_code == 0, res.output

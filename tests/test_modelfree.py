@@ -816,6 +816,15 @@ def test_coupling_ranks_the_arm_let_go_of_first_and_is_one_look_with_the_action_
     merged = combine(names, log_p)
     alone = combine([n for n in names if n != "coupling"], np.delete(log_p, names.index("coupling"), axis=1))
     np.testing.assert_allclose(merged[0], alone[0] - np.log10(2), rtol=1e-3)  # 1 - (1 - p)^2 is about 2p
+    # With enough demos for Brown's correction too: the pair is one column, its Sidak minimum, NaN where neither saw.
+    from democheck.audit.scores import combined_log10, sidak_log10
+
+    log_p = np.log(np.random.default_rng(1).uniform(size=(60, len(names))))
+    log_p[3, [names.index("action_error"), names.index("coupling")]] = np.nan
+    pair = [names.index("action_error"), names.index("coupling")]
+    one = np.where(np.isnan(log_p[:, pair]).all(1), np.nan, sidak_log10(log_p[:, pair]) * np.log(10))
+    by_hand = np.column_stack([log_p[:, [j for j in range(len(names)) if j not in pair]], one])
+    np.testing.assert_allclose(combine(names, log_p), -combined_log10(by_hand), rtol=1e-9)
 
 
 def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos(monkeypatch):
@@ -823,7 +832,6 @@ def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos(mon
     # stays in the robust core (COUPLING_MIN_SCALE), one that let go (a nat and a half below) is far out.
     import dataclasses
 
-    from democheck.audit.coupling import COUPLING_MIN_SCALE
     from democheck.audit.scorers import ranking_tails
     from democheck.audit.scores import CORE_P
 
@@ -833,7 +841,7 @@ def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos(mon
     ev = Evidence(episodes=pd.DataFrame({"episode_index": np.arange(40), "task": "reach"}),
                   scores={"coupling": values})
     p = np.exp(ranking_tails(ev, ["coupling"])[0][:, 0])
-    assert p[5] > CORE_P and p[9] < 1e-6 and COUPLING_MIN_SCALE == 0.1
+    assert p[5] > CORE_P and p[9] < 1e-6
     # Without the floor the near-identical demos' spread calls the first one far out.
     monkeypatch.setitem(SCORERS, "coupling", dataclasses.replace(SCORERS["coupling"], ranking_min_scale=0.0))
     assert np.exp(ranking_tails(ev, ["coupling"])[0][5, 0]) < 1e-8

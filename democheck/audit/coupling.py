@@ -73,6 +73,8 @@ COUPLING_MAX_STEPS = 300  # see the module docstring; every development set's de
 # development set's ranking or flags changed with the floor; a set of smooth scripted demos (the peers' harness's
 # generator, seed 5, 26 clean demos) spread 0.04, and a clean demo 0.15 nats below its task's median read as
 # unusual as one clean demo in 10 million and was flagged (not with the floor; a fresh draw, seed 8: none either way).
+# (The ranking's normal tail is at least half a robust SD wide, ``scores.TAIL_MIN_SCALE``: with the floor a demo
+# 0.1 nats out reads about 1 in 50, 0.2 nats 1 in 40,000.)
 COUPLING_MIN_SCALE = 0.1
 
 

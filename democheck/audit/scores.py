@@ -48,7 +48,8 @@ Every score is one number per demo, higher = more suspect:
   every tail they sat in: with 37% of the demos bad (push-v1-dev + its probes) no clean demo and few bad ones
   were flagged (gave-up 0.66, no-objects 0.08), and a score that alone saw a kind was diluted by the others
   in the ranking.  The tail probabilities are combined by Fisher's method with Brown's correction
-  (``combined_log10``): -2 sum log p against a scaled chi-square whose variance counts the scores'
+  (``combined_log10``; the scores of one look, the action error and the coupling, first merged into their Sidak
+  minimum, ``merge_looks``): -2 sum log p against a scaled chi-square whose variance counts the scores'
   dependence, measured on the audited demos (``brown_scale``).  Several moderate surprises add up -- a demo
   that gave up half-way is a little still, a little slow, and ends a little short -- where the smallest alone
   (the Sidak minimum; still used below ``BROWN_MIN_DEMOS`` demos) waits for one of them to be extreme
@@ -350,12 +351,12 @@ def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None, looks: np
         alone = alone[first]
     if alone.any():
         # A group that saw nothing in a row (NaN throughout) is no look there, as a missing score is none above.
-        looks = []
+        parts = []
         for group, combine in ((~alone, combined_log10), (alone, sidak_log10)):
             if group.any():
                 seen = ~np.isnan(log_p[:, group]).all(axis=1)
-                looks.append(np.where(seen, combine(log_p[:, group]) * np.log(10), np.nan))
-        return sidak_log10(np.column_stack(looks))
+                parts.append(np.where(seen, combine(log_p[:, group]) * np.log(10), np.nan))
+        return sidak_log10(np.column_stack(parts))
     if log_p.shape[1] == 0:
         return np.zeros(len(log_p))
     scale = brown_scale(log_p)

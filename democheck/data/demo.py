@@ -20,7 +20,7 @@ from democheck.errors import DatasetError
 
 # The frame shape of a dataset that records no camera (robomimic's low-dimensional files, a state-only LeRobot
 # dataset): its demos' frames are [T, 0, 0, 3].  The model-free checks of states and actions read it; those of
-# the frames give NaN; the model, which reads a demo by its frames, cannot.
+# the frames need frames and are left out (``scorers.NEEDS``); the model, which reads a demo by its frames, cannot.
 NO_CAMERA = (0, 0, 3)
 
 
@@ -107,7 +107,7 @@ class DemoSource(Protocol):
     root: Path
     format: str
     fps: float
-    camera: str
+    camera: str | None  # None: no camera (``NO_CAMERA``)
     image_shape: tuple[int, int, int]
     state_dim: int
     action_dim: int
@@ -186,8 +186,8 @@ class DemoSet:
     def require_camera(self, what: str) -> "DemoSet":
         """This set, or one clear line where the dataset records no camera and ``what`` reads demos by frames."""
         if not self.has_camera:
-            raise DatasetError(f"{self.root}: records no camera (no image or video feature), and {what} reads a demo "
-                               "by its frames; democheck audit --no-model checks its states and actions")
+            raise DatasetError(f"{self.root}: records no camera images, and {what} reads a demo by its frames; "
+                               "democheck audit --no-model checks its states and actions")
         return self
 
     @property

@@ -49,12 +49,16 @@ class Robomimic:
             if not names:
                 raise DatasetError(f"{path}: no data/demo_N groups")
             first = data[names[0]]
-            # robomimic's raw files (demo.hdf5) have no obs group: the simulator's flattened state is the state.
-            obs = first["obs"] if "obs" in first else None
+            # What the file records is read from every demo's keys, not the first's alone: a demo whose images were
+            # lost is a broken demo (``_frames``), not a file without a camera.  robomimic's raw files (demo.hdf5)
+            # have no obs group: the simulator's flattened state is the state.
+            groups = [data[n]["obs"] for n in names if "obs" in data[n]]
+            obs = groups[0] if groups else None
             if obs is None and "states" not in first:
                 raise DatasetError(f"{path}: {names[0]} has no obs group (nor states)")
             obs_keys = list(obs) if obs is not None else []
-            cams = sorted(k for k in obs_keys if obs[k].ndim == 4 and obs[k].shape[-1] == 3)
+            images = {k: g[k] for g in groups for k in g if g[k].ndim == 4 and g[k].shape[-1] == 3}
+            cams = sorted(images)
             if camera is None:
                 self.camera = cams[0] if cams else None  # none: robomimic's low-dimensional files (``NO_CAMERA``)
             else:
@@ -80,8 +84,8 @@ class Robomimic:
             self.action_key = action_key or "actions"
             if self.action_key not in first:
                 raise DatasetError(f"{path}: {names[0]} has no {self.action_key!r}")
-            self.image_shape = tuple(int(v) for v in obs[self.camera].shape[1:]) if self.camera else NO_CAMERA
-            self.state_dim = int(sum(self._state_group(first)[k].shape[1] for k in self.state_keys))
+            self.image_shape = tuple(int(v) for v in images[self.camera].shape[1:]) if self.camera else NO_CAMERA
+            self.state_dim = int(sum((obs if self.obs else first)[k].shape[1] for k in self.state_keys))
             self.action_dim = int(first[self.action_key].shape[1])
             try:
                 env_args = json.loads(_decode(data.attrs.get("env_args", "{}")))
@@ -114,8 +118,9 @@ class Robomimic:
         frames and what went wrong: a broken demo the audit reports (``modelfree.broken``), unless strict."""
         try:
             frames = np.asarray(g["obs"][self.camera][()], dtype=np.uint8)
-            problem = "" if frames.shape == (n, *self.image_shape) else \
-                f"{frames.shape[0]} frames of {frames.shape[1:]} for {n} steps of {self.image_shape}"
+            problem = "" if frames.shape == (n, *self.image_shape) else (
+                f"frames that do not match its steps: {frames.shape[0]} of {frames.shape[1:]} for {n} of "
+                f"{self.image_shape}")
         except (OSError, KeyError, ValueError) as exc:
             problem = str(exc)
         if not problem:
@@ -169,5 +174,6 @@ class Robomimic:
                 return np.stack([img[0], img[img.shape[0] - 1]]).astype(np.uint8)
             except (OSError, KeyError, ValueError, IndexError) as exc:
                 if self.strict:
-                    raise DatasetError(f"{self.root}: {g.name}: unreadable frames in obs/{self.camera} ({exc})") from None
+                    raise DatasetError(f"{self.root}: {g.name}: unreadable frames in obs/{self.camera} "
+                                       f"({exc})") from None
                 return np.zeros((2, *self.image_shape), np.uint8)  # black: the decoding pass reports it (``_frames``)

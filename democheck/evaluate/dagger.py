@@ -150,7 +150,7 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
     work = work_dir(out, resume, force)
     device = resolve_device(cfg.device)
     ckpt = load_checkpoint(model_dir, device=device)
-    ds = open_dataset(dataset)
+    ds = open_dataset(dataset).require_camera("recovery training")
     if "sim" not in ds.episodes:
         raise DemocheckError(f"{ds.root}: no sim records; recovery training needs the scripted expert to act in the "
                              "dataset's scenes, i.e. a suite made by democheck synth")
