@@ -948,3 +948,34 @@ def test_a_dataset_without_a_camera_is_audited_on_its_states_and_actions(tmp_pat
                         ["probe", str(source), "--out", str(tmp_path / "p")]):
             res = runner.invoke(app, command)
             assert res.exit_code != 0 and "records no camera" in res.output, (command, res.output)
+
+
+def test_a_dataset_whose_every_demo_names_its_own_task_is_compared_as_one(tmp_path):
+    """Free-text instructions, one per episode: every task holds one demo.  Within-task medians would leave every
+    demo at 0 (before: every kind ranked at 0.50); compared with all the demos instead, the still, random and
+    stopped arms and the covered camera rank above every clean demo, and the summary says how they were judged."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from democheck.cli import app
+
+    data = Path(__file__).resolve().parents[1] / "benchmarks/foreign/data/mw-tiny"
+    labels = pd.read_csv(data.with_name("mw-tiny.labels.csv")).set_index("episode_index")["label"]
+    copy = tmp_path / "one-task-each"
+    shutil.copytree(data, copy)
+    table = copy / "meta/episodes/chunk-000/file-000.parquet"
+    episodes = pd.read_parquet(table)
+    episodes["tasks"] = [np.array([f"{t[0]}, take {e}"], dtype=object)
+                         for e, t in zip(episodes["episode_index"], episodes["tasks"])]
+    episodes.to_parquet(table, index=False)
+    res = CliRunner().invoke(app, ["audit", str(copy), "--out", str(tmp_path / "r"), "--no-model"])
+    assert res.exit_code == 0, res.output
+    scores = pd.read_parquet(tmp_path / "r" / "scores.parquet")
+    kinds = scores["episode_index"].map(labels).fillna("clean").to_numpy()
+    top = set(kinds[:4])
+    assert top == {"idle", "random", "gave-up", "occluded"}, kinds[:6]
+    warning = json.loads((tmp_path / "r" / "summary.json").read_text())["warnings"][0]
+    assert warning.startswith("21 of 21 tasks have fewer than 5 demos") and "as if the dataset were one task" in warning

@@ -18,7 +18,7 @@ import pandas as pd
 
 from democheck import pool
 from democheck.audit import scorers as registry, shards
-from democheck.audit.scorers import Evidence, Scorer
+from democheck.audit.scorers import GROUP_MIN_DEMOS, Evidence, Scorer
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.flagging import (DEFAULT_FPR, broken_recordings, conformal_p, exact_copies, expected_false_flags,
                                       flag_level, flagged_regardless, flags)
@@ -323,9 +323,18 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
 
 
 def warnings(table: pd.DataFrame, ckpt: Checkpoint | None) -> list[str]:
-    """What makes this audit's scores less trustworthy, in a sentence each: tasks the model never learnt, and
-    images unlike any it was trained on."""
+    """What makes this audit's scores less trustworthy, in a sentence each: tasks too small to judge a demo by,
+    tasks the model never learnt, and images unlike any it was trained on."""
     out = []
+    counts = table["task"].value_counts()
+    small = counts[counts < GROUP_MIN_DEMOS]
+    if len(small):
+        n = int(small.sum())
+        out.append(f"{len(small)} of {len(counts)} tasks have fewer than {GROUP_MIN_DEMOS} demos ({n} demos, e.g. "
+                   f"{str(small.index[0])!r}): "
+                   + ("every demo is compared with all the others, as if the dataset were one task"
+                      if len(small) == len(counts) else "their demos are compared with each other, not with their "
+                      "own task's") + "; a demo of the wrong task cannot be told from them")
     if ckpt is None:
         return out
     trained = (ckpt.meta.get("data", {}).get("task_split") or {}).get("trained")

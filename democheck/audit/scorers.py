@@ -46,6 +46,24 @@ NEEDS = {
 }
 
 
+# A task of fewer demos than this is no reference for its demos: the checks that compare a demo with its task's
+# others compare those of such tasks with each other instead (``comparison_groups``).  Where every demo names a
+# task of its own -- a free-text instruction per episode -- a robust median and MAD within each task leave every
+# demo at 0: the Meta-World set LeRobot's writer made, each episode's task string made its own, ranked every kind
+# at 0.50 and flagged nothing.  Every development set's tasks hold 12 or more demos, so none is changed.
+GROUP_MIN_DEMOS = 5
+SMALL_TASKS = "\0tasks of fewer demos"  # the group of the small tasks' demos (never shown)
+
+
+def comparison_groups(tasks: np.ndarray) -> np.ndarray:
+    """Each demo's task where the task has at least ``GROUP_MIN_DEMOS`` demos, else one group of every demo of the
+    smaller tasks (the whole set where all its tasks are small)."""
+    tasks = np.asarray(tasks, dtype=object)
+    counts = pd.Series(tasks).value_counts()
+    small = np.isin(tasks, counts.index[counts < GROUP_MIN_DEMOS].to_numpy())
+    return np.where(small, SMALL_TASKS, tasks) if small.any() else tasks
+
+
 @dataclass
 class Evidence:
     """What scorers read about the demos being scored, one row of ``episodes`` per demo, in one order."""
@@ -81,6 +99,12 @@ class Evidence:
     @property
     def tasks(self) -> np.ndarray:
         return self.episodes["task"].to_numpy()
+
+    @property
+    def groups(self) -> np.ndarray:
+        """What each demo is compared with by the checks that judge a demo against its task's others
+        (``comparison_groups``)."""
+        return comparison_groups(self.tasks)
 
     def has(self, need: str) -> bool:
         """Whether this evidence can feed a scorer that needs ``need``."""
@@ -212,7 +236,7 @@ def ranking_z(ev: Evidence, names: list[str], core: np.ndarray | None = None) ->
     for n in names:
         s, x = SCORERS[n], np.asarray(ev.scores[n], np.float64)
         x = np.log(np.maximum(x, 1e-12)) if s.log_in_ranking else x
-        cols.append(x if s.in_robust_sd else calibrated(x, ev.tasks, min_scale=s.ranking_min_scale, core=core))
+        cols.append(x if s.in_robust_sd else calibrated(x, ev.groups, min_scale=s.ranking_min_scale, core=core))
     return np.column_stack(cols) if cols else np.zeros((len(ev.episodes), 0))
 
 
@@ -324,15 +348,15 @@ def _model_free(ev: Evidence) -> Scores:
 
 
 def _motion(ev: Evidence) -> Scores:
-    return modelfree.motion(ev.behaviour["motion"], ev.tasks)
+    return modelfree.motion(ev.behaviour["motion"], ev.groups)
 
 
 def _view(ev: Evidence) -> Scores:
-    return modelfree.view(ev.behaviour["view"], ev.tasks)
+    return modelfree.view(ev.behaviour["view"], ev.groups)
 
 
 def _colours(ev: Evidence) -> Scores:
-    return colours.colours(ev.behaviour["colours"], ev.tasks)
+    return colours.colours(ev.behaviour["colours"], ev.groups)
 
 
 def _idle(ev: Evidence) -> Scores:
@@ -376,15 +400,15 @@ def _lag(ev: Evidence) -> Scores:
 
 
 def _frozen_state(ev: Evidence) -> Scores:
-    return sensors.frozen_state(ev.behaviour["frozen_state"], ev.tasks)
+    return sensors.frozen_state(ev.behaviour["frozen_state"], ev.groups)
 
 
 def _outcome(ev: Evidence) -> Scores:
-    return outcome.outcome(ev.behaviour["outcome"], ev.tasks)
+    return outcome.outcome(ev.behaviour["outcome"], ev.groups)
 
 
 def _coupling(ev: Evidence) -> Scores:
-    return coupling.coupling(ev.behaviour["coupling"], ev.tasks)
+    return coupling.coupling(ev.behaviour["coupling"], ev.groups)
 
 
 def _ocsvm_flag(ev: Evidence) -> Scores:
