@@ -979,3 +979,4 @@ def test_a_dataset_whose_every_demo_names_its_own_task_is_compared_as_one(tmp_pa
     assert top == {"idle", "random", "gave-up", "occluded"}, kinds[:6]
     warning = json.loads((tmp_path / "r" / "summary.json").read_text())["warnings"][0]
     assert warning.startswith("21 of 21 tasks have fewer than 5 demos") and "as if the dataset were one task" in warning
+    assert "wrong task cannot be told apart" in warning

@@ -334,7 +334,8 @@ def warnings(table: pd.DataFrame, ckpt: Checkpoint | None) -> list[str]:
                    f"{str(small.index[0])!r}): "
                    + ("every demo is compared with all the others, as if the dataset were one task"
                       if len(small) == len(counts) else "their demos are compared with each other, not with their "
-                      "own task's") + "; a demo of the wrong task cannot be told from them")
+                      "own task's") + "; if they hold several tasks, expect clean demos of the rarer ones among the "
+                   "suspects, and a demo of the wrong task cannot be told apart")
     if ckpt is None:
         return out
     trained = (ckpt.meta.get("data", {}).get("task_split") or {}).get("trained")
