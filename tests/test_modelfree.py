@@ -825,6 +825,13 @@ def test_coupling_ranks_the_arm_let_go_of_first_and_is_one_look_with_the_action_
     one = np.where(np.isnan(log_p[:, pair]).all(1), np.nan, sidak_log10(log_p[:, pair]) * np.log(10))
     by_hand = np.column_stack([log_p[:, [j for j in range(len(names)) if j not in pair]], one])
     np.testing.assert_allclose(combine(names, log_p), -combined_log10(by_hand), rtol=1e-9)
+    # A reason names the look once, by the score that drove it, at the odds the ranking counted.
+    from democheck.audit.scorers import look_odds
+
+    shown = look_odds(["motion", "action_error", "coupling"], np.log([[0.3, 1e-6, 0.5], [0.3, 0.4, 0.01]]))
+    np.testing.assert_allclose(np.exp(shown[:, 0]), [0.3, 0.3])
+    np.testing.assert_allclose(np.exp([shown[0, 1], shown[1, 2]]), [2e-6, 1 - 0.99 ** 2], rtol=1e-5)
+    assert np.isnan(shown[0, 2]) and np.isnan(shown[1, 1])
 
 
 def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos(monkeypatch):

@@ -28,7 +28,8 @@ from democheck.audit import colours, coupling, dynamics, frames, modelfree, outc
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.flagging import is_broken
-from democheck.audit.scores import CONSISTENCY_K, calibrated, combined_log10, consistency_parts, robust_tails
+from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_parts, merge_looks,
+                                    robust_tails)
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -310,7 +311,7 @@ def _combination(ev: Evidence, model_free: bool = False) -> Scores:
         return np.full(len(ev.episodes), np.nan), None
     value = combine(names, log_p)
     reasons = []
-    for i, row in enumerate(np.nan_to_num(log_p, nan=0.0)):  # no score: nothing to name
+    for i, row in enumerate(np.nan_to_num(look_odds(names, log_p), nan=0.0)):  # no score: nothing to name
         # The score that drove it most, and up to two more that added to it (often the one that says where).
         order = [j for j in np.argsort(row, kind="stable")[:3] if j == np.argmin(row) or row[j] < np.log(REASON_P)]
         parts = []
@@ -323,6 +324,23 @@ def _combination(ev: Evidence, model_free: bool = False) -> Scores:
         value = np.where(broken, np.inf, value)
         reasons = [f"broken: {ev.reasons['broken'][i]}" if broken[i] else r for i, r in enumerate(reasons)]
     return value, reasons
+
+
+def look_odds(names: list[str], log_p: np.ndarray) -> np.ndarray:
+    """``log_p`` as a reason reads it: in each row, the score of a look of several (``Scorer.look``) that drove it
+    carries the look's merged tail probability (``scores.merge_looks``: what the ranking counted), the look's
+    other scores NaN, so that one look is named once, at its own odds."""
+    looks = look_columns(names)
+    out = np.array(log_p, np.float64, copy=True)
+    for look in np.unique(looks):
+        cols = np.flatnonzero(looks == look)
+        if len(cols) < 2:
+            continue
+        merged, _ = merge_looks(log_p[:, cols], np.zeros(len(cols), int))
+        first = cols[np.argmin(np.nan_to_num(log_p[:, cols], nan=np.inf), axis=1)]
+        out[:, cols] = np.nan
+        out[np.arange(len(out)), first] = merged[:, 0]
+    return out
 
 
 def _odds(log_p: float) -> str:
