@@ -43,8 +43,9 @@ import dataclasses
 
 import numpy as np
 
-from democheck.audit import flagging, scorers, scores
-from democheck.audit.scorers import SCORERS, Evidence, ranking_z
+from democheck.audit import flagging, scores
+from democheck.audit.ranking import alone_columns, look_columns, normal_tails, ranked, ranking_z
+from democheck.audit.scorers import SCORERS, Evidence
 from democheck.petnet.posterior import TaskPosterior
 from suspicion_choices import aurocs, bench_tables
 
@@ -76,7 +77,7 @@ def ranking(table, consistency: np.ndarray, log_uncertainty: bool, model_free: b
 
 
 def ranked_names(values, table, model_free: bool) -> list[str]:
-    return scorers.ranked(values, table["task"].to_numpy(), model_free)
+    return ranked(values, table["task"].to_numpy(), model_free)
 
 
 def cauchy_log10(log_p: np.ndarray) -> np.ndarray:
@@ -127,14 +128,14 @@ def variant(how: str, table, cons: np.ndarray, model_free: bool) -> tuple[np.nda
     """(-log10 combined tail probability, core) of the shipped choices with one part changed (``VARIANTS``)."""
     values = {c: table[c].to_numpy() for c in table if c in SCORERS} | {"consistency": cons}
     names = ranked_names(values, table, model_free)
-    alone = scorers.alone_columns(names)  # the recording faults stand apart, as the audit combines them
-    looks = scorers.look_columns(names)  # and the scores of one look are merged
+    alone = alone_columns(names)  # the recording faults stand apart, as the audit combines them
+    looks = look_columns(names)  # and the scores of one look are merged
 
     def combine(log_p: np.ndarray) -> np.ndarray:
         return cauchy_log10(log_p) if how == "Cauchy" else scores.combined_log10(log_p, alone, looks)
 
     def tails(z: np.ndarray, core: np.ndarray) -> np.ndarray:
-        normal = scorers.normal_tails(names)  # the scorers' own families (``Scorer.tail``), then the variant's
+        normal = normal_tails(names)  # the scorers' own families (``Scorer.tail``), then the variant's
         for k, n in enumerate(names):
             if f"exponential {n}" in how.split(", "):
                 normal[k] = False
@@ -217,8 +218,8 @@ def main() -> None:
                     z = ranking(table, cons, log_unc, model_free)
                     values = {c: table[c].to_numpy() for c in table if c in SCORERS} | {"consistency": cons}
                     names = ranked_names(values, table, model_free)
-                    normal, alone = scorers.normal_tails(names), scorers.alone_columns(names)
-                    looks = scorers.look_columns(names)
+                    normal, alone = normal_tails(names), alone_columns(names)
+                    looks = look_columns(names)
                     for core_p in CORES:
                         name = ("no model" if model_free else f"{form}{', log unc.' if log_unc else ''}") + \
                             f", core {'off' if core_p is None else f'{core_p:g}'}"

@@ -22,8 +22,9 @@ import numpy as np
 import pandas as pd
 from suspicion_choices import aurocs, bench_tables
 
-from democheck.audit import colours, flagging, scorers, scores
-from democheck.audit.scorers import SCORERS, Evidence, ranking_z
+from democheck.audit import colours, flagging, ranking, scores
+from democheck.audit.ranking import ranking_z
+from democheck.audit.scorers import SCORERS, Evidence
 from democheck.data import open_dataset
 
 LEVELS = (4, 8)
@@ -63,7 +64,7 @@ def judged(table: pd.DataFrame, colour: np.ndarray | None, mode: str, centring: 
     labels = table["label"].fillna("clean").to_numpy()
     tasks = table["task"].to_numpy()
     values = {c: table[c].to_numpy(float) for c in table if c in SCORERS and c != "colours"}
-    names = scorers.ranked(values, tasks, model_free)
+    names = ranking.ranked(values, tasks, model_free)
     if colour is not None:
         if mode == "add":
             values["colours"] = colour
@@ -74,9 +75,9 @@ def judged(table: pd.DataFrame, colour: np.ndarray | None, mode: str, centring: 
             values["view"] = colour
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=values)
     z = (lambda core: ranking_z(ev, names, core)) if centring == "core" else ranking_z(ev, names)
-    log_p, core = scores.robust_tails(z, normal=scorers.normal_tails(names), alone=scorers.alone_columns(names),
-                                      looks=scorers.look_columns(names))
-    s = scorers.combine(names, log_p)
+    log_p, core = scores.robust_tails(z, normal=ranking.normal_tails(names), alone=ranking.alone_columns(names),
+                                      looks=ranking.look_columns(names))
+    s = ranking.combine(names, log_p)
     au = aurocs(s, labels)
     kinds = sorted(set(labels) - {"clean"})
     flagged = flagging.conformal_p(s, core) <= flagging.DEFAULT_FPR

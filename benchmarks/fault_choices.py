@@ -5,7 +5,7 @@
 TABLE is a ``democheck audit`` or ``democheck bench`` output folder (its scores.parquet; it must hold the
 ``frame_jump`` and ``lag`` columns, which audits since they were added do); LABELS a CSV of episode_index,label
 for an audit whose table has no labels (``metaworld_lerobot.py`` writes one beside the dataset).  Each variant
-recombines the table's scores exactly as the audit does (``scorers.ranking_tails``, ``scorers.combine``, the
+recombines the table's scores exactly as the audit does (``ranking.ranking_tails``, ``ranking.combine``, the
 conformal flags on the robust core) with the faults' scorers changed:
 
 - ``without``: the faults out of the ranking (columns only; the ranking before);
@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit import flagging, scorers, scores
+from democheck.audit import flagging, ranking, scores
 from democheck.audit.scorers import FAULT_MIN_SCALE, SCORERS, Evidence
 
 FAULTS = ("timing", "frozen_video", "frame_jump", "lag")
@@ -79,10 +79,10 @@ def recombined(table: pd.DataFrame, model_free: bool, fpr: float) -> tuple[np.nd
     """(suspicion, flags, expected false flags) of a score table as the audit computes them."""
     values = {c: table[c].to_numpy(float) for c in table if c in SCORERS and SCORERS[c].in_audit}
     values = {c: v for c, v in values.items() if c not in ("suspicion",)}
-    names = scorers.ranked(values, table["task"].to_numpy(), model_free)
+    names = ranking.ranked(values, table["task"].to_numpy(), model_free)
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=values)
-    log_p, core = scorers.ranking_tails(ev, names)
-    suspicion = scorers.combine(names, log_p)
+    log_p, core = ranking.ranking_tails(ev, names)
+    suspicion = ranking.combine(names, log_p)
     flagged = flagging.flags(flagging.conformal_p(suspicion, core), fpr, flagging.flagged_regardless(table))
     return suspicion, flagged, flagging.expected_false_flags(core, fpr)
 
@@ -108,13 +108,13 @@ def main() -> None:
         print(f"\n{path}: {len(table)} demos, {clean.sum()} clean; per kind AUROC/flagged: {' '.join(kinds)}")
         for name, changes in VARIANTS.items():
             # The core's rounds (scores) and the ranking (scorers) both combine.
-            scores.combined_log10 = scorers.combined_log10 = (
+            scores.combined_log10 = ranking.combined_log10 = (
                 each_its_own_look if name == "alone, each its own look" else SHIPPED_COMBINED)
             try:
                 with faults_as(**changes):
                     s, flagged, expected = recombined(table, args.no_model, args.fpr)
             finally:
-                scores.combined_log10 = scorers.combined_log10 = SHIPPED_COMBINED
+                scores.combined_log10 = ranking.combined_log10 = SHIPPED_COMBINED
             cells = []
             for k in kinds:
                 sel = clean | (labels == k)

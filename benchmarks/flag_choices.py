@@ -32,8 +32,9 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from democheck.audit import flagging, scorers, scores
-from democheck.audit.scorers import SCORERS, Evidence, ranking_z
+from democheck.audit import flagging, ranking, scores
+from democheck.audit.ranking import ranking_z
+from democheck.audit.scorers import SCORERS, Evidence
 from calibration_choices import empirical_tails
 from suspicion_choices import aurocs
 
@@ -71,16 +72,16 @@ def combined(table: pd.DataFrame, model_free: bool, tails=SHIPPED_TAILS, empiric
     """(suspicion, robust core) of a score table, as the audit computes them, with ``tails`` for the tails; with
     ``empirical``, the core found so, then the tails taken again from it by ``calibration_choices.empirical_tails``."""
     values = {c: table[c].to_numpy(float) for c in table if c in SCORERS}
-    names = scorers.ranked(values, table["task"].to_numpy(), model_free)
+    names = ranking.ranked(values, table["task"].to_numpy(), model_free)
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=values)
     scores.tail_probabilities = tails
     try:
-        log_p, core = scorers.ranking_tails(ev, names)
+        log_p, core = ranking.ranking_tails(ev, names)
     finally:
         scores.tail_probabilities = SHIPPED_TAILS
     if empirical:
         log_p = empirical_tails(ranking_z(ev, names, core), core)
-    return scorers.combine(names, log_p), core
+    return ranking.combine(names, log_p), core
 
 
 def bulk_flags(s: np.ndarray, core: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, float]:

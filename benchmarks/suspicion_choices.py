@@ -4,7 +4,7 @@
 
 BENCH_DIR is a ``democheck bench`` output (its scores.parquet: each demo's task, label and every scorer's
 score).  Every score of the ranking is first put in robust standard deviations within its task, exactly as
-``democheck audit`` does (``scorers.ranking_z``); the variants then differ in how those are combined:
+``democheck audit`` does (``ranking.ranking_z``); the variants then differ in how those are combined:
 
 - ``max z``: the largest robust z (democheck's ranking before the tail probabilities);
 - ``tail LO-HI``: each column's exponential tail through its LO and HI percentiles (``scores.tail_probabilities``
@@ -29,8 +29,9 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit import flagging, scorers, scores
-from democheck.audit.scorers import SCORERS, Evidence, ranking_z
+from democheck.audit import flagging, ranking, scores
+from democheck.audit.ranking import ranking_z
+from democheck.audit.scorers import SCORERS, Evidence
 
 FPRS = (0.001, 0.005, 0.01, 0.02, 0.05)
 
@@ -91,7 +92,7 @@ def main() -> None:
         labels = table["label"].fillna("clean").to_numpy()
         ev = Evidence(episodes=table[["episode_index", "task"]], scores={c: table[c].to_numpy() for c in table
                                                                          if c in SCORERS})
-        ranked = scorers.ranked(table, table["task"].to_numpy())
+        ranked = ranking.ranked(table, table["task"].to_numpy())
         kinds = sorted(set(labels) - {"clean"})
         print(f"\n{path}{' (' + only + ')' if only else ''}: {len(table)} demos, "
               f"{table['task'].nunique()} tasks, {np.mean(labels != 'clean'):.0%} bad")
@@ -108,9 +109,9 @@ def main() -> None:
                 au = aurocs(s, labels)
                 print(f"  {name[:46]:<46} {how:<16} " + " ".join(f"{au[k]:8.3f}" for k in kinds)
                       + f" {np.mean(list(au.values())):8.3f}")
-        log_p, core = scorers.ranking_tails(ev, ranked)  # as the audit fits them
+        log_p, core = ranking.ranking_tails(ev, ranked)  # as the audit fits them
         clean = labels == "clean"
-        for what, s in (("the shipped combination", scorers.combine(ranked, log_p)),
+        for what, s in (("the shipped combination", ranking.combine(ranked, log_p)),
                         ("the Sidak minimum", -scores.sidak_log10(log_p))):
             print(f"  flags with {what} (conformal on the robust core, as the audit flags): fpr asked -> clean "
                   "share flagged (x asked), recall per kind")

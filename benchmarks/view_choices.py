@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import roc_auc_score
 
-from democheck.audit import flagging, modelfree, scorers, scores
+from democheck.audit import flagging, modelfree, ranking, scores
 from democheck.audit.scorers import SCORERS, Evidence
 from democheck.data import open_dataset
 
@@ -56,7 +56,7 @@ def judged(table: pd.DataFrame, view: np.ndarray | None, name: str = "view", mod
         cols[name] = view
     ev = Evidence(episodes=table[["episode_index", "task"]], scores=cols)
     names, log_p, core = ev.combination(model_free)  # as the audit ranks and flags
-    s = scorers.combine(names, log_p)
+    s = ranking.combine(names, log_p)
     kinds = sorted(set(labels) - {"clean"})
     au = [roc_auc_score(labels[(labels == k) | (labels == "clean")] == k, s[(labels == k) | (labels == "clean")])
           for k in kinds]

@@ -727,7 +727,7 @@ def test_the_ray_engine_without_ray_says_how_to_get_it(monkeypatch):
 def test_on_one_task_the_ranking_leaves_the_task_embeddings_scores_out():
     """A dataset of one task: task uncertainty and consistency are scored and reported, not ranked -- a clean
     demo far from its neighbours there is mostly one on an unusual layout; with two tasks they are ranked."""
-    from democheck.audit.scorers import ranked
+    from democheck.audit.ranking import ranked
 
     available = ["task_uncertainty", "consistency", "action_error", "motion", "idle", "view"]
     assert ranked(available, np.array(["push"] * 9)) == ["action_error", "motion", "idle", "view"]
@@ -793,7 +793,7 @@ def test_ksg_mutual_information_matches_the_gaussian_formula():
 
 
 def test_coupling_ranks_the_arm_let_go_of_first_and_is_one_look_with_the_action_error():
-    from democheck.audit.scorers import combine, look_columns, ranked
+    from democheck.audit.ranking import combine, look_columns, ranked
 
     demos, bad = _planted("idle")
     d = demos[bad]
@@ -826,7 +826,7 @@ def test_coupling_ranks_the_arm_let_go_of_first_and_is_one_look_with_the_action_
     by_hand = np.column_stack([log_p[:, [j for j in range(len(names)) if j not in pair]], one])
     np.testing.assert_allclose(combine(names, log_p), -combined_log10(by_hand), rtol=1e-9)
     # A reason names the look once, by the score that drove it, at the odds the ranking counted.
-    from democheck.audit.scorers import look_odds
+    from democheck.audit.ranking import look_odds
 
     shown = look_odds(["motion", "action_error", "coupling"], np.log([[0.3, 1e-6, 0.5], [0.3, 0.4, 0.01]]))
     np.testing.assert_allclose(np.exp(shown[:, 0]), [0.3, 0.3])
@@ -839,7 +839,7 @@ def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos(mon
     # stays in the robust core (COUPLING_MIN_SCALE), one that let go (a nat and a half below) is far out.
     import dataclasses
 
-    from democheck.audit.scorers import ranking_tails
+    from democheck.audit.ranking import ranking_tails
     from democheck.audit.scores import CORE_P
 
     rng = np.random.default_rng(0)

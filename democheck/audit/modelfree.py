@@ -158,7 +158,7 @@ def broken(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
     state or actions held NaN or infinite values (repaired by ``data.demo.repair_non_finite``), the most damaged
     of these, and where: the readers make every demo readable so that every check can run.  A recording that is
     broken so ranks first whatever its other scores, is flagged, and is no reference for the others
-    (``scorers.broken_rows``, ``flagging.flagged_regardless``)."""
+    (``ranking.broken_rows``, ``flagging.flagged_regardless``)."""
     return np.array([share for share, _ in traces.damaged], np.float64), [what for _, what in traces.damaged]
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from democheck import pool
-from democheck.audit import scorers as registry, shards
+from democheck.audit import ranking, scorers as registry, shards
 from democheck.audit.scorers import GROUP_MIN_DEMOS, Evidence, Scorer
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.flagging import (DEFAULT_FPR, broken_recordings, conformal_p, exact_copies, expected_false_flags,
@@ -231,7 +231,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
     ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers,
                          engine=engine, ray_address=ray_address)
-    broken = registry.broken_rows(ev)
+    broken = ranking.broken_rows(ev)
     if len(broken) and broken.all():  # nothing left to compare a demo with: the dataset, not a demo, is what is broken
         raise DatasetError(f"{ds.root}: every episode is broken, e.g. episode "
                            f"{int(ev.episodes['episode_index'].iloc[0])}: {ev.reasons['broken'][0]}")
@@ -303,7 +303,7 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
         "reference": f"the audited demos' robust core ({int(reference.sum())} of {len(table)}): the demos whose "
                      f"combined tail probability is above {CORE_P:g} once each score's tail is fitted on them, "
                      "refitted until it no longer changes -- believed clean while the bad demos are a minority",
-        "scores": registry.ranked(table, table["task"].to_numpy()),
+        "scores": ranking.ranked(table, table["task"].to_numpy()),
     }
     left_out = [n for n, s in registry.SCORERS.items() if s.in_suspicion and not s.in_single_task_ranking
                 and n in table] if table["task"].nunique() == 1 else []

@@ -24,12 +24,10 @@ import numpy as np
 import pandas as pd
 
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
-from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, sensors
+from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, sensors
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.ocsvm import ocsvm_margin
-from democheck.audit.flagging import is_broken
-from democheck.audit.scores import (CONSISTENCY_K, calibrated, combined_log10, consistency_parts, merge_looks,
-                                    robust_tails)
+from democheck.audit.scores import CONSISTENCY_K, consistency_parts
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -91,10 +89,10 @@ class Evidence:
         """The ranking's scores (``ranked``), their tail probabilities (natural logs, [N, K]) fitted on the audited
         demos' robust core (``scores.robust_tails``), and that core [N]: the reference the flags are calibrated
         on.  Computed once for each set of scores (the ranking and the audit's flags both read it)."""
-        names = ranked(self.scores, self.tasks, model_free)
+        names = ranking.ranked(self.scores, self.tasks, model_free)
         key = tuple(names)
         if key not in self._combinations:
-            self._combinations[key] = ranking_tails(self, names)
+            self._combinations[key] = ranking.ranking_tails(self, names)
         return (names, *self._combinations[key])
 
     @property
@@ -229,69 +227,6 @@ def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors
     return ActionErrors(ev.model, ev.task_variables()[rows], device)
 
 
-def ranking_z(ev: Evidence, names: list[str], core: np.ndarray | None = None) -> np.ndarray:
-    """[N, K]: the ranking's scores ``names`` in robust standard deviations within their task (a score on a log
-    scale first where its scorer says so; one that is a robust z already as it is), each task's centre and the
-    unit from the ``core`` demos (default: every demo; ``scores.calibrated``)."""
-    cols = []
-    for n in names:
-        s, x = SCORERS[n], np.asarray(ev.scores[n], np.float64)
-        x = np.log(np.maximum(x, 1e-12)) if s.log_in_ranking else x
-        cols.append(x if s.in_robust_sd else calibrated(x, ev.groups, min_scale=s.ranking_min_scale, core=core))
-    return np.column_stack(cols) if cols else np.zeros((len(ev.episodes), 0))
-
-
-def ranking_tails(ev: Evidence, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """The tail probabilities (natural logs, [N, K]) of the ranking's scores ``names`` and the robust core they
-    are fitted on (``scores.robust_tails`` of ``ranking_z``), each score's tail of its scorer's family."""
-    return robust_tails(lambda core: ranking_z(ev, names, core), normal=normal_tails(names),
-                        alone=alone_columns(names), outside=broken_rows(ev), looks=look_columns(names))
-
-
-def broken_rows(ev: Evidence) -> np.ndarray:
-    """Which demos are broken recordings (``flagging.is_broken``; ``flagging.broken_recordings`` on a table): bool
-    [N], all False without that check."""
-    return is_broken(ev.scores["broken"]) if "broken" in ev.scores else np.zeros(len(ev.episodes), bool)
-
-
-def normal_tails(names: list[str]) -> np.ndarray:
-    """Which of the ranking's scores ``names`` have a normal tail (``Scorer.tail``): bool [K]."""
-    return np.array([SCORERS[n].tail == "normal" for n in names], bool)
-
-
-def alone_columns(names: list[str]) -> np.ndarray:
-    """Which of the ranking's scores ``names`` stand apart in the combination (``Scorer.alone``): bool [K]."""
-    return np.array([SCORERS[n].alone for n in names], bool)
-
-
-def look_columns(names: list[str]) -> np.ndarray:
-    """Which look each of the ranking's scores ``names`` is (``Scorer.look``; a scorer without one, its own): [K]
-    numbers, equal for the columns of one look."""
-    looks = [SCORERS[n].look or n for n in names]
-    return np.array([looks.index(k) for k in looks])
-
-
-def combine(names: list[str], log_p: np.ndarray) -> np.ndarray:
-    """The ranking: -log10 of the combined tail probability of the scores ``names`` (``scores.combined_log10``,
-    the recording faults beside the rest, the scores of one look merged)."""
-    return -combined_log10(log_p, alone_columns(names), look_columns(names))
-
-
-def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
-    """The scores the ranking combines, of those ``available`` (names, or columns by name): every
-    ``in_suspicion`` scorer's, less the task embedding's on a dataset of one task (``in_single_task_ranking``),
-    less the model's with ``model_free``, less a column with no score at all (the outcome of a dataset whose
-    tasks are all too small to compare): a look that cannot see anything must not cost the others' correction."""
-    one_task = len(np.unique(tasks)) == 1
-    columns = isinstance(available, (dict, pd.DataFrame))
-
-    def scored(n: str) -> bool:
-        return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
-
-    return [n for n, s in SCORERS.items() if s.in_suspicion and n in available
-            and (s.model_free or not model_free) and (s.in_single_task_ranking or not one_task) and scored(n)]
-
-
 ACTIONS_EXPLAINED = "actions explained"  # the look of the action error and the coupling (``Scorer.look``)
 
 # The least spread a robust standard deviation of a recording fault's score stands for in the ranking (a share of
@@ -300,69 +235,13 @@ ACTIONS_EXPLAINED = "actions explained"  # the look of the action error and the 
 # would call a single repeated frame many standard deviations.  Chosen on the development sets (``benchmarks/fault_choices.py``).
 FAULT_MIN_SCALE = 0.02
 
-REASON_P = 0.05  # a score this surprising (tail probability) is named in the ranking's reason beside the first
-
-
-def _combination(ev: Evidence, model_free: bool = False) -> Scores:
-    """-log10 of the combined tail probability of the ranking's scores (``scores.combined_log10``), and the
-    score that drove it."""
-    names, log_p, _ = ev.combination(model_free)
-    if not names:
-        return np.full(len(ev.episodes), np.nan), None
-    value = combine(names, log_p)
-    reasons = []
-    for i, row in enumerate(np.nan_to_num(look_odds(names, log_p), nan=0.0)):  # no score: nothing to name
-        # The score that drove it most, and up to two more that added to it (often the one that says where).
-        order = [j for j in np.argsort(row, kind="stable")[:3] if j == np.argmin(row) or row[j] < np.log(REASON_P)]
-        parts = []
-        for j in order:
-            own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
-            parts.append(f"{names[j]}: {_odds(float(row[j]))}" + (f"; {own}" if own else ""))
-        reasons.append("; also ".join(parts))
-    broken = broken_rows(ev)
-    if broken.any():  # a broken recording is suspect whatever its other scores (``modelfree.broken``)
-        value = np.where(broken, np.inf, value)
-        reasons = [f"broken: {ev.reasons['broken'][i]}" if broken[i] else r for i, r in enumerate(reasons)]
-    return value, reasons
-
-
-def look_odds(names: list[str], log_p: np.ndarray) -> np.ndarray:
-    """``log_p`` as a reason reads it: in each row, the score of a look of several (``Scorer.look``) that drove it
-    carries the look's merged tail probability (``scores.merge_looks``: what the ranking counted), the look's
-    other scores NaN, so that one look is named once, at its own odds."""
-    looks = look_columns(names)
-    out = np.array(log_p, np.float64, copy=True)
-    for look in np.unique(looks):
-        cols = np.flatnonzero(looks == look)
-        if len(cols) < 2:
-            continue
-        merged, _ = merge_looks(log_p[:, cols], np.zeros(len(cols), int))
-        first = cols[np.argmin(np.nan_to_num(log_p[:, cols], nan=np.inf), axis=1)]
-        out[:, cols] = np.nan
-        out[np.arange(len(out)), first] = merged[:, 0]
-    return out
-
-
-def _odds(log_p: float) -> str:
-    """'as unusual as 1 clean demo in 3,400' for a tail probability (given as its natural log)."""
-    p = float(np.exp(log_p))
-    if p >= 0.5:
-        return "typical"
-    if p >= 1e-6:
-        return f"as unusual as 1 clean demo in {1 / p:,.0f}"
-    if p > 0:
-        return f"far beyond the clean demos (tail probability {p:.1e})"
-    if np.isfinite(log_p):  # below what a float holds: its power of ten
-        return f"far beyond the clean demos (tail probability 1e{log_p / np.log(10):.0f})"
-    return "beyond any clean demo"
-
 
 def _suspicion(ev: Evidence) -> Scores:
-    return _combination(ev)
+    return ranking.combination(ev)
 
 
 def _model_free(ev: Evidence) -> Scores:
-    return _combination(ev, model_free=True)
+    return ranking.combination(ev, model_free=True)
 
 
 def _motion(ev: Evidence) -> Scores:

@@ -1,0 +1,145 @@
+"""The ranking: how the registry's scores (``democheck.audit.scorers``) become one column, ``suspicion``.
+
+Each score of the ranking in robust standard deviations within the group its demo is judged in
+(``ranking_z``), a tail probability fitted on the audited demos' robust core (``ranking_tails``), and those
+combined (``combine``: Fisher-Brown, the recording faults beside the rest, the scores of one look merged --
+``scores`` holds the arithmetic and says how each part was chosen); ``combination`` adds the reason.  What each
+scorer contributes -- its tail's family, whether it stands apart, its look, its floor -- is an attribute of its
+``scorers.Scorer``, read here from the registry at call time (the registry's own ``suspicion`` scorer calls back
+into this module).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pandas as pd
+
+from democheck.audit import scorers as registry
+from democheck.audit.flagging import is_broken
+from democheck.audit.scores import calibrated, combined_log10, merge_looks, robust_tails
+
+if TYPE_CHECKING:
+    from democheck.audit.scorers import Evidence, Scores
+
+
+def ranking_z(ev: Evidence, names: list[str], core: np.ndarray | None = None) -> np.ndarray:
+    """[N, K]: the ranking's scores ``names`` in robust standard deviations within the group each demo is judged in
+    (its task, ``Evidence.groups``; a score on a log scale first where its scorer says so; one that is a robust z
+    already as it is), each group's centre and the unit from the ``core`` demos (default: every demo;
+    ``scores.calibrated``)."""
+    cols, groups = [], ev.groups
+    for n in names:
+        s, x = registry.SCORERS[n], np.asarray(ev.scores[n], np.float64)
+        x = np.log(np.maximum(x, 1e-12)) if s.log_in_ranking else x
+        cols.append(x if s.in_robust_sd else calibrated(x, groups, min_scale=s.ranking_min_scale, core=core))
+    return np.column_stack(cols) if cols else np.zeros((len(ev.episodes), 0))
+
+
+def ranking_tails(ev: Evidence, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The tail probabilities (natural logs, [N, K]) of the ranking's scores ``names`` and the robust core they
+    are fitted on (``scores.robust_tails`` of ``ranking_z``), each score's tail of its scorer's family."""
+    return robust_tails(lambda core: ranking_z(ev, names, core), normal=normal_tails(names),
+                        alone=alone_columns(names), outside=broken_rows(ev), looks=look_columns(names))
+
+
+def broken_rows(ev: Evidence) -> np.ndarray:
+    """Which demos are broken recordings (``flagging.is_broken``; ``flagging.broken_recordings`` on a table): bool
+    [N], all False without that check."""
+    return is_broken(ev.scores["broken"]) if "broken" in ev.scores else np.zeros(len(ev.episodes), bool)
+
+
+def normal_tails(names: list[str]) -> np.ndarray:
+    """Which of the ranking's scores ``names`` have a normal tail (``Scorer.tail``): bool [K]."""
+    return np.array([registry.SCORERS[n].tail == "normal" for n in names], bool)
+
+
+def alone_columns(names: list[str]) -> np.ndarray:
+    """Which of the ranking's scores ``names`` stand apart in the combination (``Scorer.alone``): bool [K]."""
+    return np.array([registry.SCORERS[n].alone for n in names], bool)
+
+
+def look_columns(names: list[str]) -> np.ndarray:
+    """Which look each of the ranking's scores ``names`` is (``Scorer.look``; a scorer without one, its own): [K]
+    numbers, equal for the columns of one look."""
+    looks = [registry.SCORERS[n].look or n for n in names]
+    return np.array([looks.index(k) for k in looks])
+
+
+def combine(names: list[str], log_p: np.ndarray) -> np.ndarray:
+    """The ranking: -log10 of the combined tail probability of the scores ``names`` (``scores.combined_log10``,
+    the recording faults beside the rest, the scores of one look merged)."""
+    return -combined_log10(log_p, alone_columns(names), look_columns(names))
+
+
+def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
+    """The scores the ranking combines, of those ``available`` (names, or columns by name): every
+    ``in_suspicion`` scorer's, less the task embedding's on a dataset of one task (``in_single_task_ranking``),
+    less the model's with ``model_free``, less a column with no score at all (the outcome of a dataset whose
+    tasks are all too small to compare): a look that cannot see anything must not cost the others' correction."""
+    one_task = len(np.unique(tasks)) == 1
+    columns = isinstance(available, (dict, pd.DataFrame))
+
+    def scored(n: str) -> bool:
+        return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
+
+    return [n for n, s in registry.SCORERS.items() if s.in_suspicion and n in available
+            and (s.model_free or not model_free) and (s.in_single_task_ranking or not one_task) and scored(n)]
+
+
+REASON_P = 0.05  # a score this surprising (tail probability) is named in the ranking's reason beside the first
+
+
+def combination(ev: Evidence, model_free: bool = False) -> Scores:
+    """-log10 of the combined tail probability of the ranking's scores (``scores.combined_log10``), and the
+    score that drove it."""
+    names, log_p, _ = ev.combination(model_free)
+    if not names:
+        return np.full(len(ev.episodes), np.nan), None
+    value = combine(names, log_p)
+    reasons = []
+    for i, row in enumerate(np.nan_to_num(look_odds(names, log_p), nan=0.0)):  # no score: nothing to name
+        # The score that drove it most, and up to two more that added to it (often the one that says where).
+        order = [j for j in np.argsort(row, kind="stable")[:3] if j == np.argmin(row) or row[j] < np.log(REASON_P)]
+        parts = []
+        for j in order:
+            own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
+            parts.append(f"{names[j]}: {_odds(float(row[j]))}" + (f"; {own}" if own else ""))
+        reasons.append("; also ".join(parts))
+    broken = broken_rows(ev)
+    if broken.any():  # a broken recording is suspect whatever its other scores (``modelfree.broken``)
+        value = np.where(broken, np.inf, value)
+        reasons = [f"broken: {ev.reasons['broken'][i]}" if broken[i] else r for i, r in enumerate(reasons)]
+    return value, reasons
+
+
+def look_odds(names: list[str], log_p: np.ndarray) -> np.ndarray:
+    """``log_p`` as a reason reads it: in each row, the score of a look of several (``Scorer.look``) that drove it
+    carries the look's merged tail probability (``scores.merge_looks``: what the ranking counted), the look's
+    other scores NaN, so that one look is named once, at its own odds."""
+    looks = look_columns(names)
+    out = np.array(log_p, np.float64, copy=True)
+    for look in np.unique(looks):
+        cols = np.flatnonzero(looks == look)
+        if len(cols) < 2:
+            continue
+        merged, _ = merge_looks(log_p[:, cols], np.zeros(len(cols), int))
+        first = cols[np.argmin(np.nan_to_num(log_p[:, cols], nan=np.inf), axis=1)]
+        out[:, cols] = np.nan
+        out[np.arange(len(out)), first] = merged[:, 0]
+    return out
+
+
+def _odds(log_p: float) -> str:
+    """'as unusual as 1 clean demo in 3,400' for a tail probability (given as its natural log)."""
+    p = float(np.exp(log_p))
+    if p >= 0.5:
+        return "typical"
+    if p >= 1e-6:
+        return f"as unusual as 1 clean demo in {1 / p:,.0f}"
+    if p > 0:
+        return f"far beyond the clean demos (tail probability {p:.1e})"
+    if np.isfinite(log_p):  # below what a float holds: its power of ten
+        return f"far beyond the clean demos (tail probability 1e{log_p / np.log(10):.0f})"
+    return "beyond any clean demo"
