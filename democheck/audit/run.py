@@ -326,14 +326,13 @@ def warnings(table: pd.DataFrame, ckpt: Checkpoint | None) -> list[str]:
     """What makes this audit's scores less trustworthy, in a sentence each: tasks too small to judge a demo by,
     tasks the model never learnt, and images unlike any it was trained on."""
     out = []
-    counts = table["task"].value_counts()
-    small = counts[counts < GROUP_MIN_DEMOS]
+    small, tasks = registry.small_tasks(table["task"]), table["task"].nunique()
     if len(small):
         n = int(small.sum())
-        out.append(f"{len(small)} of {len(counts)} tasks have fewer than {GROUP_MIN_DEMOS} demos ({n} demos, e.g. "
+        out.append(f"{len(small)} of {tasks} tasks have fewer than {GROUP_MIN_DEMOS} demos ({n} demos, e.g. "
                    f"{str(small.index[0])!r}): "
                    + ("every demo is compared with all the others, as if the dataset were one task"
-                      if len(small) == len(counts) else "their demos are compared with each other, not with their "
+                      if len(small) == tasks else "their demos are compared with each other, not with their "
                       "own task's") + "; if they hold several tasks, expect clean demos of the rarer ones among the "
                    "suspects, and a demo of the wrong task cannot be told apart")
     if ckpt is None:

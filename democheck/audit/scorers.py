@@ -54,12 +54,17 @@ GROUP_MIN_DEMOS = 5
 SMALL_TASKS = "\0tasks of fewer demos"  # the group of the small tasks' demos (never shown)
 
 
+def small_tasks(tasks: np.ndarray) -> pd.Series:
+    """The tasks of fewer than ``GROUP_MIN_DEMOS`` demos, and how many each has (most first)."""
+    counts = pd.Series(np.asarray(tasks, dtype=object)).value_counts()
+    return counts[counts < GROUP_MIN_DEMOS]
+
+
 def comparison_groups(tasks: np.ndarray) -> np.ndarray:
     """Each demo's task where the task has at least ``GROUP_MIN_DEMOS`` demos, else one group of every demo of the
-    smaller tasks (the whole set where all its tasks are small)."""
+    smaller tasks (the whole set where all its tasks are small: ``small_tasks``)."""
     tasks = np.asarray(tasks, dtype=object)
-    counts = pd.Series(tasks).value_counts()
-    small = np.isin(tasks, counts.index[counts < GROUP_MIN_DEMOS].to_numpy())
+    small = np.isin(tasks, small_tasks(tasks).index.to_numpy())
     return np.where(small, SMALL_TASKS, tasks) if small.any() else tasks
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Protocol
+from typing import Any, Callable, Iterator, Protocol
 
 import cv2
 import numpy as np
@@ -53,6 +53,20 @@ class Demo:
 
     def __len__(self) -> int:
         return len(self.actions)
+
+
+def readable_frames(read: Callable[[], np.ndarray], n: int, shape: tuple[int, int, int], strict: bool
+                    ) -> tuple[np.ndarray, list[tuple[int, str]]]:
+    """The frames ``read`` decodes, or -- where they cannot be decoded (``read`` raises ``DatasetError``: a
+    truncated or corrupt file, a missing one, frames that do not match the steps) -- ``n`` black frames of
+    ``shape`` and what went wrong (a ``Demo.damaged`` entry): a broken demo the audit reports
+    (``modelfree.broken``), not a dataset it refuses; ``strict`` (``DemoSet.strict``): the error."""
+    try:
+        return read(), []
+    except DatasetError as exc:
+        if strict:
+            raise
+        return np.zeros((n, *shape), np.uint8), [(n, f"unreadable frames ({exc})")]
 
 
 def check_arrays(where: str | Path, key: str, x: np.ndarray, dim: int) -> None:

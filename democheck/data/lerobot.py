@@ -30,7 +30,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from democheck.data import video
-from democheck.data.demo import NO_CAMERA, Demo, check_arrays, check_episodes, no_frames, repair_non_finite
+from democheck.data.demo import (NO_CAMERA, Demo, check_arrays, check_episodes, no_frames, readable_frames,
+                                 repair_non_finite)
 from democheck.errors import DatasetError
 
 CODEBASE_VERSION = "v3.0"
@@ -297,15 +298,8 @@ class LeRobotBase:
         return np.stack(out)
 
     def _readable(self, read: Callable[[], np.ndarray], n: int) -> tuple[np.ndarray, list[tuple[int, str]]]:
-        """The frames ``read`` decodes, or -- where they cannot be decoded (a truncated or corrupt file, a missing
-        one) -- ``n`` black frames and what went wrong: a broken demo the audit reports, not a dataset it refuses
-        (``modelfree.broken``)."""
-        try:
-            return read(), []
-        except DatasetError as exc:
-            if self.strict:
-                raise
-            return np.zeros((n, *self.image_shape), np.uint8), [(n, f"unreadable frames ({exc})")]
+        """``demo.readable_frames`` with this reader's frame shape and strictness."""
+        return readable_frames(read, n, self.image_shape, self.strict)
 
     def _image_cues(self, episode_index: int) -> np.ndarray:
         """First and last frame of an episode stored as images (not video), black where they cannot be read."""

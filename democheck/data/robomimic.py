@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import json
 import re
+from typing import Any, Callable
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from democheck.data.demo import NO_CAMERA, Demo, check_arrays, check_episodes, no_frames, repair_non_finite
+from democheck.data.demo import (NO_CAMERA, Demo, check_arrays, check_episodes, no_frames, readable_frames,
+                                 repair_non_finite)
 from democheck.errors import DatasetError
 
 
@@ -113,21 +115,24 @@ class Robomimic:
     def _group(self, f, episode_index: int):
         return f["data"][self.episodes.loc[episode_index, "name"]]
 
-    def _frames(self, g, n: int) -> tuple[np.ndarray, list[tuple[int, str]]]:
-        """A demo's frames, or -- where the file's image data cannot be read (a corrupt chunk) -- ``n`` black
-        frames and what went wrong: a broken demo the audit reports (``modelfree.broken``), unless strict."""
+    def _camera(self, g, read: Callable[[Any], np.ndarray]) -> np.ndarray:
+        """``read`` of a demo's camera dataset, the HDF5 file's errors as one ``DatasetError`` (a corrupt chunk, a
+        dataset that is missing): what ``demo.readable_frames`` turns into black frames and a broken demo."""
         try:
-            frames = np.asarray(g["obs"][self.camera][()], dtype=np.uint8)
-            problem = "" if frames.shape == (n, *self.image_shape) else (
-                f"frames that do not match its steps: {frames.shape[0]} of {frames.shape[1:]} for {n} of "
-                f"{self.image_shape}")
-        except (OSError, KeyError, ValueError) as exc:
-            problem = str(exc)
-        if not problem:
-            return frames, []
-        if self.strict:
-            raise DatasetError(f"{self.root}: {g.name}: unreadable frames in obs/{self.camera} ({problem})")
-        return np.zeros((n, *self.image_shape), np.uint8), [(n, f"unreadable frames in obs/{self.camera} ({problem})")]
+            return read(g["obs"][self.camera])
+        except (OSError, KeyError, ValueError, IndexError) as exc:
+            raise DatasetError(f"{self.root}: {g.name}: obs/{self.camera}: {exc}") from None
+
+    def _frames(self, g, n: int) -> tuple[np.ndarray, list[tuple[int, str]]]:
+        """A demo's ``n`` frames, or black frames and what went wrong (``demo.readable_frames``)."""
+        def whole(img) -> np.ndarray:
+            frames = np.asarray(img[()], dtype=np.uint8)
+            if frames.shape != (n, *self.image_shape):
+                raise DatasetError(f"{self.root}: {g.name}: obs/{self.camera}: frames that do not match its steps: "
+                                   f"{frames.shape[0]} of {frames.shape[1:]} for {n} of {self.image_shape}")
+            return frames
+
+        return readable_frames(lambda: self._camera(g, whole), n, self.image_shape, self.strict)
 
     def _state_group(self, g):
         """Where a demo's state keys are: its obs group, or the demo itself in a raw file (its ``states``)."""
@@ -169,11 +174,9 @@ class Robomimic:
             return no_frames(2)
         with self._h5.File(self.root, "r") as f:
             g = self._group(f, episode_index)
-            try:
-                img = g["obs"][self.camera]
+
+            def ends(img) -> np.ndarray:
                 return np.stack([img[0], img[img.shape[0] - 1]]).astype(np.uint8)
-            except (OSError, KeyError, ValueError, IndexError) as exc:
-                if self.strict:
-                    raise DatasetError(f"{self.root}: {g.name}: unreadable frames in obs/{self.camera} "
-                                       f"({exc})") from None
-                return np.zeros((2, *self.image_shape), np.uint8)  # black: the decoding pass reports it (``_frames``)
+
+            # Black where unreadable: the decoding pass reports it (``_frames``).
+            return readable_frames(lambda: self._camera(g, ends), 2, self.image_shape, self.strict)[0]
