@@ -19,10 +19,12 @@ filesystem.  ``pip install 'democheck[ray]'``.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import queue as queue_mod
+import signal
 from functools import partial
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -53,6 +55,22 @@ def tick(n: int = 1) -> None:
         state["progress"].put(n)
 
 
+@contextlib.contextmanager
+def _workers_ignore_ctrl_c() -> Iterator[None]:
+    """Processes started inside ignore Ctrl-C (an ignored signal stays ignored across exec, and Python keeps it so):
+    the terminal sends SIGINT to the whole process group, and only this process should answer it -- with one line
+    -- while the workers are stopped by the pool, without a traceback each."""
+    try:
+        before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: signals are not this thread's to set
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
 class Workers:
     """``workers`` spawned processes (each first calls ``init(*args)``), kept for several ``run`` calls -- an
     audit's cue pass and decoding pass share them, and so the model each one loads.  One worker: this process.
@@ -69,7 +87,9 @@ class Workers:
         else:
             ctx = mp.get_context("spawn")
             self._progress = ctx.Queue()
-            self._pool = ctx.Pool(self.workers, initializer=_start, initargs=(self._progress, self._init, self._args))
+            with _workers_ignore_ctrl_c():
+                self._pool = ctx.Pool(self.workers, initializer=_start,
+                                      initargs=(self._progress, self._init, self._args))
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -38,6 +38,8 @@ from democheck.petnet.batches import task_rows
 from democheck.petnet.card import git_commit, model_card
 from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
 from democheck.petnet.finish import finish_petnet
+from democheck.petnet.gate import Gate
+from democheck.petnet.model import encode_demos
 from democheck.petnet.recipe import DEFAULT_RECIPE, load_recipe, training_config
 from democheck.petnet.train import TrainConfig, TrainResult, finish_rows, resolve_device, train
 from democheck.sim.suite import generate, load_recipe as load_suite
@@ -317,22 +319,43 @@ def bench_datasets(datasets: list[str | Path], out: str | Path, model: str | Pat
 
 def evaluate_model(model: str | Path | None, dataset: str | Path, out: str | Path, split: str = "test",
                    trials: int = 6, shots: int = 1, workers: int = 2, seed: int = 0, device: str = "auto",
-                   force: bool = False, on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                   force: bool = False, on_progress: Callable[[int, int], None] | None = None,
+                   gate: float | None = None, gate_cues: int = 4) -> dict[str, Any]:
     """The closed-loop meta-test (``evaluate.meta_test``), written as eval.json, eval.md, trials.parquet and
-    eval.rrd into ``out`` (atomically); returns the summary."""
+    eval.rrd into ``out`` (atomically); returns the summary.  ``gate``: the run-time gate's false-refusal rate
+    (``petnet.gate``), asking for up to ``gate_cues`` cues in all."""
     out = Path(out)
     refuse_existing(out, force)
     dev = resolve_device(device)
     ckpt = load_checkpoint(model, device=dev)
     ds = open_dataset(dataset).require_camera("the meta-test")
+    the_gate = None if gate is None else model_gate(ckpt, ds, gate, gate_cues, dev)
     result = meta_test(ckpt, ds, split=split, trials=trials, shots=shots, workers=workers, seed=seed, device=dev,
-                       on_progress=on_progress)
+                       on_progress=on_progress, gate=the_gate)
     with atomic_output_dir(out, force=force) as tmp:
         result.trials.to_parquet(tmp / "trials.parquet", index=False)
         write_json(tmp / "eval.json", result.summary)
         (tmp / "eval.md").write_text(eval_markdown(result.summary))
         write_eval_rrd(tmp / "eval.rrd", result.summary, result.kept, ds.fps)
     return result.summary
+
+
+def model_gate(ckpt: Any, ds: Any, false_refusal: float, max_cues: int, device: Any) -> Gate:
+    """The model's run-time gate; for a model that stores no reference cues, read from the clean demos of the
+    dataset's val split (tasks of training objects the model did not train on), which the summary records."""
+    try:
+        return Gate.of(ckpt, false_refusal, max_cues)
+    except DemocheckError:
+        if ckpt.config.model_type != "petnet" or "split" not in ds.episodes:
+            raise
+    eps = ds.episodes
+    val = eps[(eps["split"] == "val") & (eps.get("label", pd.Series("clean", index=eps.index)).fillna("clean")
+                                         == "clean")]
+    if not len(val):
+        raise DemocheckError(f"{ckpt.path}: stores no reference cues for its gate, and {ds.root} has no clean "
+                             "val demos to read them from")
+    post = encode_demos(ckpt.model, ds, [int(e) for e in val.index], device)
+    return Gate.fit(post.task_uncertainty(), false_refusal, max_cues)
 
 
 DEMO_PLANT = {"idle": 4, "random": 4}

@@ -454,3 +454,26 @@ def test_view_says_what_the_viewer_needs(tmp_path, monkeypatch):
     assert "rerun --web-viewer --bind 127.0.0.1" in out and "no ffmpeg" in out and "apt-get install ffmpeg" in out
     res = runner.invoke(app, ["view", str(tmp_path / "nothing")])
     assert res.exit_code == 2 and "run democheck audit first" in res.output
+
+
+def test_view_binds_the_viewer_to_this_machine_and_keeps_its_log_out_of_the_terminal(tmp_path, monkeypatch):
+    import subprocess as sp
+
+    rrd = tmp_path / "report.rrd"
+    rrd.write_bytes(b"")
+    monkeypatch.setenv("DISPLAY", ":99")
+    started = []
+
+    class Fake:
+        def __init__(self, args, **kw):
+            started.append((args, kw))
+
+    monkeypatch.setattr(sp, "Popen", Fake)
+    res = runner.invoke(app, ["view", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    (args, kw), = started
+    assert args[1:] == ["--bind", "127.0.0.1", str(rrd)]
+    assert kw["stdout"] is kw["stderr"] and kw["stdout"] not in (None, sp.PIPE) and kw["start_new_session"]
+    assert "listening on 127.0.0.1" in " ".join(res.output.split())
+    runner.invoke(app, ["view", str(tmp_path), "--bind", "0.0.0.0"])
+    assert started[-1][0][1:3] == ["--bind", "0.0.0.0"]

@@ -3,6 +3,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from democheck.cli import app
@@ -64,3 +65,29 @@ def test_brackets_survive_help_and_errors(tmp_path):
         assert res.exit_code == 0 and "'democheck[ray]'" in res.output, command
     res = runner.invoke(app, ["info", str(tmp_path / "run[2]")])
     assert res.exit_code == 2 and "run[2]" in res.output
+
+
+@pytest.mark.parametrize("delay", [1.0, 2.5])
+def test_ctrl_c_while_workers_start_prints_one_line_and_leaves_nothing(tmp_path, delay):
+    """Ctrl-C reaches the whole process group: the workers, starting up, must not print a traceback each."""
+    import os
+    import signal
+    import time
+
+    out = tmp_path / "d"
+    proc = subprocess.Popen([sys.executable, "-m", "democheck.cli", "synth", "push-mini", "--out", str(out),
+                             "--workers", "2", "--tasks", "4", "--demos", "2"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    time.sleep(delay)
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    text = stdout + stderr
+    if proc.returncode == 0:  # finished before the interrupt: nothing to check
+        pytest.skip("the command finished before Ctrl-C")
+    assert proc.returncode == 130, text
+    assert "Traceback" not in text and "SpawnPoolWorker" not in text and "KeyboardInterrupt" not in text, text
+    assert text.count("interrupted; nothing was written") == 1, text
+    assert not out.exists() and not list(tmp_path.glob(".d*"))
+    ps = subprocess.run(["ps", "-o", "stat=,pid=", "-g", str(proc.pid)], capture_output=True, text=True).stdout
+    running = [line for line in ps.splitlines() if line.strip() and not line.strip().startswith("Z")]
+    assert not running, f"processes left behind: {running}"  # an exited worker not yet reaped (Z) holds nothing

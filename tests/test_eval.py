@@ -101,3 +101,47 @@ def test_eval_refuses_a_split_without_demos(tiny_dataset, tiny_model, tmp_path):
     res = runner.invoke(app, ["eval", str(tiny_model), "--data", str(root), "--out", str(tmp_path / "e"),
                               "--split", "nope", "--workers", "1"])
     assert res.exit_code == 2 and "no clean demos" in res.output
+
+
+def test_eval_gate_reports_executed_refused_and_after_asking(tiny_dataset, tiny_model, tmp_path):
+    from democheck.data import open_dataset
+    from democheck.evaluate.meta_test import meta_test
+    from democheck.petnet.checkpoint import load_checkpoint
+    from democheck.petnet.gate import Gate
+
+    root, _ = tiny_dataset
+    out = tmp_path / "eval"
+    res = runner.invoke(app, ["eval", str(tiny_model), "--data", str(root), "--out", str(out), "--split", "train",
+                              "--trials", "3", "--workers", "1", "--device", "cpu", "--gate", "--gate-cues", "3"])
+    assert res.exit_code == 0, res.output
+    assert "run-time gate" in (out / "eval.md").read_text()
+    cli = json.loads((out / "eval.json").read_text())["gate"]
+    assert cli["false_refusal"] == 0.05 and cli["max_cues"] == 3 and cli["reference_cues"] > 0
+    # A gate just below every single cue's uncertainty refuses each first cue; two or three cues narrow the
+    # posterior by up to 1/sqrt(3), so some trials are acted on after asking and rolled out again.
+    ckpt, ds = load_checkpoint(tiny_model), open_dataset(root)
+    first = pd.read_parquet(out / "trials.parquet")["task_uncertainty"].min()
+    gate = Gate(threshold=0.9 * first, false_refusal=0.05, reference_cues=1, max_cues=3)
+    result = meta_test(ckpt, ds, split="train", trials=3, workers=1, gate=gate)
+    trials, g = result.trials, result.summary["gate"]
+    refused, acted = trials["refused"].to_numpy(bool), trials["gate_acted"].to_numpy(bool)
+    assert refused.all() and g["refused_share"] == 1.0 and g["executed"]["n"] == 0
+    assert g["refused_would_have"]["n"] == len(trials)
+    assert g["after_asking"]["n"] == acted.sum() > 0 and g["still_refused"] == (~acted).sum()
+    assert (trials["asked"] >= 1).all() and (trials["asked"] <= 2).all()
+    assert trials.loc[acted, "success_after_asking"].notna().all()
+    assert (trials.loc[acted, "gate_uncertainty"] <= gate.threshold).all()
+    assert (trials.loc[~acted, "gate_uncertainty"] > gate.threshold).all()
+
+
+def test_the_gate_example_runs(tiny_dataset, tiny_model):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root, _ = tiny_dataset
+    example = Path(__file__).resolve().parent.parent / "examples" / "gate_a_cue.py"
+    res = subprocess.run([sys.executable, str(example), str(root), "--model", str(tiny_model), "--false-refusal",
+                          "0.5"], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert "a covered camera's cue" in res.stdout and "pushed on a new layout" in res.stdout

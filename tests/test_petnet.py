@@ -388,3 +388,81 @@ def test_the_final_phase_learns_the_validation_demos_too(tmp_path):
     refit = load_checkpoint(tmp_path / "refit").meta["novelty"]
     assert refit["train_cues"] == refit["held_out_cues"] == len(arrays.episodes)
     assert refit["d2_ref"] == pytest.approx(meta["novelty"]["d2_ref"], rel=1e-6)  # the same fit, from its seed
+
+
+@pytest.mark.parametrize("fusion", ["shift", "tile"])
+def test_early_fusion_makes_the_first_convolution_depend_on_the_task(fusion):
+    cfg = ModelConfig(image_size=32, task_fusion=fusion, keypoints=True)
+    ctrl = build_model(cfg).controller
+    frame = torch.rand(2, 3, 32, 32) - 0.5
+    z = torch.randn(2, cfg.embed_dim)
+    h1, h2 = ctrl.features(frame, z), ctrl.features(frame, z + 1.0)
+    assert not torch.allclose(h1, h2)  # the feature points move with the task variable
+    assert ctrl.head[0].in_features == 2 * cfg.conv_channels + cfg.state_dim  # z does not also join late
+    late = build_model(ModelConfig(image_size=32, keypoints=True)).controller
+    assert torch.equal(late.features(frame, z), late.features(frame, z + 1.0))
+
+
+def test_a_checkpoint_made_before_task_fusion_loads_as_late_fusion(arrays, tmp_path):
+    import json
+
+    res = train(arrays, tmp_path / "m", TrainConfig(steps=2, **FAST))
+    doc = json.loads((tmp_path / "m" / "config.json").read_text())
+    doc["model"].pop("task_fusion")  # as config.json files written before the option
+    (tmp_path / "m" / "config.json").write_text(json.dumps(doc))
+    ck = load_checkpoint(tmp_path / "m")
+    assert ck.config.task_fusion == "late"
+    x = torch.rand(1, 3, 16, 16) - 0.5
+    s, z = torch.zeros(1, ck.config.state_dim), torch.zeros(1, ck.config.embed_dim)
+    assert torch.equal(ck.model.controller(x, s, z), res.model.controller(x, s, z))
+
+
+@pytest.mark.parametrize("model_type", ["petnet", "tecnet"])
+def test_early_fusion_trains_and_the_gate_reference_is_stored(arrays, tmp_path, model_type):
+    tc = TrainConfig(model_type=model_type, steps=4, task_fusion="shift", conv_channels=8, lr_schedule="cosine",
+                     **FAST)
+    train(arrays, tmp_path / "m", tc)
+    ck = load_checkpoint(tmp_path / "m")
+    assert ck.config.task_fusion == "shift" and ck.config.conv_channels == 8
+    if model_type == "petnet":
+        ref = ck.meta["gate"]["cue_uncertainty"]
+        assert len(ref) == ck.meta["gate"]["cues"] > 0 and ref == sorted(ref) and ref[0] > 0
+
+
+def test_cosine_schedule_warms_up_then_decays_to_zero():
+    from democheck.petnet.train import learning_rate
+
+    tc = TrainConfig(steps=1000, lr=1e-3, lr_schedule="cosine")
+    lrs = [learning_rate(tc, s) for s in range(1000)]
+    assert lrs[0] == pytest.approx(1e-3 / 20) and max(lrs) == pytest.approx(1e-3)
+    assert lrs[19] == pytest.approx(1e-3) and lrs[-1] < 1e-8 and all(np.diff(lrs[19:]) <= 0)
+    assert learning_rate(TrainConfig(lr=2e-4), 123) == 2e-4
+
+
+def test_gate_refuses_the_stated_share_and_more_cues_narrow_it():
+    from democheck.petnet.gate import Gate
+    from democheck.petnet.posterior import TaskPosterior
+
+    rng = np.random.default_rng(0)
+    ref = rng.lognormal(0, 0.3, 999)
+    gate = Gate.fit(ref, false_refusal=0.05)
+    assert gate.threshold == pytest.approx(np.sort(ref)[949])  # ceil(1000 * 0.95) = 950th smallest
+    # Over draws of the reference, a fresh cue is refused 5% of the time: uniform cues, 99 per reference.
+    refusals = [1.0 - Gate.fit(rng.random(99), 0.05).threshold for _ in range(2000)]
+    assert np.mean(refusals) == pytest.approx(0.05, abs=0.003)
+    wide = TaskPosterior(np.zeros((1, 4)), np.full((1, 4), (1.5 * gate.threshold) ** 2), np.zeros((1, 4)))
+    assert not gate.decide(wide).act
+    three = TaskPosterior(np.zeros((3, 4)), np.full((3, 4), (1.5 * gate.threshold) ** 2), np.zeros((3, 4)))
+    d = gate.decide(three)  # sigma / sqrt(3) = 0.87 of the threshold
+    assert d.act and d.uncertainty == pytest.approx(1.5 * gate.threshold / np.sqrt(3))
+    assert Gate.fit(ref[:5], 0.05).threshold == np.inf  # too few cues to promise 5%
+    with pytest.raises(DemocheckError):
+        Gate.fit(ref, 1.5)
+
+
+def test_batches_gathered_on_the_device_train_the_same_weights(arrays, tmp_path):
+    # The GPU path (the data held on the training device) runs here on the CPU: same batches, same weights.
+    tc = TrainConfig(steps=3, task_fusion="shift", regularisers={"broken_cue": 1.0, "partial_cue": 1.0}, **FAST)
+    a = train(arrays, tmp_path / "host", tc, resident=False).model.state_dict()
+    b = train(arrays, tmp_path / "dev", tc, resident=True).model.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)

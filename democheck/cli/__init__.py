@@ -7,7 +7,7 @@ Heavy libraries (mujoco, torch, rerun) are imported inside the commands, so ``de
 # Each module registers its commands on ``app``, in this order in --help.
 from democheck.cli import suite  # noqa: F401  synth, probe, info
 from democheck.cli import train  # noqa: F401  train, fit-novelty
-from democheck.cli import audit  # noqa: F401  audit, view, demo
+from democheck.cli import audit  # noqa: F401  audit, clean, view, demo
 from democheck.cli import bench  # noqa: F401  bench, eval, dagger
 from democheck.cli.common import app
 

@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Annotated, Optional
@@ -139,6 +140,7 @@ def clean(
 @app.command()
 def view(
     report: Annotated[Path, typer.Argument(help="A report folder written by audit (or an .rrd file).")],
+    bind: Annotated[str, typer.Option(help="Address the viewer's own server listens on: this machine only by default; 0.0.0.0 lets other machines connect to it.")] = "127.0.0.1",
 ) -> None:
     """Open the Rerun viewer on a report's recording (prints the command when there is no display)."""
     with user_errors():
@@ -156,8 +158,12 @@ def view(
                           f"or serve it to a browser on this machine only:\n  rerun --web-viewer --bind 127.0.0.1 {rrd}",
                           highlight=False)
             return
-        subprocess.Popen([viewer, str(rrd)])
-        console.print(f"opened {rrd} in the Rerun viewer")
+        # The viewer runs on in its own session, its log in a file: nothing it prints reaches this terminal.
+        log = Path(tempfile.gettempdir()) / "democheck-viewer.log"
+        with open(log, "ab") as sink:
+            subprocess.Popen([viewer, "--bind", bind, str(rrd)], stdin=subprocess.DEVNULL, stdout=sink, stderr=sink,
+                             start_new_session=True)
+        console.print(f"opened {rrd} in the Rerun viewer (listening on {bind}; its log: {log})", highlight=False)
 
 
 @app.command()

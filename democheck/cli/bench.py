@@ -59,9 +59,12 @@ def eval_(
     workers: Annotated[int, typer.Option(help="Parallel rollout processes.")] = 2,
     seed: Annotated[int, typer.Option(help="Seed for cue draws and layouts.")] = 0,
     device: Annotated[str, typer.Option(help="Device for inferring z from the cues (rollouts run on CPU).")] = "auto",
+    gate: Annotated[bool, typer.Option("--gate", help="Also run the paper's safety gate: act on a cue only when its task uncertainty is within the range of held-out real cues', else ask for another demonstration of the task; reports success of executed cues, the refused share, what refused cues would have scored, and success after asking.")] = False,
+    false_refusal: Annotated[float, typer.Option(help="With --gate: the share of real cues the gate refuses by construction.")] = 0.05,
+    gate_cues: Annotated[int, typer.Option(help="With --gate: ask for more demonstrations until this many cues in all.")] = 4,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:
-    """Closed-loop meta-test: one-shot success on held-out tasks, and success by cue uncertainty."""
+    """Closed-loop meta-test: one-shot success on held-out tasks, and success by cue uncertainty (with --gate, under the run-time safety gate)."""
     with user_errors():
         from democheck.evaluate.meta_test import fmt_rate
         from democheck.workflows import evaluate_model
@@ -70,7 +73,8 @@ def eval_(
             raise DemocheckError(f"{data}: no such dataset; generate it: democheck synth push-v1 --out {data}")
         with Bar("eval", "rollouts") as bar:
             s = evaluate_model(model, data, out, split=split, trials=trials, shots=shots, workers=workers, seed=seed,
-                               device=device, force=force, on_progress=bar.callback())
+                               device=device, force=force, on_progress=bar.callback(),
+                               gate=false_refusal if gate else None, gate_cues=gate_cues)
     table = Table(title=f"{s['model']} on {s['tasks']} {split} tasks, {shots}-shot, {trials} trials each",
                   show_header=False)
     table.add_row("model success", fmt_rate(s["model_success"]))
@@ -80,6 +84,12 @@ def eval_(
         table.add_row("cues not flagged", fmt_rate(s["unflagged"]))
     for q in s.get("sigma_quartiles", []):
         table.add_row(f"sigma quartile {q['quartile']}", fmt_rate(q))
+    if s.get("gate"):
+        g = s["gate"]
+        table.add_row("gate: acted on at once", fmt_rate(g["executed"]))
+        table.add_row(f"gate: refused ({100 * g['refused_share']:.1f}%), had they run", fmt_rate(g["refused_would_have"]))
+        table.add_row("gate: refused, after asking", fmt_rate(g["after_asking"]))
+        table.add_row("gate: every trial it acted on", fmt_rate(g["gated"]))
     console.print(table)
     console.print(f"{out}/eval.md, eval.json, trials.parquet, eval.rrd ({s['rollouts_per_s']:.1f} rollouts/s)")
 

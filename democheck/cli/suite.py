@@ -22,7 +22,7 @@ RAY_ADDRESS_HELP = ("With --engine ray: the Ray cluster's address (e.g. ray://he
 
 @app.command()
 def synth(
-    suite: Annotated[str, typer.Argument(help="Recipe name (push-v1, push-v1-test, push-mini) or a path to a .toml file.")],
+    suite: Annotated[str, typer.Argument(help="Recipe name (push-v1, push-v1-test, push-v2, push-v2-test, push-mini) or a path to a .toml file.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder for the LeRobot v3 dataset (must not exist).")],
     tasks: Annotated[Optional[int], typer.Option(help="Total number of tasks, split train/val/test in the recipe's proportions.")] = None,
     demos: Annotated[Optional[int], typer.Option(help="Demonstrations per task.")] = None,

@@ -9,7 +9,10 @@ scripted expert runs on the very same layouts: the ceiling.
 
 Each trial's cue carries its task standard deviation and the model's OCSVM
 verdict, so success can be split by flagged/unflagged cue (the paper's
-Figure 5C) and by sigma quartile.
+Figure 5C) and by sigma quartile.  With a run-time gate (``petnet.gate``)
+each trial also says whether the gate would have acted on its cue, and a
+refused trial is asked for more demonstrations of its task, one at a time,
+and rolled out again on the same layout once the gate accepts.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from democheck.errors import DemocheckError
 from democheck.evaluate.rollout import ControllerPolicy, init_worker
 from democheck.fsutil import to_json
 from democheck.petnet.checkpoint import Checkpoint
+from democheck.petnet.gate import Gate
 from democheck.petnet.model import encode_demos
 from democheck.sim.catalog import OBJECTS
 from democheck.sim.expert import ScriptedExpert
@@ -52,6 +56,12 @@ class Trial:
     ocsvm_margin: float = float("nan")
     flagged: bool = False
     keep_frames: bool = False
+    spare_cues: list[int] = field(default_factory=list)  # more demos of the task, asked for in turn by the gate
+    refused: bool = False  # the gate would not act on the first cue(s)
+    asked: int = 0  # demonstrations the gate asked for beyond the first cue(s)
+    gate_uncertainty: float = float("nan")  # task uncertainty of the cues the gate last saw
+    gate_acted: bool = False  # the gate acted, at once or after asking
+    gate_z: list[float] = field(default_factory=list)  # the task variable the gate acted with
 
 
 def wilson(successes: int, n: int, z: float = 1.96) -> list[float]:
@@ -71,8 +81,9 @@ def rate(success: np.ndarray) -> dict[str, Any]:
             "ci95": wilson(int(s.sum()), len(s))}
 
 
-def plan_trials(ds, split: str, trials: int, shots: int, seed: int) -> list[Trial]:
-    """Trials of every task of ``split`` that has enough clean demos with sim records."""
+def plan_trials(ds, split: str, trials: int, shots: int, seed: int, spare: int = 0) -> list[Trial]:
+    """Trials of every task of ``split`` that has enough clean demos with sim records; each with up to ``spare``
+    more clean demos of its task for a gate to ask for."""
     eps = ds.episodes
     if "sim" not in eps:
         raise DemocheckError(f"{ds.root}: no sim records; eval rolls out in the simulator and needs a suite made by "
@@ -91,21 +102,35 @@ def plan_trials(ds, split: str, trials: int, shots: int, seed: int) -> list[Tria
         for k in range(trials):
             rng = np.random.default_rng([seed, ti, k])
             cues = sorted(int(e) for e in rng.choice(idx, size=shots, replace=False))
+            rest = [e for e in idx if e not in cues]
+            spares = [int(e) for e in np.random.default_rng([seed, ti, k, 2]).permutation(rest)[:spare]]
             out.append(Trial(task=str(task), target=sim["target"], distractor=sim["distractor"], trial=k,
                              seed=int(np.random.SeedSequence([seed, ti, k, 1]).generate_state(1)[0]), cues=cues,
-                             keep_frames=(k == 0 and ti % KEEP_EVERY == 0)))
+                             keep_frames=(k == 0 and ti % KEEP_EVERY == 0), spare_cues=spares))
     if not out:
         raise DemocheckError(f"{ds.root}: no task of split {split!r} has {shots} clean demos")
     return out
 
 
-def infer_tasks(ds: DemoSet, ckpt: Checkpoint, trials: list[Trial], device) -> None:
-    """Fill each trial's z (and for PETNet its sigma and OCSVM verdict) from its cue demos."""
-    eps = sorted({e for t in trials for e in t.cues})
+def infer_tasks(ds: DemoSet, ckpt: Checkpoint, trials: list[Trial], device, gate: Gate | None = None) -> None:
+    """Fill each trial's z (and for PETNet its sigma and OCSVM verdict) from its cue demos; with a ``gate``, what
+    it decides on them, asking for the trial's spare cues in turn while it refuses."""
+    eps = sorted({e for t in trials for e in t.cues + t.spare_cues})
     pos = {e: i for i, e in enumerate(eps)}
     post = encode_demos(ckpt.model, ds, eps, device)
     ref = (ckpt.meta.get("reference") or {}).get("ocsvm")
     for t in trials:
+        if gate is not None:
+            shown = list(t.cues)
+            decision = gate.decide(post.take([pos[e] for e in shown]))
+            t.refused = not decision.act
+            for extra in t.spare_cues[:max(0, gate.max_cues - len(t.cues))]:
+                if decision.act:
+                    break
+                shown.append(extra)
+                decision = gate.decide(post.take([pos[e] for e in shown]))
+            t.asked, t.gate_acted = len(shown) - len(t.cues), decision.act
+            t.gate_uncertainty, t.gate_z = decision.uncertainty, decision.z.tolist()
         cues = post.take([pos[e] for e in t.cues])
         if ckpt.config.model_type == "tecnet":
             z = cues.mu.mean(0)
@@ -120,15 +145,21 @@ def infer_tasks(ds: DemoSet, ckpt: Checkpoint, trials: list[Trial], device) -> N
             t.flagged = t.ocsvm_margin < 0
 
 
-def _eval_shard(job: tuple[int, int, list[Trial]]) -> list[dict[str, Any]]:
-    _, steps, trials = job
+def _eval_shard(job: tuple[int, int, list[Trial], bool]) -> list[dict[str, Any]]:
+    """Roll out each trial with its z (with ``asked``: the z the gate acted with after asking), and the expert."""
+    _, steps, trials, asked = job
     ckpt = pool.state["ckpt"]
     out = []
     for t in trials:
         env = pool.state["envs"].get(OBJECTS[t.target], OBJECTS[t.distractor])
-        rec = record_demo(env, ControllerPolicy(env, ckpt.model, ckpt.norm, np.asarray(t.z)).act, steps, seed=t.seed)
+        z = np.asarray(t.gate_z if asked else t.z)
+        rec = record_demo(env, ControllerPolicy(env, ckpt.model, ckpt.norm, z).act, steps, seed=t.seed)
         row = {"task": t.task, "trial": t.trial, "success": rec["success"],
                "final_distance": float(env.target_to_goal()), "steps_in_goal": int(env.steps_in_goal)}
+        if asked:
+            out.append(row)
+            pool.tick()
+            continue
         expert = ScriptedExpert(env)
         row["expert_success"] = record_demo(env, expert.act, steps, seed=t.seed)["success"]
         if t.keep_frames:
@@ -170,10 +201,42 @@ def markdown(summary: dict[str, Any]) -> str:
         lines += ["", "| cue sigma quartile | sigma range | success |", "|---:|---|---|"]
         for q in s["sigma_quartiles"]:
             lines.append(f"| {q['quartile']} | {q['sigma_range'][0]:.4f}..{q['sigma_range'][1]:.4f} | {pct(q)} |")
+    if s.get("gate"):
+        g = s["gate"]
+        at = (f"threshold {g['threshold']:.4g}: refuses {100 * g['false_refusal']:.0f}% of real cues by construction"
+              if g["threshold"] is not None else f"no threshold: too few to promise {100 * g['false_refusal']:.0f}%")
+        lines += ["", f"## The run-time gate ({at}, read from {g['reference_cues']} held-out cues)", "",
+                  "| | success (95% CI) |", "|---|---|", f"| no gate: every cue | {pct(s['model_success'])} |",
+                  f"| cues the gate acted on at once | {pct(g['executed'])} |",
+                  f"| cues it refused, had they been run ({100 * g['refused_share']:.1f}% of cues) | "
+                  f"{pct(g['refused_would_have'])} |",
+                  f"| refused cues, after asking for more demonstrations (up to {g['max_cues']} cues) | "
+                  f"{pct(g['after_asking'])} |",
+                  f"| with the gate: every trial it acted on | {pct(g['gated'])} |",
+                  f"| still refused at {g['max_cues']} cues | {g['still_refused']} trials |"]
     lines += ["", "## Per task", "", "| task | success | expert |", "|---|---:|---:|"]
     for task, r in s["per_task"].items():
         lines.append(f"| {task} | {r['success']}/{r['trials']} | {r['expert']}/{r['trials']} |")
     return "\n".join(lines) + "\n"
+
+
+def gate_summary(gate: Gate, table: pd.DataFrame) -> dict[str, Any]:
+    """What the gate did: success of the cues it acted on at once, the share it refused and what those cues
+    scored when run anyway, and success once it acted after asking for more demonstrations (and how many it
+    still refused at ``max_cues``)."""
+    success = table["success"].to_numpy(bool)
+    refused = table["refused"].to_numpy(bool)
+    acted = table["gate_acted"].to_numpy(bool)
+    after = table.get("success_after_asking", pd.Series(np.nan, index=table.index))
+    asked_ok = refused & acted
+    # Success under the gate: each trial it acted on, with the cues it acted on.
+    gated = np.where(asked_ok, after.fillna(False).to_numpy(bool), success)[acted]
+    return {"threshold": gate.threshold, "false_refusal": gate.false_refusal, "reference_cues": gate.reference_cues,
+            "max_cues": gate.max_cues, "refused_share": float(refused.mean()) if len(refused) else float("nan"),
+            "executed": rate(success[~refused]), "refused_would_have": rate(success[refused]),
+            "after_asking": rate(after[asked_ok].to_numpy(bool)), "gated": rate(gated),
+            "still_refused": int((~acted).sum()),
+            "asked_mean": float(table.loc[refused, "asked"].mean()) if refused.any() else 0.0}
 
 
 @dataclass
@@ -186,28 +249,40 @@ class MetaTest:
 
 
 def meta_test(ckpt: Checkpoint, ds: DemoSet, split: str = "test", trials: int = 6, shots: int = 1, workers: int = 2,
-              seed: int = 0, device: Any = "cpu", on_progress: Callable[[int, int], None] | None = None) -> MetaTest:
+              seed: int = 0, device: Any = "cpu", on_progress: Callable[[int, int], None] | None = None,
+              gate: Gate | None = None) -> MetaTest:
     """Roll ``ckpt``'s controller out ``trials`` times on every task of ``split``, cued by ``shots`` clean demos
-    of the task, with the scripted expert on the same layouts."""
+    of the task, with the scripted expert on the same layouts.  With a ``gate``, every trial is rolled out as
+    well (what a refused cue would have scored), and a trial refused at first is rolled out again on its layout
+    with the cues the gate acted on after asking for more."""
     if min(trials, shots, workers) < 1:
         raise DemocheckError("--trials, --shots and --workers must be at least 1")
     if ds.image_shape[:2] != (ckpt.config.image_size,) * 2:
         raise DemocheckError(f"{ds.root}: {ds.image_shape[0]} px cues, the model takes {ckpt.config.image_size} px")
-    plan = plan_trials(ds, split, trials, shots, seed)
-    infer_tasks(ds, ckpt, plan, device)
+    if gate is not None and ckpt.config.model_type != "petnet":
+        raise DemocheckError(f"{ckpt.path}: a {ckpt.config.model_type} model has no task uncertainty to gate on")
+    plan = plan_trials(ds, split, trials, shots, seed, spare=gate.max_cues - shots if gate is not None else 0)
+    infer_tasks(ds, ckpt, plan, device, gate)
     steps = int(ds.episodes["length"].iloc[0])
     by_task: dict[str, list[Trial]] = {}
     for t in plan:
         by_task.setdefault(t.task, []).append(t)
-    jobs = [(i, steps, ts) for i, ts in enumerate(by_task.values())]
+    asked = [t for t in plan if t.asked and t.gate_acted]
+    jobs = [(i, steps, ts, False) for i, ts in enumerate(by_task.values())]
+    jobs += [(len(jobs) + i, steps, asked[i::workers], True) for i in range(min(workers, len(asked)))]
     t0 = time.perf_counter()
     rows = pool.run_shards(jobs, _eval_shard, init_worker, (str(ckpt.path), ckpt.config.image_size), workers,
-                           len(plan), on_progress)
+                           len(plan) + len(asked), on_progress)
     wall = time.perf_counter() - t0
-    res = {(r["task"], r["trial"]): r for r in rows}
+    after = {(r["task"], r["trial"]): r["success"] for r in rows if "expert_success" not in r}
+    res = {(r["task"], r["trial"]): r for r in rows if "expert_success" in r}
+    for key, ok in after.items():
+        res[key]["success_after_asking"] = ok
     table = pd.DataFrame([{**{k: v for k, v in asdict(t).items() if k not in ("keep_frames",)},
                            **{k: v for k, v in res[(t.task, t.trial)].items() if k not in ("frames", "actions", "state")}}
                           for t in plan])
+    if gate is not None and "success_after_asking" not in table:
+        table["success_after_asking"] = None  # no refused trial was acted on after asking
     success = table["success"].to_numpy(bool)
     summary: dict[str, Any] = {
         "model": str(ckpt.path), "model_type": ckpt.config.model_type, "dataset": str(ds.root), "split": split,
@@ -223,5 +298,7 @@ def meta_test(ckpt: Checkpoint, ds: DemoSet, split: str = "test", trials: int = 
         flagged = table["flagged"].to_numpy(bool)
         summary["flagged"], summary["unflagged"] = rate(success[flagged]), rate(success[~flagged])
         summary["sigma_quartiles"] = sigma_quartiles(table["task_uncertainty"].to_numpy(float), success)
+    if gate is not None:
+        summary["gate"] = gate_summary(gate, table)
     kept = [(t, res[(t.task, t.trial)]) for t in plan if "frames" in res[(t.task, t.trial)]]
     return MetaTest(to_json(summary), table, kept)

@@ -56,6 +56,42 @@ def uniform_steps(rng: np.random.Generator, lengths: np.ndarray, k: int) -> np.n
     return (rng.random((len(lengths), k)) * lengths[:, None]).astype(np.int64)
 
 
+class ResidentArrays:
+    """Decoded episodes held as tensors on the training device, state and actions normalised once: on a GPU a
+    step gathers its batch where it trains instead of copying it from host memory (``train`` on CUDA).  Rows,
+    offsets and lengths are those of the ``EpisodeArrays`` it was made from."""
+
+    CHUNK = 65536  # frames copied to the device at a time, so the host never holds a second copy
+
+    def __init__(self, arrays: EpisodeArrays, norm: Normalisation, device: torch.device):
+        self.offsets, self.lengths, self.episodes = arrays.offsets, arrays.lengths, arrays.episodes
+        self.fingerprint, self.device = arrays.fingerprint, device
+        self.frames = torch.empty(arrays.frames.shape, dtype=torch.uint8, device=device)
+        for s in range(0, len(arrays.frames), self.CHUNK):
+            self.frames[s:s + self.CHUNK] = torch.from_numpy(np.ascontiguousarray(arrays.frames[s:s + self.CHUNK]))
+        self.raw_state = torch.from_numpy(np.ascontiguousarray(arrays.state)).to(device)
+        self.state = torch.from_numpy(norm.state(arrays.state).astype(np.float32)).to(device)
+        self.actions = torch.from_numpy(norm.action(arrays.actions).astype(np.float32)).to(device)
+
+    def _index(self, idx: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(idx, dtype=np.int64)).to(self.device)
+
+    def at(self, flat: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Frames, normalised state and normalised actions at flat frame indices."""
+        i = self._index(flat)
+        return self.frames[i], self.state[i], self.actions[i]
+
+    def cue(self, rows: np.ndarray, end: np.ndarray | None = None) -> torch.Tensor:
+        """``EpisodeArrays.cue`` on the device."""
+        first = self.offsets[rows]
+        last = first + (self.lengths[rows] - 1 if end is None else np.minimum(end, self.lengths[rows] - 1))
+        return torch.stack([self.frames[self._index(first)], self.frames[self._index(last)]], dim=1)
+
+    def end_state(self, rows: np.ndarray) -> torch.Tensor:
+        """``EpisodeArrays.end_state`` on the device (the state as recorded)."""
+        return self.raw_state[self._index(self.offsets[rows] + self.lengths[rows] - 1)]
+
+
 class Batches:
     """Samples (cue, demonstrated trajectory) pairs of the same task.
 
@@ -65,7 +101,7 @@ class Batches:
     a task from its look-alikes, not only from random others.
     """
 
-    def __init__(self, arrays: EpisodeArrays, rows: dict[str, np.ndarray], norm: Normalisation,
+    def __init__(self, arrays: EpisodeArrays | ResidentArrays, rows: dict[str, np.ndarray], norm: Normalisation,
                  groups: dict[str, str] | None = None):
         self.a = arrays
         self.tasks = sorted(rows)
@@ -117,15 +153,19 @@ class Batches:
         lengths = a.lengths[traj_rows]
         idx = a.offsets[traj_rows][:, None] + np.minimum(steps, lengths[:, None] - 1)
         flat = idx.reshape(-1)
+        if isinstance(a, ResidentArrays):
+            frames, state, actions = a.at(flat)
+        else:
+            frames, state, actions = a.frames[flat], self.norm.state(a.state[flat]), self.norm.action(a.actions[flat])
         extra = {} if cue_ends is None else {"partial_cue": a.cue(cue_rows, end=cue_ends)}
         return {**extra,
             "task": self.task_ids[cue_rows],
             "cue": a.cue(cue_rows),
             "cue_end_state": a.end_state(cue_rows),  # where each cue's demo ended (a novelty density may read it)
             "traj_cue": a.cue(traj_rows),
-            "frames": a.frames[flat].reshape(*idx.shape, *a.frames.shape[1:]),
-            "state": self.norm.state(a.state[flat]).reshape(*idx.shape, -1),
-            "actions": self.norm.action(a.actions[flat]).reshape(*idx.shape, -1),
+            "frames": frames.reshape(*idx.shape, *a.frames.shape[1:]),
+            "state": state.reshape(*idx.shape, -1),
+            "actions": actions.reshape(*idx.shape, -1),
         }
 
 
@@ -179,5 +219,7 @@ def augment(batch: dict[str, torch.Tensor], shift: int) -> dict[str, torch.Tenso
     return out
 
 
-def to_device(batch: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
-    return {k: torch.from_numpy(np.ascontiguousarray(v)).to(device, non_blocking=True) for k, v in batch.items()}
+def to_device(batch: dict[str, np.ndarray | torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+    """A batch's arrays as tensors on ``device`` (those gathered there already stay)."""
+    return {k: v.to(device) if torch.is_tensor(v) else torch.from_numpy(np.ascontiguousarray(v)).to(device, non_blocking=True)
+            for k, v in batch.items()}

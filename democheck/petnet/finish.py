@@ -1,8 +1,9 @@
 """What a trained PETNet model carries beside its weights, computed once its training ends.
 
 - the novelty density (``democheck.petnet.novelty``), fitted on the training cues;
-- the mean task sigma of held-out real cues and of hand-made nonsense cues (black, noise, a still scene...),
-  which the model card reports: a model surer of a black image than of a demo says so there;
+- the task uncertainty of held-out real cues, which the run-time gate reads (``petnet.gate``);
+- the mean task sigma of those cues and of hand-made nonsense cues (black, noise, a still scene...), which the
+  model card reports: a model surer of a black image than of a demo says so there;
 - the audit's reference on the training demos (the one-class SVM), through the ``reference`` function the
   caller passes (the audit owns it; this package never imports it).
 """
@@ -15,6 +16,7 @@ import numpy as np
 import torch
 
 from democheck.data.cache import EpisodeArrays
+from democheck.petnet.gate import reference_record
 from democheck.petnet.model import encode, encode_rows
 from democheck.petnet.novelty import fit_novelty
 from democheck.petnet.posterior import TaskPosterior
@@ -49,7 +51,10 @@ def finish_petnet(model, arrays: EpisodeArrays, train_rows: np.ndarray, held_row
         out["novelty"]["reference_cues"] = "held-out" if held_rows is not None else "fitted"
     rows = held_rows if held_rows is not None else train_rows[:500]
     real, ends = arrays.cue(rows), arrays.end_state(rows)
-    sig = {"val demos" if held_rows is not None else "train demos": mean_sigma(model, real, device, ends)}
+    which = "val demos" if held_rows is not None else "train demos"
+    post = encode(model, real, device, end_states=ends)
+    sig = {which: float(post.sigma.mean())}
+    out["gate"] = reference_record(post, which)
     for name, cues in nonsense_cues(real[:200], np.random.default_rng(seed)).items():
         sig[name] = mean_sigma(model, cues, device, ends[:200])
     out["task_sigma"] = sig

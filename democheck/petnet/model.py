@@ -30,6 +30,7 @@ from democheck.petnet.posterior import TaskPosterior, product_of_gaussians
 
 
 NOVELTY_VIEWS = ("cue", "last")  # what the novelty density can read of a cue (``novelty_input``)
+TASK_FUSIONS = ("late", "shift", "tile")  # where the controller reads the task variable (``Controller``)
 
 
 @dataclass
@@ -64,10 +65,17 @@ class ModelConfig:
     # over both, the state standardised over the training demos' ends): where the arm ended, which a frame cannot
     # show once the arm has left the view.  False in models fitted before it.  ``petnet.novelty``.
     novelty_state: bool = False
+    # Where the controller reads the task variable (``TASK_FUSIONS``): "late", beside the state after the
+    # convolutions (models made before the choice existed); "shift", a learnt per-channel shift of the first
+    # convolution; "tile", z tiled onto the input image as extra channels (TecNets).  Late fusion cannot tell the
+    # feature points which object the cue named (docs/results.md, the controller).
+    task_fusion: str = "late"
 
     def __post_init__(self) -> None:
         if self.novelty_view not in NOVELTY_VIEWS:
             raise ValueError(f"unknown novelty view {self.novelty_view!r}; views: {', '.join(NOVELTY_VIEWS)}")
+        if self.task_fusion not in TASK_FUSIONS:
+            raise ValueError(f"unknown task fusion {self.task_fusion!r}; choices: {', '.join(TASK_FUSIONS)}")
 
     @property
     def embed_dim(self) -> int:
@@ -256,15 +264,37 @@ class EmbeddingEncoder(nn.Module):
 
 
 class Controller(nn.Module):
-    """(frame, state, z) -> normalised torques; state and z join after the convolutions."""
+    """(frame, state, z) -> normalised torques; the state joins after the convolutions, z where
+    ``cfg.task_fusion`` says.
+
+    Early fusion ("shift", "tile") lets the first convolution's features depend on the task, so the feature
+    points can follow the object the cue named; for a spatially constant z, tiling it onto the image is a
+    per-channel shift of the first convolution's pre-activations but at the padded border, which "shift"
+    computes without the extra input channels.
+    """
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
-        self.conv = conv_stack(3, cfg, keypoints=cfg.keypoints)
-        self.head = mlp(conv_out_dim(cfg, cfg.keypoints) + cfg.state_dim + cfg.embed_dim, cfg.action_dim, cfg)
+        self.fusion = cfg.task_fusion
+        self.conv = conv_stack(3 + (cfg.embed_dim if self.fusion == "tile" else 0), cfg, keypoints=cfg.keypoints)
+        self.z_shift = nn.Linear(cfg.embed_dim, cfg.conv_channels) if self.fusion == "shift" else None
+        late = cfg.embed_dim if self.fusion == "late" else 0
+        self.head = mlp(conv_out_dim(cfg, cfg.keypoints) + cfg.state_dim + late, cfg.action_dim, cfg)
+
+    def features(self, frame: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """The convolutions' output for frames [B, 3, H, W] under task variables z [B, D]."""
+        if self.fusion == "tile":
+            b, _, h, w = frame.shape
+            tiled = z[:, :, None, None].to(frame.dtype).expand(b, z.shape[1], h, w)
+            return self.conv(torch.cat([frame, tiled], 1).contiguous(memory_format=torch.channels_last))
+        if self.fusion == "shift":
+            first = self.conv[0](frame) + self.z_shift(z)[:, :, None, None]
+            return self.conv[1:](first)
+        return self.conv(frame)
 
     def forward(self, frame: torch.Tensor, state: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        return self.head(torch.cat([self.conv(frame), state, z], dim=-1))
+        parts = [self.features(frame, z), state] + ([z] if self.fusion == "late" else [])
+        return self.head(torch.cat(parts, dim=-1))
 
     def act(self, frames: torch.Tensor, state: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """K steps of each of B trajectories under one task variable each: uint8 frames [B, K, H, W, 3],

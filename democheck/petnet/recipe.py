@@ -27,9 +27,11 @@ DEFAULT_RECIPE = "paper"
 # section -> {TOML key: TrainConfig field}; [regularisers] is a table of name -> weight.
 KEYS: dict[str, dict[str, str]] = {
     "": {"model_type": "model_type", "seed": "seed"},
-    "optim": {"steps": "steps", "batch_tasks": "batch_tasks", "timesteps": "timesteps", "lr": "lr"},
+    "optim": {"steps": "steps", "batch_tasks": "batch_tasks", "timesteps": "timesteps", "lr": "lr",
+              "lr_schedule": "lr_schedule"},
     "batches": {"hard_negatives": "hard_negatives", "shift": "shift"},
-    "model": {"keypoints": "keypoints", "novelty": "novelty", "novelty_trim": "novelty_trim",
+    "model": {"keypoints": "keypoints", "task_fusion": "task_fusion", "conv_channels": "conv_channels",
+              "novelty": "novelty", "novelty_trim": "novelty_trim",
               "novelty_autoencoder": "novelty_autoencoder", "novelty_state": "novelty_state", "init": "init",
               "image_size": "image_size"},
     "tecnet": {"margin": "tecnet_margin", "weight": "tecnet_weight"},

@@ -16,6 +16,7 @@ weights as an uninterrupted run.
 from __future__ import annotations
 
 import copy
+import math
 import shutil
 import time
 from dataclasses import asdict, dataclass, field
@@ -29,14 +30,27 @@ from democheck.data.cache import EpisodeArrays
 from democheck.errors import DemocheckError
 from democheck.fsutil import atomic_output_dir
 from democheck.petnet import regularisers
-from democheck.petnet.batches import Batches, augment, task_rows, to_device, val_pairs
+from democheck.petnet.batches import Batches, ResidentArrays, augment, task_rows, to_device, val_pairs
 from democheck.petnet.checkpoint import Normalisation, load_checkpoint, save_checkpoint
 from democheck.petnet.finish import finish_petnet
-from democheck.petnet.model import ModelConfig, build_model
+from democheck.petnet.model import TASK_FUSIONS, ModelConfig, build_model
 from democheck.petnet.posterior import TaskPosterior
 from democheck.petnet.run_state import load_state, save_state, work_dir
 
 MODEL_TYPES = ("petnet", "tecnet")
+LR_SCHEDULES = ("constant", "cosine")
+WARMUP_SHARE = 0.02  # of the steps, for the cosine schedule
+
+
+def learning_rate(tc: "TrainConfig", step: int) -> float:
+    """The learning rate of step ``step`` (0-based) under the run's schedule: a function of the step alone, so a
+    resumed run follows the same curve."""
+    if tc.lr_schedule == "constant":
+        return tc.lr
+    warm = max(1, int(WARMUP_SHARE * tc.steps))
+    if step < warm:
+        return tc.lr * (step + 1) / warm
+    return 0.5 * tc.lr * (1.0 + math.cos(math.pi * (step - warm) / max(1, tc.steps - warm)))
 
 
 @dataclass
@@ -56,6 +70,10 @@ class TrainConfig:
     # Random-shift augmentation of training images (``batches.random_shift``): up to this many pixels each way.
     shift: int = 0
     keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
+    task_fusion: str = "late"  # where the controller reads z, see ModelConfig.task_fusion
+    conv_channels: int = 16  # channels of every convolution, encoder and controller
+    # "constant", or "cosine": a linear warm-up over the first 2% of the steps, then a cosine decay to 0.
+    lr_schedule: str = "constant"
     # The model's input size: every frame resized to image_size x image_size (``data.resize_frames``) for training
     # and, by the audit, for scoring; None: the camera's own size.
     image_size: int | None = None
@@ -107,6 +125,12 @@ class TrainConfig:
             raise DemocheckError(f"shift must be 0 or more pixels, not {self.shift}")
         if not 0.0 <= self.final_all_share < 1.0:
             raise DemocheckError(f"final_all_share is a share of the steps below 1, not {self.final_all_share}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise DemocheckError(f"lr_schedule must be {' or '.join(LR_SCHEDULES)}, not {self.lr_schedule!r}")
+        if self.task_fusion not in TASK_FUSIONS:
+            raise DemocheckError(f"task_fusion must be one of {', '.join(TASK_FUSIONS)}, not {self.task_fusion!r}")
+        if self.conv_channels < 1:
+            raise DemocheckError(f"conv_channels must be positive, not {self.conv_channels}")
         if not self.lr >= 0:
             raise DemocheckError(f"lr must be 0 or more, not {self.lr}")
         regularisers.check_weights(self.regularisers)
@@ -211,8 +235,11 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
           card: Callable[[dict[str, Any]], str] | None = None, stop_after: int | None = None,
           reference: Callable[[TaskPosterior, np.ndarray], dict[str, Any]] | None = None,
           task_groups: dict[str, str] | None = None,
-          on_novelty: Callable[[int, int], None] | None = None) -> TrainResult | None:
+          on_novelty: Callable[[int, int], None] | None = None, resident: bool | None = None) -> TrainResult | None:
     """Train and write the checkpoint folder ``out`` (atomically).
+
+    ``resident``: gather training batches from a copy of the data on the training device (``ResidentArrays``);
+    None: on a GPU.  The batches, and so the weights, are the same either way.
 
     ``reference(posterior, tasks)`` of the training demos, when given, is stored in the checkpoint (the audit
     keeps its one-class SVM there).  ``stop_after`` ends the run early after saving its state at that step,
@@ -233,7 +260,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     left_out = sorted(set(arrays.episodes["task"]) - set(train_rows))
     h = arrays.frames.shape[1]
     cfg = ModelConfig(model_type=tc.model_type, image_size=h, state_dim=arrays.state.shape[1],
-                      action_dim=arrays.actions.shape[1], keypoints=tc.keypoints)
+                      action_dim=arrays.actions.shape[1], keypoints=tc.keypoints,
+                      task_fusion=tc.task_fusion, conv_channels=tc.conv_channels)
     model = build_model(cfg).to(device)
     teacher = None
     if tc.init:
@@ -246,11 +274,13 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=tc.lr)
     groups = task_groups if tc.hard_negatives else None
-    batches, val = Batches(arrays, train_rows, norm, groups), Batches(arrays, val_rows, norm)
+    source = ResidentArrays(arrays, norm, device) if (device.type == "cuda" if resident is None else resident) \
+        else arrays
+    batches, val = Batches(source, train_rows, norm, groups), Batches(arrays, val_rows, norm)
     pairs = val_pairs(val, tc.seed) if val_rows else None
     every = every_row(train_rows, val_rows)
     final_from = tc.steps - final_steps(arrays, tc, val_rows)
-    batches_all = Batches(arrays, every, norm, groups) if final_from < tc.steps else batches
+    batches_all = Batches(source, every, norm, groups) if final_from < tc.steps else batches
 
     step, history, wall_before = 0, [], 0.0
     if resume:
@@ -272,8 +302,10 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     running: dict[str, float] = {}
     report: dict[str, float] = {}
     while step < tc.steps:
-        source = batches_all if step >= final_from else batches
-        batch = to_device(source.sample(rng, tc.batch_tasks, tc.timesteps, partial=tc.partial_cues()), device)
+        drawn = batches_all if step >= final_from else batches
+        batch = to_device(drawn.sample(rng, tc.batch_tasks, tc.timesteps, partial=tc.partial_cues()), device)
+        for g in opt.param_groups:
+            g["lr"] = learning_rate(tc, step)
         out_l = objective(model, augment(batch, tc.shift), tc, teacher=teacher)
         opt.zero_grad(set_to_none=True)
         out_l["loss"].backward()
