@@ -462,7 +462,24 @@ def test_gate_refuses_the_stated_share_and_more_cues_narrow_it():
 
 def test_batches_gathered_on_the_device_train_the_same_weights(arrays, tmp_path):
     # The GPU path (the data held on the training device) runs here on the CPU: same batches, same weights.
-    tc = TrainConfig(steps=3, task_fusion="shift", regularisers={"broken_cue": 1.0, "partial_cue": 1.0}, **FAST)
+    tc = TrainConfig(steps=3, task_fusion="shift", regularisers={"broken_cue": 1.0, "partial_cue": 1.0},
+                     keypoints=True, object_readout=1.0, **FAST)
     a = train(arrays, tmp_path / "host", tc, resident=False).model.state_dict()
     b = train(arrays, tmp_path / "dev", tc, resident=True).model.state_dict()
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize("model_type", ["petnet", "tecnet"])
+def test_the_object_readout_learns_the_recorded_object_poses(arrays, tmp_path, model_type):
+    assert arrays.env_state is not None and arrays.env_state.shape[1] == 6  # target, distractor (x, y, yaw)
+    tc = TrainConfig(model_type=model_type, steps=40, task_fusion="shift", keypoints=True, object_readout=1.0,
+                     lr=3e-3, **{**FAST, "val_every": 40})
+    res = train(arrays, tmp_path / "m", tc)
+    assert res.config.readout_dim == 6
+    last = res.history[-1]
+    assert "train_readout" in last and np.isfinite(last["val_readout"])
+    ck = load_checkpoint(tmp_path / "m")
+    assert ck.model.controller.readout.out_features == 6  # saved and loaded with the weights
+    with pytest.raises(DemocheckError, match="environment state"):
+        import dataclasses
+        train(dataclasses.replace(arrays, env_state=None), tmp_path / "n", tc)

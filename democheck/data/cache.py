@@ -53,6 +53,7 @@ class EpisodeArrays:
     lengths: np.ndarray  # int64 [N]
     episodes: pd.DataFrame  # index aligned with rows: episode_index, task, split (when known), label
     fingerprint: str
+    env_state: np.ndarray | None = None  # float32 [F, E]: the recorded environment state, where the data has one
 
     def cue(self, rows: np.ndarray, end: np.ndarray | None = None) -> np.ndarray:
         """First and last frame of each row's episode: uint8 [len(rows), 2, H, W, 3].
@@ -72,7 +73,7 @@ def build_cache(ds: DemoSet, cache_dir: Path | None = None,
                 on_progress: Callable[[int, int], None] | None = None) -> EpisodeArrays:
     """Decode ``ds`` into the cache (or reuse a complete one) and map it."""
     fp = dataset_fingerprint(ds)
-    folder = (cache_dir or DEFAULT_CACHE) / (f"frames-{fp}" + (f"-{ds.image_size}px" if ds.image_size else ""))
+    folder = (cache_dir or DEFAULT_CACHE) / (f"frames2-{fp}" + (f"-{ds.image_size}px" if ds.image_size else ""))
     eps = ds.episodes.reset_index()
     keep = [c for c in ("episode_index", "task", "length", "split", "label") if c in eps]
     eps = eps[keep].sort_values("episode_index").reset_index(drop=True)
@@ -91,6 +92,7 @@ def build_cache(ds: DemoSet, cache_dir: Path | None = None,
             frames = np.lib.format.open_memmap(tmp / "frames.npy", mode="w+", dtype=np.uint8, shape=(total, h, w, c))
             state = np.zeros((total, ds.state_dim), np.float32)
             actions = np.zeros((total, ds.action_dim), np.float32)
+            env_state: np.ndarray | None = None
             for i, e in enumerate(eps["episode_index"]):
                 demo = ds[int(e)]
                 n, o = lengths[i], offsets[i]
@@ -104,12 +106,15 @@ def build_cache(ds: DemoSet, cache_dir: Path | None = None,
                 frames[o:o + n] = demo.frames
                 state[o:o + n] = demo.state
                 actions[o:o + n] = demo.actions
+                env_state = _put_env_state(env_state, demo.env_state, o, n, total)
                 if on_progress:
                     on_progress(i + 1, len(eps))
             frames.flush()
             del frames
             np.save(tmp / "state.npy", state)
             np.save(tmp / "actions.npy", actions)
+            if env_state is not None:
+                np.save(tmp / "env_state.npy", env_state)
             (tmp / "complete").write_text(json.dumps({"episodes": len(eps), "frames": total}))
             if folder.exists():
                 shutil.rmtree(folder)
@@ -122,4 +127,18 @@ def build_cache(ds: DemoSet, cache_dir: Path | None = None,
     actions = np.load(folder / "actions.npy")
     if frames.shape != (total, h, w, c):
         raise DatasetError(f"{folder}: cache does not match the dataset; delete it and retry")
-    return EpisodeArrays(frames, state, actions, offsets, lengths, eps, fp)
+    env_state = np.load(folder / "env_state.npy") if (folder / "env_state.npy").exists() else None
+    return EpisodeArrays(frames, state, actions, offsets, lengths, eps, fp, env_state)
+
+
+def _put_env_state(env_state: np.ndarray | None, demo_env: np.ndarray | None, o: int, n: int, total: int
+                   ) -> np.ndarray | None:
+    """Episode rows ``o:o+n`` of the environment state, its array made at the first demo that records one (NaN
+    where a demo records none, or one of another width)."""
+    if demo_env is None or np.ndim(demo_env) != 2 or len(demo_env) != n:
+        return env_state
+    if env_state is None:
+        env_state = np.full((total, demo_env.shape[1]), np.nan, np.float32)
+    if demo_env.shape[1] == env_state.shape[1]:
+        env_state[o:o + n] = demo_env
+    return env_state

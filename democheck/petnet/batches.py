@@ -56,6 +56,11 @@ def uniform_steps(rng: np.random.Generator, lengths: np.ndarray, k: int) -> np.n
     return (rng.random((len(lengths), k)) * lengths[:, None]).astype(np.int64)
 
 
+def standardise(x: np.ndarray, norm: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(x - mean) / sd, float32; NaN (not recorded) stays NaN."""
+    return ((x - norm[0]) / norm[1]).astype(np.float32)
+
+
 class ResidentArrays:
     """Decoded episodes held as tensors on the training device, state and actions normalised once: on a GPU a
     step gathers its batch where it trains instead of copying it from host memory (``train`` on CUDA).  Rows,
@@ -63,15 +68,18 @@ class ResidentArrays:
 
     CHUNK = 65536  # frames copied to the device at a time, so the host never holds a second copy
 
-    def __init__(self, arrays: EpisodeArrays, norm: Normalisation, device: torch.device):
+    def __init__(self, arrays: EpisodeArrays, norm: Normalisation, device: torch.device,
+                 env_norm: tuple[np.ndarray, np.ndarray] | None = None):
         self.offsets, self.lengths, self.episodes = arrays.offsets, arrays.lengths, arrays.episodes
         self.fingerprint, self.device = arrays.fingerprint, device
         self.frames = torch.empty(arrays.frames.shape, dtype=torch.uint8, device=device)
         for s in range(0, len(arrays.frames), self.CHUNK):
-            self.frames[s:s + self.CHUNK] = torch.from_numpy(np.ascontiguousarray(arrays.frames[s:s + self.CHUNK]))
+            self.frames[s:s + self.CHUNK] = torch.from_numpy(np.array(arrays.frames[s:s + self.CHUNK]))
         self.raw_state = torch.from_numpy(np.ascontiguousarray(arrays.state)).to(device)
         self.state = torch.from_numpy(norm.state(arrays.state).astype(np.float32)).to(device)
         self.actions = torch.from_numpy(norm.action(arrays.actions).astype(np.float32)).to(device)
+        self.env_state = None if env_norm is None else \
+            torch.from_numpy(standardise(arrays.env_state, env_norm)).to(device)
 
     def _index(self, idx: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(idx, dtype=np.int64)).to(self.device)
@@ -102,8 +110,9 @@ class Batches:
     """
 
     def __init__(self, arrays: EpisodeArrays | ResidentArrays, rows: dict[str, np.ndarray], norm: Normalisation,
-                 groups: dict[str, str] | None = None):
+                 groups: dict[str, str] | None = None, env_norm: tuple[np.ndarray, np.ndarray] | None = None):
         self.a = arrays
+        self.env_norm = env_norm  # (mean, sd): batches carry the standardised environment state
         self.tasks = sorted(rows)
         self.rows = [rows[t] for t in self.tasks]
         self.norm = norm
@@ -153,11 +162,15 @@ class Batches:
         lengths = a.lengths[traj_rows]
         idx = a.offsets[traj_rows][:, None] + np.minimum(steps, lengths[:, None] - 1)
         flat = idx.reshape(-1)
+        extra = {} if cue_ends is None else {"partial_cue": a.cue(cue_rows, end=cue_ends)}
         if isinstance(a, ResidentArrays):
             frames, state, actions = a.at(flat)
+            if a.env_state is not None:
+                extra["env_state"] = a.env_state[a._index(flat)].reshape(*idx.shape, -1)
         else:
             frames, state, actions = a.frames[flat], self.norm.state(a.state[flat]), self.norm.action(a.actions[flat])
-        extra = {} if cue_ends is None else {"partial_cue": a.cue(cue_rows, end=cue_ends)}
+            if self.env_norm is not None:
+                extra["env_state"] = standardise(a.env_state[flat], self.env_norm).reshape(*idx.shape, -1)
         return {**extra,
             "task": self.task_ids[cue_rows],
             "cue": a.cue(cue_rows),

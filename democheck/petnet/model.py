@@ -70,6 +70,9 @@ class ModelConfig:
     # convolution; "tile", z tiled onto the input image as extra channels (TecNets).  Late fusion cannot tell the
     # feature points which object the cue named (docs/results.md, the controller).
     task_fusion: str = "late"
+    # Controller only: a linear read-out of the recorded environment state (the objects' poses) from the
+    # convolutions' features, trained beside the actions so the feature points find the objects; 0: none.
+    readout_dim: int = 0
 
     def __post_init__(self) -> None:
         if self.novelty_view not in NOVELTY_VIEWS:
@@ -280,6 +283,7 @@ class Controller(nn.Module):
         self.z_shift = nn.Linear(cfg.embed_dim, cfg.conv_channels) if self.fusion == "shift" else None
         late = cfg.embed_dim if self.fusion == "late" else 0
         self.head = mlp(conv_out_dim(cfg, cfg.keypoints) + cfg.state_dim + late, cfg.action_dim, cfg)
+        self.readout = nn.Linear(conv_out_dim(cfg, cfg.keypoints), cfg.readout_dim) if cfg.readout_dim else None
 
     def features(self, frame: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """The convolutions' output for frames [B, 3, H, W] under task variables z [B, D]."""
@@ -293,16 +297,33 @@ class Controller(nn.Module):
         return self.conv(frame)
 
     def forward(self, frame: torch.Tensor, state: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        parts = [self.features(frame, z), state] + ([z] if self.fusion == "late" else [])
-        return self.head(torch.cat(parts, dim=-1))
+        return self._head(self.features(frame, z), state, z)
 
-    def act(self, frames: torch.Tensor, state: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    def _head(self, h: torch.Tensor, state: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        return self.head(torch.cat([h, state] + ([z] if self.fusion == "late" else []), dim=-1))
+
+    def act(self, frames: torch.Tensor, state: torch.Tensor, z: torch.Tensor, read: bool = False):
         """K steps of each of B trajectories under one task variable each: uint8 frames [B, K, H, W, 3],
-        state [B, K, S], z [B, D] -> actions [B, K, A]."""
+        state [B, K, S], z [B, D] -> actions [B, K, A]; with ``read``, also the environment-state read-out
+        [B, K, E] (``cfg.readout_dim``)."""
         b, k = frames.shape[:2]
         zk = z[:, None].expand(b, k, z.shape[-1]).reshape(b * k, -1)
-        out = self(to_input(frames.reshape(b * k, *frames.shape[2:])), state.reshape(b * k, -1), zk)
-        return out.reshape(b, k, -1)
+        h = self.features(to_input(frames.reshape(b * k, *frames.shape[2:])), zk)
+        out = self._head(h, state.reshape(b * k, -1), zk).reshape(b, k, -1)
+        return (out, self.readout(h).reshape(b, k, -1)) if read else out
+
+    def control_loss(self, batch: dict[str, torch.Tensor], z: torch.Tensor, readout_weight: float = 0.0
+                     ) -> dict[str, torch.Tensor]:
+        """The action MSE on the batch's demonstrated trajectory under z (``mse``), and with a read-out weight
+        the read-out's MSE on the batch's standardised environment state where it is recorded (``readout``)."""
+        if readout_weight <= 0 or self.readout is None or "env_state" not in batch:
+            return {"mse": ((self.act(batch["frames"], batch["state"], z) - batch["actions"]) ** 2).mean()}
+        actions, read = self.act(batch["frames"], batch["state"], z, read=True)
+        target = batch["env_state"]
+        known = torch.isfinite(target)
+        err = torch.where(known, read - target.nan_to_num(), torch.zeros_like(read))
+        return {"mse": ((actions - batch["actions"]) ** 2).mean(),
+                "readout": (err ** 2).sum() / known.sum().clamp(min=1)}
 
 
 def kl_diag(mu_q: torch.Tensor, var_q: torch.Tensor, mu_p: torch.Tensor, var_p: torch.Tensor) -> torch.Tensor:
@@ -339,8 +360,8 @@ class PETNet(nn.Module):
 
     def loss(self, batch: dict[str, torch.Tensor], sample: bool = True,
              z_posterior: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]] | None = None,
-             terms: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], dict[str, torch.Tensor]] | None = None
-             ) -> dict[str, torch.Tensor]:
+             terms: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], dict[str, torch.Tensor]] | None = None,
+             readout_weight: float = 0.0) -> dict[str, torch.Tensor]:
         """The paper's objective on a batch: z ~ N(mu, var) of each task's cue by reparameterisation (z = mu when
         not ``sample``), then the mean squared error of the controller's actions on the demonstrated trajectory
         of another demo of the task.  Returns ``loss`` (= ``mse``) and the cues' mean ``sigma``.
@@ -350,6 +371,7 @@ class PETNet(nn.Module):
         normalised ``actions`` [B, K, A] at K timesteps of the trajectory.  Hooks for the optional terms
         (``democheck.petnet.regularisers``): ``z_posterior(mu, var)`` replaces the Gaussian z is drawn from;
         ``terms(mu, var, sigma)`` adds named terms, computed after z is drawn and before the controller runs.
+        ``readout_weight``: the controller's environment-state read-out (``Controller.control_loss``) joins the loss.
         """
         mu, var = self.encoder(cue_input(batch["cue"]), batch.get("cue_end_state"))
         mu_s, var_s = z_posterior(mu, var) if z_posterior is not None and sample else (mu, var)
@@ -358,8 +380,8 @@ class PETNet(nn.Module):
         out = {"sigma": sigma.mean()}
         if terms is not None:
             out.update(terms(mu, var, sigma))
-        out["mse"] = ((self.controller.act(batch["frames"], batch["state"], z) - batch["actions"]) ** 2).mean()
-        out["loss"] = out["mse"]
+        out.update(self.controller.control_loss(batch, z, readout_weight))
+        out["loss"] = out["mse"] + readout_weight * out.get("readout", 0.0)
         return out
 
 
@@ -383,15 +405,15 @@ class TecNet(nn.Module):
         return self.controller.act(frames, state, e), e, None
 
     def loss(self, batch: dict[str, torch.Tensor], sample: bool = True, margin: float = 0.1,
-             hinge_weight: float = 10.0) -> dict[str, torch.Tensor]:
+             hinge_weight: float = 10.0, readout_weight: float = 0.0) -> dict[str, torch.Tensor]:
         """TecNets' objective: the control MSE under the cue's embedding plus ``hinge_weight`` times the hinge
         loss that keeps each demonstrated trajectory's embedding nearest its own task's cue (batch as
         ``PETNet.loss``, plus ``traj_cue``, the trajectory's own cue).  ``sample`` is ignored: the embedding is
         deterministic."""
         z = self.encoder(cue_input(batch["cue"]))
         out = {"tecnet_hinge": hinge_embedding_loss(z, self.encoder(cue_input(batch["traj_cue"])), margin)}
-        out["mse"] = ((self.controller.act(batch["frames"], batch["state"], z) - batch["actions"]) ** 2).mean()
-        out["loss"] = out["mse"] + hinge_weight * out["tecnet_hinge"]
+        out.update(self.controller.control_loss(batch, z, readout_weight))
+        out["loss"] = out["mse"] + hinge_weight * out["tecnet_hinge"] + readout_weight * out.get("readout", 0.0)
         return out
 
 

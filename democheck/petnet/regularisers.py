@@ -174,12 +174,12 @@ def active(weights: dict[str, float]) -> list[Regulariser]:
 
 def objective(model: torch.nn.Module, batch: dict[str, torch.Tensor], weights: dict[str, float],
               sample: bool = True, teacher: torch.nn.Module | None = None, tecnet_margin: float = 0.1,
-              tecnet_weight: float = 10.0) -> dict[str, torch.Tensor]:
+              tecnet_weight: float = 10.0, readout: float = 0.0) -> dict[str, torch.Tensor]:
     """The whole training objective of a batch: the model's own loss plus the weighted regularisers
     (``loss``), with every term and diagnostic by name.  A TecNets model has its own objective and no
-    regularisers."""
+    regularisers.  ``readout``: the weight of the controller's environment-state read-out, either model."""
     if model.cfg.model_type != "petnet":
-        return model.loss(batch, sample, margin=tecnet_margin, hinge_weight=tecnet_weight)
+        return model.loss(batch, sample, margin=tecnet_margin, hinge_weight=tecnet_weight, readout_weight=readout)
     regs = active(weights)
     step = Step(model.encoder, batch, teacher=teacher)
 
@@ -190,7 +190,8 @@ def objective(model: torch.nn.Module, batch: dict[str, torch.Tensor], weights: d
             out.update(r.term(step))
         return out
 
-    out = model.loss(batch, sample, z_posterior=step.joint if weights.get("kl_np", 0) > 0 else None, terms=terms)
+    out = model.loss(batch, sample, z_posterior=step.joint if weights.get("kl_np", 0) > 0 else None, terms=terms,
+                     readout_weight=readout)
     for r in regs:
         out["loss"] = out["loss"] + weights[r.name] * out[r.name]
     return out

@@ -74,6 +74,9 @@ class TrainConfig:
     conv_channels: int = 16  # channels of every convolution, encoder and controller
     # "constant", or "cosine": a linear warm-up over the first 2% of the steps, then a cosine decay to 0.
     lr_schedule: str = "constant"
+    # Weight of the controller's read-out of the recorded environment state (the objects' poses, standardised)
+    # from its conv features; 0: none.  Needs data that records an environment state.
+    object_readout: float = 0.0
     # The model's input size: every frame resized to image_size x image_size (``data.resize_frames``) for training
     # and, by the audit, for scoring; None: the camera's own size.
     image_size: int | None = None
@@ -129,6 +132,8 @@ class TrainConfig:
             raise DemocheckError(f"lr_schedule must be {' or '.join(LR_SCHEDULES)}, not {self.lr_schedule!r}")
         if self.task_fusion not in TASK_FUSIONS:
             raise DemocheckError(f"task_fusion must be one of {', '.join(TASK_FUSIONS)}, not {self.task_fusion!r}")
+        if self.object_readout < 0:
+            raise DemocheckError(f"object_readout is a weight, 0 or more, not {self.object_readout}")
         if self.conv_channels < 1:
             raise DemocheckError(f"conv_channels must be positive, not {self.conv_channels}")
         if not self.lr >= 0:
@@ -176,7 +181,8 @@ def objective(model, batch: dict[str, torch.Tensor], tc: TrainConfig, sample: bo
               teacher: torch.nn.Module | None = None) -> dict[str, torch.Tensor]:
     """``regularisers.objective`` with this run's weights."""
     return regularisers.objective(model, batch, tc.regularisers, sample=sample, teacher=teacher,
-                                  tecnet_margin=tc.tecnet_margin, tecnet_weight=tc.tecnet_weight)
+                                  tecnet_margin=tc.tecnet_margin, tecnet_weight=tc.tecnet_weight,
+                                  readout=tc.object_readout)
 
 
 @dataclass
@@ -186,6 +192,15 @@ class TrainResult:
     norm: Normalisation
     history: list[dict[str, float]] = field(default_factory=list)
     metrics: dict[str, Any] = field(default_factory=dict)
+
+
+def env_standardisation(arrays: EpisodeArrays, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and SD of each environment-state dimension over the training rows' frames, for the read-out's target
+    (a dimension that never moves gets an SD of 1)."""
+    spans = np.concatenate([np.arange(arrays.offsets[r], arrays.offsets[r] + arrays.lengths[r]) for r in rows])
+    x = arrays.env_state[spans].astype(np.float64)
+    mean, sd = np.nanmean(x, 0), np.nanstd(x, 0)
+    return np.nan_to_num(mean).astype(np.float32), np.where(np.isfinite(sd) & (sd > 1e-6), sd, 1.0).astype(np.float32)
 
 
 def _start_from(model: torch.nn.Module, cfg: ModelConfig, folder: str) -> Normalisation:
@@ -259,9 +274,13 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     all_train = np.concatenate(list(train_rows.values()))
     left_out = sorted(set(arrays.episodes["task"]) - set(train_rows))
     h = arrays.frames.shape[1]
+    if tc.object_readout > 0 and arrays.env_state is None:
+        raise DemocheckError("object_readout reads the recorded environment state (observation.environment_state), "
+                             "which this dataset does not record; set model.object_readout = 0")
+    readout_dim = arrays.env_state.shape[1] if tc.object_readout > 0 else 0
     cfg = ModelConfig(model_type=tc.model_type, image_size=h, state_dim=arrays.state.shape[1],
                       action_dim=arrays.actions.shape[1], keypoints=tc.keypoints,
-                      task_fusion=tc.task_fusion, conv_channels=tc.conv_channels)
+                      task_fusion=tc.task_fusion, conv_channels=tc.conv_channels, readout_dim=readout_dim)
     model = build_model(cfg).to(device)
     teacher = None
     if tc.init:
@@ -274,13 +293,14 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     model.train()
     opt = torch.optim.Adam(model.parameters(), lr=tc.lr)
     groups = task_groups if tc.hard_negatives else None
-    source = ResidentArrays(arrays, norm, device) if (device.type == "cuda" if resident is None else resident) \
-        else arrays
-    batches, val = Batches(source, train_rows, norm, groups), Batches(arrays, val_rows, norm)
+    env_norm = env_standardisation(arrays, all_train) if readout_dim else None
+    source = ResidentArrays(arrays, norm, device, env_norm) \
+        if (device.type == "cuda" if resident is None else resident) else arrays
+    batches, val = Batches(source, train_rows, norm, groups, env_norm), Batches(arrays, val_rows, norm, env_norm=env_norm)
     pairs = val_pairs(val, tc.seed) if val_rows else None
     every = every_row(train_rows, val_rows)
     final_from = tc.steps - final_steps(arrays, tc, val_rows)
-    batches_all = Batches(source, every, norm, groups) if final_from < tc.steps else batches
+    batches_all = Batches(source, every, norm, groups, env_norm) if final_from < tc.steps else batches
 
     step, history, wall_before = 0, [], 0.0
     if resume:
