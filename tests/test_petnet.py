@@ -483,3 +483,15 @@ def test_the_object_readout_learns_the_recorded_object_poses(arrays, tmp_path, m
     with pytest.raises(DemocheckError, match="environment state"):
         import dataclasses
         train(dataclasses.replace(arrays, env_state=None), tmp_path / "n", tc)
+
+
+def test_fine_points_read_a_map_half_the_images_side():
+    cfg = ModelConfig(image_size=32, keypoints=True, fine_points=True, task_fusion="tile", conv_channels=8)
+    ctrl = build_model(cfg).controller
+    convs = [m for m in ctrl.conv if isinstance(m, torch.nn.Conv2d)]
+    assert [c.stride[0] for c in convs] == [2, 1, 1, 1] and [c.kernel_size[0] for c in convs] == [5, 3, 3, 3]
+    h = ctrl.conv[:-1](torch.zeros(1, 3 + cfg.embed_dim, 32, 32))
+    assert h.shape[-2:] == (16, 16)
+    assert ctrl.features(torch.zeros(2, 3, 32, 32), torch.zeros(2, cfg.embed_dim)).shape == (2, 16)
+    with pytest.raises(ValueError, match="keypoints"):
+        ModelConfig(fine_points=True)

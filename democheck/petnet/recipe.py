@@ -31,7 +31,7 @@ KEYS: dict[str, dict[str, str]] = {
               "lr_schedule": "lr_schedule"},
     "batches": {"hard_negatives": "hard_negatives", "shift": "shift"},
     "model": {"keypoints": "keypoints", "task_fusion": "task_fusion", "conv_channels": "conv_channels",
-              "object_readout": "object_readout",
+              "object_readout": "object_readout", "fine_points": "fine_points",
               "novelty": "novelty", "novelty_trim": "novelty_trim",
               "novelty_autoencoder": "novelty_autoencoder", "novelty_state": "novelty_state", "init": "init",
               "image_size": "image_size"},

@@ -72,6 +72,7 @@ class TrainConfig:
     keypoints: bool = False  # controller architecture option, see ModelConfig.keypoints
     task_fusion: str = "late"  # where the controller reads z, see ModelConfig.task_fusion
     conv_channels: int = 16  # channels of every convolution, encoder and controller
+    fine_points: bool = False  # controller architecture option, see ModelConfig.fine_points
     # "constant", or "cosine": a linear warm-up over the first 2% of the steps, then a cosine decay to 0.
     lr_schedule: str = "constant"
     # Weight of the controller's read-out of the recorded environment state (the objects' poses, standardised)
@@ -134,6 +135,8 @@ class TrainConfig:
             raise DemocheckError(f"task_fusion must be one of {', '.join(TASK_FUSIONS)}, not {self.task_fusion!r}")
         if self.object_readout < 0:
             raise DemocheckError(f"object_readout is a weight, 0 or more, not {self.object_readout}")
+        if self.fine_points and not self.keypoints:
+            raise DemocheckError("fine_points reads feature points: set model.keypoints = true too")
         if self.conv_channels < 1:
             raise DemocheckError(f"conv_channels must be positive, not {self.conv_channels}")
         if not self.lr >= 0:
@@ -280,7 +283,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     readout_dim = arrays.env_state.shape[1] if tc.object_readout > 0 else 0
     cfg = ModelConfig(model_type=tc.model_type, image_size=h, state_dim=arrays.state.shape[1],
                       action_dim=arrays.actions.shape[1], keypoints=tc.keypoints,
-                      task_fusion=tc.task_fusion, conv_channels=tc.conv_channels, readout_dim=readout_dim)
+                      task_fusion=tc.task_fusion, conv_channels=tc.conv_channels, readout_dim=readout_dim,
+                      fine_points=tc.fine_points)
     model = build_model(cfg).to(device)
     teacher = None
     if tc.init:
