@@ -495,3 +495,15 @@ def test_fine_points_read_a_map_half_the_images_side():
     assert ctrl.features(torch.zeros(2, 3, 32, 32), torch.zeros(2, cfg.embed_dim)).shape == (2, 16)
     with pytest.raises(ValueError, match="keypoints"):
         ModelConfig(fine_points=True)
+
+
+def test_the_controller_speed_benchmark_runs_every_controller():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "controller_speed.py"
+    spec = importlib.util.spec_from_file_location("controller_speed", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    for kw in bench.CONTROLLERS.values():
+        assert bench.samples_per_s(1, 2, steps=1, warmup=0, **kw) > 0
