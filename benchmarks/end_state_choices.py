@@ -60,7 +60,7 @@ def time_cue_pass(model, path: str, repeats: int) -> None:
     """Median seconds of the cue pass over DATA and of its end-state read alone (see the module docstring)."""
     import time
 
-    from democheck.petnet.model import encode_demos
+    from democheck.petnet.encode import encode_demos
 
     ds = open_dataset(path, image_size=model.cfg.image_size)
     eps = ds.episode_indices

@@ -27,7 +27,7 @@ from sklearn.metrics import roc_auc_score
 
 from democheck.data import open_dataset
 from democheck.petnet.checkpoint import load_checkpoint
-from democheck.petnet.model import encode
+from democheck.petnet.encode import encode
 
 
 def similarity(src: np.ndarray, dst: np.ndarray):

@@ -66,7 +66,7 @@ def features(encoder, path: str, split: str | None = None, limit: int | None = N
 
 def test_time_spread(model, cues: np.ndarray) -> dict[str, np.ndarray]:
     """How far mu moves over shifted and over brightened or darkened versions of each cue [N, 2, H, W, 3]."""
-    from democheck.petnet.model import encode
+    from democheck.petnet.encode import encode
 
     base = encode(model, cues)
     shifted = np.stack([encode(model, np.roll(cues, (dy, dx), axis=(2, 3))).mu

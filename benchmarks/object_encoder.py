@@ -34,7 +34,8 @@ from sklearn.metrics import roc_auc_score
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache
 from democheck.petnet.batches import Batches, task_rows
-from democheck.petnet.model import ModelConfig, PETNet, cue_input, encode
+from democheck.petnet.model import ModelConfig, PETNet, cue_input
+from democheck.petnet.encode import encode
 from democheck.petnet.novelty import fit_novelty
 from democheck.petnet.regularisers import broken_cue_loss, broken_cues, task_matching_loss
 from democheck.workflows import object_pair_groups

@@ -18,7 +18,7 @@ from democheck.data import open_dataset
 from democheck.data.cache import build_cache
 from democheck.petnet.checkpoint import load_checkpoint
 from democheck.petnet.batches import task_rows
-from democheck.petnet.model import encode
+from democheck.petnet.encode import encode
 
 CUTS = (0, 10, 25, 50, 75, 99)
 

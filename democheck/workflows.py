@@ -39,7 +39,7 @@ from democheck.petnet.card import git_commit, model_card
 from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
 from democheck.petnet.finish import finish_petnet
 from democheck.petnet.gate import Gate
-from democheck.petnet.model import encode_demos
+from democheck.petnet.encode import encode_demos
 from democheck.petnet.recipe import DEFAULT_RECIPE, load_recipe, training_config
 from democheck.petnet.train import TrainConfig, TrainResult, finish_rows, resolve_device, train
 from democheck.sim.suite import generate, load_recipe as load_suite

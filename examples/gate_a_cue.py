@@ -18,7 +18,7 @@ from democheck.data import open_dataset
 from democheck.evaluate.rollout import ControllerPolicy
 from democheck.petnet.checkpoint import load_checkpoint
 from democheck.petnet.gate import Gate
-from democheck.petnet.model import encode, encode_demos
+from democheck.petnet.encode import encode, encode_demos
 from democheck.sim.catalog import OBJECTS
 from democheck.sim.env import PushEnv
 from democheck.sim.variants import record_demo

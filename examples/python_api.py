@@ -15,7 +15,7 @@ import numpy as np
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.data import open_dataset
 from democheck.petnet.checkpoint import load_checkpoint
-from democheck.petnet.model import encode, encode_demos
+from democheck.petnet.encode import encode, encode_demos
 
 ap = argparse.ArgumentParser()
 ap.add_argument("dataset")

@@ -75,7 +75,7 @@ def test_ctrl_c_while_workers_start_prints_one_line_and_leaves_nothing(tmp_path,
     import time
 
     out = tmp_path / "d"
-    proc = subprocess.Popen([sys.executable, "-m", "democheck.cli", "synth", "push-mini", "--out", str(out),
+    proc = subprocess.Popen([sys.executable, "-m", "democheck", "synth", "push-mini", "--out", str(out),
                              "--workers", "2", "--tasks", "4", "--demos", "2"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
     time.sleep(delay)

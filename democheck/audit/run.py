@@ -28,7 +28,7 @@ from democheck.data.demo import DemoSet
 from democheck.errors import DatasetError, DemocheckError
 from democheck.fsutil import to_json
 from democheck.petnet.checkpoint import Checkpoint
-from democheck.petnet.model import encode_demos
+from democheck.petnet.encode import encode_demos
 from democheck.petnet.posterior import TaskPosterior
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)

@@ -23,7 +23,7 @@ from democheck.audit import dynamics, modelfree, scorers as registry
 from democheck.audit.action_error import ACTION_BATCH
 from democheck.audit.scorers import Evidence, Scorer
 from democheck.data.demo import DemoSet
-from democheck.petnet.model import encode_demos
+from democheck.petnet.encode import encode_demos
 from democheck.petnet.posterior import TaskPosterior
 
 CUE_BATCH = 256  # cues encoded at a time, in one process and in a worker alike

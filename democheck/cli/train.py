@@ -11,8 +11,9 @@ from rich.table import Table
 from democheck.cli.common import Bar, app, console, user_errors
 
 RECIPE_HELP = ("Training recipe: a shipped name (paper: the paper's loss, the default; your-data: for a dataset of your "
-               "own, 64 px, ~15 min on 2 cores; petnet-push-v2: the shipped model that pushes, on push-v2; "
-               "tecnet-push-v2: the TecNets baseline beside it; petnet-push-v1, tecnet: the earlier shipped models') "
+               "own, 64 px, ~15 min on 2 cores; petnet-push-v2: the controller that pushed on a GPU, on push-v2, about "
+               "4 h on 2 CPU cores; tecnet-push-v2: the TecNets baseline beside it; petnet-push-v1, tecnet: the "
+               "shipped models') "
                "or a path to a .toml file. Every option of a run is in it.")
 SET_HELP = ("Override one recipe key, e.g. --set optim.lr=1e-3 --set regularisers.kl_prior=0.1 --set model.novelty=false "
             "--set model.init=models/my-petnet (repeatable; keys: democheck/recipes/train/paper.toml).")

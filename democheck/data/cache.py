@@ -60,13 +60,21 @@ class EpisodeArrays:
 
         ``end`` (a timestep per row) cuts each episode short there: the cue of the demo seen only up to ``end``.
         """
-        first = self.offsets[rows]
-        last = first + (self.lengths[rows] - 1 if end is None else np.minimum(end, self.lengths[rows] - 1))
+        first, last = self.cue_index(rows, end)
         return np.stack([self.frames[first], self.frames[last]], axis=1)
+
+    def cue_index(self, rows: np.ndarray, end: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Frame indices of each row's cue: its episode's first frame, and its last (or the one at ``end``)."""
+        first = self.offsets[rows]
+        return first, first + (self.lengths[rows] - 1 if end is None else np.minimum(end, self.lengths[rows] - 1))
+
+    def last_index(self, rows: np.ndarray) -> np.ndarray:
+        """Frame index of each row's episode's last step."""
+        return self.offsets[rows] + self.lengths[rows] - 1
 
     def end_state(self, rows: np.ndarray) -> np.ndarray:
         """The state at each row's episode's last step: float32 [len(rows), S]."""
-        return self.state[self.offsets[rows] + self.lengths[rows] - 1]
+        return self.state[self.last_index(rows)]
 
 
 def build_cache(ds: DemoSet, cache_dir: Path | None = None,

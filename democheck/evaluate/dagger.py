@@ -50,7 +50,7 @@ from democheck.fsutil import atomic_output_dir
 from democheck.petnet.batches import Batches, task_rows, uniform_steps
 from democheck.petnet.card import git_commit, model_card
 from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
-from democheck.petnet.model import encode_rows
+from democheck.petnet.encode import encode_rows
 from democheck.petnet.run_state import load_state, save_state, work_dir
 from democheck.petnet.train import resolve_device
 from democheck.sim.catalog import OBJECTS

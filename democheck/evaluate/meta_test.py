@@ -33,7 +33,7 @@ from democheck.evaluate.rollout import ControllerPolicy, init_worker
 from democheck.fsutil import to_json
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.gate import Gate
-from democheck.petnet.model import encode_demos
+from democheck.petnet.encode import encode_demos
 from democheck.sim.catalog import OBJECTS
 from democheck.sim.expert import ScriptedExpert
 from democheck.sim.variants import record_demo
@@ -154,12 +154,12 @@ def _eval_shard(job: tuple[int, int, list[Trial], bool]) -> list[dict[str, Any]]
         env = pool.state["envs"].get(OBJECTS[t.target], OBJECTS[t.distractor])
         z = np.asarray(t.gate_z if asked else t.z)
         rec = record_demo(env, ControllerPolicy(env, ckpt.model, ckpt.norm, z).act, steps, seed=t.seed)
-        row = {"task": t.task, "trial": t.trial, "success": rec["success"],
-               "final_distance": float(env.target_to_goal()), "steps_in_goal": int(env.steps_in_goal)}
         if asked:
-            out.append(row)
+            out.append({"task": t.task, "trial": t.trial, "success_after_asking": rec["success"]})
             pool.tick()
             continue
+        row = {"task": t.task, "trial": t.trial, "success": rec["success"],
+               "final_distance": float(env.target_to_goal()), "steps_in_goal": int(env.steps_in_goal)}
         expert = ScriptedExpert(env)
         row["expert_success"] = record_demo(env, expert.act, steps, seed=t.seed)["success"]
         if t.keep_frames:
@@ -274,10 +274,9 @@ def meta_test(ckpt: Checkpoint, ds: DemoSet, split: str = "test", trials: int = 
     rows = pool.run_shards(jobs, _eval_shard, init_worker, (str(ckpt.path), ckpt.config.image_size), workers,
                            len(plan) + len(asked), on_progress)
     wall = time.perf_counter() - t0
-    after = {(r["task"], r["trial"]): r["success"] for r in rows if "expert_success" not in r}
-    res = {(r["task"], r["trial"]): r for r in rows if "expert_success" in r}
-    for key, ok in after.items():
-        res[key]["success_after_asking"] = ok
+    res: dict[tuple[str, int], dict[str, Any]] = {}
+    for r in rows:  # a trial's first rollout, and where the gate asked and acted, its second
+        res.setdefault((r["task"], r["trial"]), {}).update(r)
     table = pd.DataFrame([{**{k: v for k, v in asdict(t).items() if k not in ("keep_frames",)},
                            **{k: v for k, v in res[(t.task, t.trial)].items() if k not in ("frames", "actions", "state")}}
                           for t in plan])

@@ -70,8 +70,8 @@ class ResidentArrays:
 
     def __init__(self, arrays: EpisodeArrays, norm: Normalisation, device: torch.device,
                  env_norm: tuple[np.ndarray, np.ndarray] | None = None):
+        self.host, self.device = arrays, device
         self.offsets, self.lengths, self.episodes = arrays.offsets, arrays.lengths, arrays.episodes
-        self.fingerprint, self.device = arrays.fingerprint, device
         self.frames = torch.empty(arrays.frames.shape, dtype=torch.uint8, device=device)
         for s in range(0, len(arrays.frames), self.CHUNK):
             self.frames[s:s + self.CHUNK] = torch.from_numpy(np.array(arrays.frames[s:s + self.CHUNK]))
@@ -84,20 +84,20 @@ class ResidentArrays:
     def _index(self, idx: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(idx, dtype=np.int64)).to(self.device)
 
-    def at(self, flat: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Frames, normalised state and normalised actions at flat frame indices."""
+    def at(self, flat: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Frames, normalised state, normalised actions and the standardised environment state (None where it is
+        not read) at flat frame indices."""
         i = self._index(flat)
-        return self.frames[i], self.state[i], self.actions[i]
+        return self.frames[i], self.state[i], self.actions[i], None if self.env_state is None else self.env_state[i]
 
     def cue(self, rows: np.ndarray, end: np.ndarray | None = None) -> torch.Tensor:
         """``EpisodeArrays.cue`` on the device."""
-        first = self.offsets[rows]
-        last = first + (self.lengths[rows] - 1 if end is None else np.minimum(end, self.lengths[rows] - 1))
+        first, last = self.host.cue_index(rows, end)
         return torch.stack([self.frames[self._index(first)], self.frames[self._index(last)]], dim=1)
 
     def end_state(self, rows: np.ndarray) -> torch.Tensor:
         """``EpisodeArrays.end_state`` on the device (the state as recorded)."""
-        return self.raw_state[self._index(self.offsets[rows] + self.lengths[rows] - 1)]
+        return self.raw_state[self._index(self.host.last_index(rows))]
 
 
 class Batches:
@@ -164,13 +164,12 @@ class Batches:
         flat = idx.reshape(-1)
         extra = {} if cue_ends is None else {"partial_cue": a.cue(cue_rows, end=cue_ends)}
         if isinstance(a, ResidentArrays):
-            frames, state, actions = a.at(flat)
-            if a.env_state is not None:
-                extra["env_state"] = a.env_state[a._index(flat)].reshape(*idx.shape, -1)
+            frames, state, actions, env = a.at(flat)
         else:
             frames, state, actions = a.frames[flat], self.norm.state(a.state[flat]), self.norm.action(a.actions[flat])
-            if self.env_norm is not None:
-                extra["env_state"] = standardise(a.env_state[flat], self.env_norm).reshape(*idx.shape, -1)
+            env = None if self.env_norm is None else standardise(a.env_state[flat], self.env_norm)
+        if env is not None:
+            extra["env_state"] = env.reshape(*idx.shape, -1)
         return {**extra,
             "task": self.task_ids[cue_rows],
             "cue": a.cue(cue_rows),

@@ -17,7 +17,7 @@ import torch
 
 from democheck.data.cache import EpisodeArrays
 from democheck.petnet.gate import reference_record
-from democheck.petnet.model import encode, encode_rows
+from democheck.petnet.encode import encode, encode_rows
 from democheck.petnet.novelty import fit_novelty
 from democheck.petnet.posterior import TaskPosterior
 

@@ -20,21 +20,16 @@ from typing import Any
 import numpy as np
 
 from democheck.errors import DemocheckError
-from democheck.petnet.posterior import TaskPosterior
+from democheck.petnet.posterior import TaskPosterior, task_uncertainty
 
 DEFAULT_FALSE_REFUSAL = 0.05
 MAX_REFERENCE = 2000  # cue uncertainties a checkpoint keeps for its gate
 
 
-def cue_uncertainty(var: np.ndarray) -> np.ndarray:
-    """The gate's reading of posteriors' variances [..., D]: the mean task standard deviation over dimensions."""
-    return np.sqrt(np.asarray(var, np.float64)).mean(-1)
-
-
 def reference_record(post: TaskPosterior, source: str) -> dict[str, Any]:
     """What a checkpoint stores for its gate: the sorted task uncertainties of real cues (at most
     ``MAX_REFERENCE``, evenly spaced quantiles beyond that) and where they came from."""
-    u = np.sort(cue_uncertainty(post.var))
+    u = np.sort(post.task_uncertainty())
     if len(u) > MAX_REFERENCE:
         u = np.quantile(u, np.linspace(0, 1, MAX_REFERENCE))
     return {"cue_uncertainty": [float(f"{x:.6g}") for x in u], "cues": int(len(post)), "source": source}
@@ -83,8 +78,8 @@ class Gate:
     def decide(self, post: TaskPosterior) -> Decision:
         """Act or ask again, given the posteriors of every cue shown so far (combined by product of Gaussians)."""
         mu, var = post.combined()
-        u = float(cue_uncertainty(var))
+        u = float(task_uncertainty(var))
         return Decision(u <= self.threshold, u, mu)
 
 
-__all__ = ["Gate", "Decision", "cue_uncertainty", "reference_record", "DEFAULT_FALSE_REFUSAL"]
+__all__ = ["Gate", "Decision", "reference_record", "DEFAULT_FALSE_REFUSAL"]

@@ -57,6 +57,11 @@ def product_of_others(mu: np.ndarray, var: np.ndarray, tasks: np.ndarray, k: int
     return m_out, v_out
 
 
+def task_uncertainty(var: np.ndarray) -> np.ndarray:
+    """The paper's score of a task posterior with variances [..., z]: the mean over dimensions of sqrt(var)."""
+    return np.sqrt(var).mean(axis=-1)
+
+
 @dataclass
 class TaskPosterior:
     """The task posteriors of N cues: ``mu``, ``var_task`` (the paper's head), ``var_novel`` (novelty), [N, z]."""
@@ -76,9 +81,9 @@ class TaskPosterior:
         return np.sqrt(self.var)
 
     def task_uncertainty(self, head_only: bool = False) -> np.ndarray:
-        """The paper's score of each cue: the mean over dimensions of sqrt(var) ([N]); ``head_only``: of
-        ``var_task`` alone, without the novelty part."""
-        return np.sqrt(self.var_task if head_only else self.var).mean(axis=1)
+        """The paper's score of each cue (``task_uncertainty``) [N]; ``head_only``: of ``var_task`` alone, without
+        the novelty part."""
+        return task_uncertainty(self.var_task if head_only else self.var)
 
     def __len__(self) -> int:
         return len(self.mu)
