@@ -57,18 +57,15 @@ def tick(n: int = 1) -> None:
 
 @contextlib.contextmanager
 def _workers_ignore_ctrl_c() -> Iterator[None]:
-    """Processes started inside ignore Ctrl-C (an ignored signal stays ignored across exec, and Python keeps it so):
-    the terminal sends SIGINT to the whole process group, and only this process should answer it -- with one line
-    -- while the workers are stopped by the pool, without a traceback each."""
-    try:
-        before = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    except ValueError:  # not the main thread: signals are not this thread's to set
-        yield
-        return
+    """Processes started inside never see Ctrl-C: SIGINT is blocked while they start, and a blocked signal stays
+    blocked in a child across exec.  The terminal sends SIGINT to the whole process group; only this process should
+    answer it -- with one line -- while the pool stops the workers.  Here a Ctrl-C during the start is held, not
+    lost, and answered as soon as the workers have started."""
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, before)
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 class Workers:

@@ -11,8 +11,4 @@ from democheck.cli import audit  # noqa: F401  audit, clean, view, demo
 from democheck.cli import bench  # noqa: F401  bench, eval, dagger
 from democheck.cli.common import app
 
-__all__ = ["app", "main"]
-
-
-def main() -> None:  # pragma: no cover - console-script entry point
-    app()
+__all__ = ["app"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import time
 from contextlib import contextmanager
 from typing import Callable, Iterator
@@ -21,18 +22,37 @@ app = typer.Typer(
 )
 console = Console()
 err_console = Console(stderr=True)
+_ctrl_c = {"pressed": False}
+
+
+def answer_ctrl_c() -> None:
+    """From now on Ctrl-C also leaves a mark, so that ``user_errors`` recognises it when a library turns the
+    interrupt into an error of its own (ctypes, loading a GL library, reports ``ArgumentError: KeyboardInterrupt``)."""
+
+    def pressed(signum, frame):
+        _ctrl_c["pressed"] = True
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, pressed)
+
+
+def ctrl_c_pressed() -> bool:
+    return _ctrl_c["pressed"]
 
 
 @contextmanager
 def user_errors() -> Iterator[None]:
-    """Bad input becomes one line on stderr and exit status 2, never a traceback."""
+    """Bad input becomes one line on stderr and exit status 2, never a traceback; Ctrl-C exit status 130."""
     try:
         yield
     except DemocheckError as exc:
         err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         raise typer.Exit(2) from None
     except KeyboardInterrupt:
-        err_console.print("interrupted; nothing was written")
+        raise typer.Exit(130) from None  # the entry point (democheck.__main__) says so in one line
+    except Exception:
+        if not ctrl_c_pressed():
+            raise
         raise typer.Exit(130) from None
 
 
