@@ -209,6 +209,7 @@ def _write_robomimic(path, n=6, T=8, size=16, joints=14):
     import h5py
 
     rng = np.random.default_rng(0)
+    push = np.random.default_rng(1).normal(size=10)
     with h5py.File(path, "w") as f:
         data = f.create_group("data")
         data.attrs["env_args"] = json.dumps({"env_name": "PushTiny", "env_kwargs": {"control_freq": 20}})
@@ -218,7 +219,8 @@ def _write_robomimic(path, n=6, T=8, size=16, joints=14):
             g.create_dataset("obs/agentview_image", data=rng.integers(0, 255, (T, size, size, 3), dtype=np.uint8))
             g.create_dataset("obs/robot0_eef_pos", data=rng.normal(size=(T, 3)))
             g.create_dataset("obs/robot0_joint_pos", data=rng.normal(size=(T, joints)))
-            g.create_dataset("obs/object", data=rng.normal(size=(T, 10)))  # the objects' poses
+            # the objects' poses, moved alike by every demo
+            g.create_dataset("obs/object", data=rng.normal(0, 0.01, 10) + np.linspace(0, 1, T)[:, None] * push)
             if i == 5:
                 g.attrs["task"] = "another task"
         f.create_dataset("mask/train", data=np.array([b"demo_0", b"demo_1", b"demo_2", b"demo_5"]))

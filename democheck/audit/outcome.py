@@ -1,84 +1,63 @@
 """The ``outcome`` check (model-free): how differently from its task's other demos a demo left the world.
 
-Per dimension of the recorded environment state (LeRobot's ``observation.environment_state``, robomimic's
-``obs/object``: where the objects are) -- or, where the dataset records none, of the state (Meta-World's holds
-the objects too; a real arm's, its joints) -- the value at the demo's last step and its change from the first,
-in robust standard deviations of the task's demos there (at least ``OUTCOME_FLOOR`` of that dimension's spread
-of final values over all the demos), root-mean-square over the dimensions: the wrong object pushed, both
-pushed, the job left half done.  NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.
+What is compared is the world record -- the environment state where the dataset has one (LeRobot's
+``observation.environment_state``, robomimic's ``obs/object``), else the state -- at the demo's last step and its
+change from the first, one feature at a time, and the features' robust z put together by their root mean square:
+the wrong object pushed, both pushed, the job left half done.  The check is built to hold on any record's shape:
 
-A value at the end is compared with the task's demos that *started on the same side* of where the task's demos
-end in that dimension (``side_reference``), where at least ``OUTCOME_MIN_SIDE`` did: a push stops short of its
-goal on the side it came from.  A consumer of the
-audit's decoding pass like the other model-free checks (``democheck.audit.modelfree``).
+- **A task may end in several ways** (a button toggles a lock; a push stops short of its goal on the side it came
+  from): a demo's value is measured against the median of its task's demos that started on the same side and
+  reached the same outcome (``modes``: an outcome a share ``MODE_SHARE`` of the task reaches, well apart from the
+  others), not against the whole task's median, so the minority's outcome is not an anomaly.
+- **Rotations are compared as rotations**: a quaternion (four consecutive dimensions named ``*w/x/y/z`` or
+  ``*quat*``, or of unit norm throughout) as its outer product ``q q^T``, the same for ``q`` and ``-q``; an angle
+  named so (``yaw``, ``angle``, ...) as its cosine and sine, so that +pi and -pi are one angle.
+- **Units from how the feature moves**: a value's robust SD is at least ``END_FLOOR`` of its spread at the end
+  over all the demos and ``MOVE_FLOOR`` of how far the demos that move it move it within an episode; a rotation's
+  at least ``ROTATION_FLOOR``.  A feature no demo moves (a fixed part, whose values differ by float noise) says nothing.
+
+NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.  A consumer of the audit's decoding pass like the other
+model-free checks (``democheck.audit.modelfree``); ``benchmarks/shapes.py`` measures what the shapes cost.
 """
 
 from __future__ import annotations
 
+import re
 import warnings
-from typing import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
-from democheck.audit.modelfree import PerDemo, task_z
+from democheck.audit.modelfree import PerDemo
 from democheck.data.demo import Demo
 
-# A dimension's robust SD within a task stands for at least 5% of its spread of final values over all the
-# demos: in a clean pushing demo the other object does not move at all, and a MAD of zero would call any nudge
-# infinitely unusual.  Chosen on the development sets (``benchmarks/outcome_choices.py runs/push-dev2 --only
-# data/push-v1-dev``: push-v1-dev audited alone with the shipped model; ``... runs/foreign/mw2-dev/bench``:
-# Meta-World mw2-dev with its your-data model) among floors of 2, 5, 10 and 20%, and ways to put the
-# dimensions together (``FORMS`` there).  The plain RMS at 5%: push-v1-dev's ranking AUROC 1.000 on every kind
-# and at --fpr 0.01 every both-objects, wrong-object and gave-up demo flagged (without the check 0.31, 0.15,
-# 0.84), 0.8% of the clean demos (0.5% without); on mw2-dev, whose ranking had every kind at 1.000 already, 2
-# more of 200 clean demos flagged (3.0%: clean Meta-World demos that end with the hand or an object somewhere
-# unusual).  On a log scale, or with each z capped at 5 or 10, push-v1-dev kept 0.36-0.62 of its both-objects
-# flags (mw2-dev: 2.0-3.0% of clean flagged); capped at 20, the same as the plain RMS; the share of dimensions
-# over 3, 5 or 10 robust SD flagged 1.0-11% of push-v1-dev's clean demos and 3.0-5.0% of mw2-dev's.  2% did as
-# well as 5% on both sets; 10 and 20% lost flags.  Measured since and not kept (the same script, on the benches
-# of push-v1-dev, -dev3 and -dev4 with their probes and of mw2-dev, the shipped model): the largest z, or the RMS
-# of the two or three largest, instead of the RMS of all (clean demos flagged 1.0% -> 1.6-1.8% on push-v1-dev, no
-# kind flagged more anywhere); one robust SD per dimension for every task instead of each task's own (a gave-up
-# demo that stopped near the goal is measured against a task whose three or four bad demos of a dozen widen its
-# MAD): push's gave-up alone 0.97-0.98 -> 0.995-0.999, but 1.3-1.6% of clean demos flagged, and on Meta-World,
-# whose tasks' outcomes spread very differently, the ranking fell to 0.68-0.86 with 38% of the clean demos
-# flagged; each task's median and MAD taken again from its demos within 3 or 5 robust SD of the first: 1.3-2.9%
-# of push's clean demos flagged, no kind flagged more.
-OUTCOME_FLOOR = 0.05
 OUTCOME_MIN_DEMOS = 4
-# The end of each dimension compared with the task's demos that started on the same side of the task's median end
-# there, where at least this many did (the demo itself among them); otherwise with the whole task.  A pushed
-# object stops short of its goal on the side it came from: in push-v1 a target that started below its goal's
-# line ends 9 mm below it, one that started above 9 mm above, and a task whose demos mostly started above put
-# the two or three that did not 11-12 robust SD out -- four of the six clean demos push-v1-dev's robust core
-# left out (the core's other demos are flagged whatever the level).  Chosen on the development draws of
-# push-v1-dev's recipe (seeds 2, 3, 4) and mw2-dev.  ``democheck audit data/push-v1-devS`` (the set alone, the
-# shipped model): clean demos flagged at --fpr 0.01 13 / 11 / 10 -> 8 / 10 / 9 of 614 (6.1 expected), every bad
-# demo flagged either way, the ranking's gave-up AUROC 0.9994 / 0.9981 / 0.9994 -> 0.9997 / 0.9982 / 0.9994;
-# without a model (with the side) 1 / 2 / 0 clean, every both-objects, gave-up and wrong-object demo.
-# ``benchmarks/outcome_choices.py`` on the benches of the three, each ``--only`` the set (9 / 10 / 7 clean
-# flagged) and with their probes pooled: clean flagged 7 / 9 / 12 -> 8 / 9 / 6, every kind's recall 1.00 but
-# seed 2's wrong-object (0.95); mw2-dev (its outcome the robot's state) unchanged.  Measured there and not kept:
-# the side's median over the *other* demos that started on it (at least 1 or 2 of them: 11 / 11 / 9 clean
-# flagged alone; at least 3: 9 / 9 / 9, pooled 9 / 9 / 9); each dimension's end and change predicted from the
-# whole start by gradient-boosted trees fitted on the set's other tasks (task-centred, cross-fitted by task: 9 /
-# 10 / 9 alone, and on mw2-dev 10% of the clean demos flagged against 2.5%: Meta-World's tasks do
-# not share how a start becomes an end); the end predicted by the demos of its task whose start was nearest in
-# that dimension (1-3 of them: an object that never moved ends where *it* started, not where they did;
-# both-objects flagged 0.44-0.95); the side only in the dimensions the task's demos move (their median change
-# beyond the floor), so that the other object's end, which no push leaves on a side, keeps the task's median:
-# 9 / 11 / 9 clean flagged alone, 14 / 9 / 8 pooled.
-OUTCOME_MIN_SIDE = 2
+MODE_SHARE = 0.2  # an outcome this share of a task's demos reach (at least 2) is one of its outcomes,
+MODE_GAP = 6.0  # when it lies this many robust SD from the task's other outcomes
+OUTCOME_MIN_SIDE = 2  # demos (itself among them) that started on its side for the side to be its reference
+POOLED_SCALE = 0.5  # a task's robust SD of a feature is at least this share of the median task's
+END_FLOOR = 0.05  # a value's least robust SD: this share of its spread at the end over all the demos,
+MOVE_FLOOR = 0.005  # and this share of how far the demos that move it move it (a near-constant end has no spread)
+ROTATION_FLOOR = 0.05  # a rotation's least robust SD, in units of q q^T or of cosine and sine (about 3 degrees)
+# A demo moves a dimension when its range over the demo exceeds this many of its jitters (the median size of its
+# second differences: about 0 for smooth motion, and white noise's range is 3-6 of them).
+STILL = 10.0
+RESOLUTION = 1e-6  # ... and more than this share of its size (at least 1): what float noise cannot reach
+
+_QUAT = re.compile(r"^(.*?)[._/\-]?(?:q|quat|quaternion|orientation|rot)?[._/\-]?\[?([wxyz0-3])\]?$", re.I)
+_ANGLE = re.compile(r"(yaw|pitch|roll|angle|theta|heading)", re.I)
 
 
 class OutcomeStats(PerDemo):
     """Consumer of decoded demos: the first and last step of what the dataset records of the world -- the
-    environment state where the demo has one, else its state -- and that record's dimension names."""
+    environment state where the demo has one, else its state -- how far each dimension moved over the demo and its
+    jitter, and the record's dimension names."""
 
-    fields = ("ends", "sources", "names")
+    fields = ("ends", "sources", "names", "moves")
     ends: list[np.ndarray]
     sources: list[str]
     names: list[list[str] | None]
+    moves: list[np.ndarray]
 
     def add(self, demo: Demo) -> None:
         env = demo.env_state is not None and np.size(demo.env_state) > 0
@@ -87,6 +66,220 @@ class OutcomeStats(PerDemo):
         self.ends.append(np.stack([x[0], x[-1]]) if len(x) else np.full((2, x.shape[1]), np.nan))
         self.sources.append("environment state" if env else "state")
         self.names.append(demo.extra.get("env_state_names" if env else "state_names"))
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            jitter = np.nanmedian(np.abs(np.diff(x, 2, axis=0)), 0) if len(x) > 2 else np.zeros(x.shape[1])
+            self.moves.append(np.stack([np.ptp(x, 0) if len(x) else np.zeros(x.shape[1]), jitter]))
+
+
+@dataclass
+class Feature:
+    """One compared feature of the world record: its name, the columns of the record it reads, its kind
+    (``value``, ``rotation`` or ``angle``)."""
+
+    name: str
+    columns: list[int]
+    kind: str
+
+
+def features_of(names: list[str] | None, first: np.ndarray, last: np.ndarray, source: str = "state"
+                ) -> list[Feature]:
+    """The record's dimensions grouped into what is compared: quaternions (by their names or, unnamed, by unit
+    norm at both ends of every demo), angles (by their names), and plain values."""
+    d = first.shape[1]
+    names = list(names) if names and len(names) == d else [f"{source}[{j}]" for j in range(d)]
+    out, j = [], 0
+    while j < d:
+        if j + 4 <= d and _is_quaternion(names[j:j + 4], first[:, j:j + 4], last[:, j:j + 4]):
+            prefix = _QUAT.match(names[j]).group(1) if _QUAT.match(names[j]) else ""
+            out.append(Feature(f"the orientation of {prefix or f'{source}[{j}:{j + 4}]'}",
+                               list(range(j, j + 4)), "rotation"))
+            j += 4
+            continue
+        out.append(Feature(names[j], [j], "angle" if _ANGLE.search(names[j]) else "value"))
+        j += 1
+    return out
+
+
+def _is_quaternion(names: list[str], first: np.ndarray, last: np.ndarray) -> bool:
+    matches = [_QUAT.match(n) for n in names]
+    if all(m and m.group(2) for m in matches) and len({m.group(1) for m in matches}) == 1:
+        letters = "".join(m.group(2).lower() for m in matches)
+        if sorted(letters) in (sorted("wxyz"), sorted("0123")) and re.search(r"q|quat|orient|rot", names[0], re.I):
+            return True
+    with np.errstate(all="ignore"):
+        norms = np.concatenate([np.linalg.norm(first, axis=1), np.linalg.norm(last, axis=1)])
+    return bool(len(norms) and np.isfinite(norms).all() and np.abs(norms - 1).max() < 1e-3
+                and np.ptp(np.concatenate([first, last]), 0).max() > 1e-3)
+
+
+def represent(feature: Feature, x: np.ndarray) -> np.ndarray:
+    """[N, m] the feature's values as compared: a quaternion's 10 distinct entries of q q^T, an angle's cosine and
+    sine, a value as it is."""
+    v = x[:, feature.columns]
+    if feature.kind == "rotation":
+        with np.errstate(all="ignore"):
+            q = v / np.linalg.norm(v, axis=1, keepdims=True)
+        iu = np.triu_indices(4)
+        return (q[:, :, None] * q[:, None, :])[:, iu[0], iu[1]]
+    if feature.kind == "angle":
+        return np.concatenate([np.cos(v), np.sin(v)], 1)
+    return v
+
+
+def modes(r: np.ndarray, floor: float, depth: int = 2) -> np.ndarray:
+    """[m] which outcome each of a task's values ``r`` (finite) belongs to: the values split at their widest gap
+    where both sides hold at least ``MODE_SHARE`` of them (and 2) and the gap is ``MODE_GAP`` times either side's
+    robust SD (at least ``floor``) -- twice over at most, so up to four outcomes; one outcome (all 0) otherwise."""
+    m = len(r)
+    label = np.zeros(m, int)
+    least = max(2, int(np.ceil(MODE_SHARE * m)))
+    if depth == 0 or m < 2 * least:
+        return label
+    order = np.argsort(r, kind="stable")
+    v = r[order]
+    cuts = np.arange(least, m - least + 1)  # the split before position c
+    gaps = v[cuts] - v[cuts - 1]
+    c = int(cuts[np.argmax(gaps)])
+    spread = max(_sd(v[:c]), _sd(v[c:]), floor)
+    if v[c] - v[c - 1] <= MODE_GAP * spread:
+        return label
+    low, high = order[:c], order[c:]
+    label[low] = modes(r[low], floor, depth - 1)
+    label[high] = modes(r[high], floor, depth - 1) + label[low].max() + 1
+    return label
+
+
+def _sd(v: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(v - np.median(v))))
+
+
+def unit(feature: Feature, value: np.ndarray, moves: np.ndarray) -> float | None:
+    """The least robust SD of a feature (see the module docstring), None when no demo moves it (it says
+    nothing).  ``value`` [N, m] its represented values at the end, ``moves`` [N, 2, d] each demo's range and
+    jitter per record dimension."""
+    rng, jitter = moves[:, 0, feature.columns], moves[:, 1, feature.columns]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        size = np.nanmedian(np.abs(value)) if feature.kind == "value" else 1.0
+    moving = (rng > STILL * jitter) & (rng > RESOLUTION * max(1.0, float(np.nan_to_num(size))))
+    if not moving.any():
+        return None
+    if feature.kind != "value":
+        return ROTATION_FLOOR
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        moved = float(np.nanmedian(rng[moving]))
+        spread = float(1.4826 * np.nanmedian(np.abs(value - np.nanmedian(value, 0))))
+    return max(MOVE_FLOOR * moved, END_FLOOR * spread)
+
+
+def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """How differently from its task's other demos each demo left the world (see the module docstring), and the
+    feature that differs most, in words."""
+    n = len(stats.ends)
+    out, reasons = np.full(n, np.nan), ["no task of enough demos to compare with"] * n
+    tasks = np.asarray(tasks)
+    for source in sorted(set(stats.sources)):
+        rows = np.flatnonzero(np.asarray(stats.sources) == source)
+        first = _padded([stats.ends[i][0] for i in rows])
+        last = _padded([stats.ends[i][1] for i in rows])
+        moves = np.stack([_padded_pair(stats.moves[i], last.shape[1]) for i in rows])
+        names = next((stats.names[i] for i in rows if stats.names[i]), None)
+        z_cols, what, values, refs = [], [], [], []
+        for f in features_of(names, first, last, source):
+            end, start = represent(f, last), represent(f, first)
+            u = unit(f, end, moves)
+            if u is None:
+                continue
+            for part, x, sided in (("at the end", end, True), ("change", end - start, False)):
+                z, ref = _task_gaps(x, start if sided else None, tasks[rows], u)
+                best = np.nanargmax(np.where(np.isnan(z), -np.inf, z), axis=1)
+                z_cols.append(np.sqrt(np.nanmean(z ** 2, axis=1)) if z.shape[1] > 1 else z[:, 0])
+                what.append((f, part))
+                values.append(x[np.arange(len(x)), best])
+                refs.append(ref[np.arange(len(x)), best])
+        if not z_cols:
+            for i in rows:
+                reasons[i] = f"no part of the {source} moves in any demo"
+            continue
+        z = np.column_stack(z_cols)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out[rows] = np.sqrt(np.nanmean(z ** 2, axis=1))
+        for k, i in enumerate(rows):
+            if not np.isfinite(z[k]).any():
+                if not np.isfinite(last[k]).any():
+                    reasons[i] = f"no {source} recorded"
+                continue
+            j = int(np.nanargmax(z[k]))
+            reasons[i] = _reason(*what[j], values[j][k], refs[j][k], z[k, j])
+    return out, reasons
+
+
+def _reason(feature: Feature, part: str, value: float, ref: float, z: float) -> str:
+    if feature.kind == "rotation":
+        what = f"{feature.name} at the end" if part == "at the end" else f"how {feature.name} changed"
+        return f"left the world unlike its task's other demos: {what} differs from theirs ({z:.2g} robust SD)"
+    what = f"{feature.name} at the end" if part == "at the end" else f"the change of {feature.name}"
+    if feature.kind == "angle":
+        what += " (cosine and sine)"
+    return (f"left the world unlike its task's other demos: {what} {value:.3g} where its task's demos reach "
+            f"{ref:.3g} ({z:.2g} robust SD)")
+
+
+def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """[N, m] robust z of each value against its task's demos and the value it was measured against.
+
+    A column whose values over the whole dataset fall into several outcomes (``modes``: a switch on or off, a
+    drawer open or closed) that the demos of more than one task reach is discrete: each value is measured against the median of its task's demos that reached
+    the same outcome (the dataset's where it is the only one of its task).  Otherwise against the median of its
+    task's demos -- with ``start``, of those that started on the same side of the task's median value, where at
+    least ``OUTCOME_MIN_SIDE`` did -- and, where the task's own values fall into several outcomes, of those that
+    reached the same one.  The unit: the task's robust SD about those medians, at least ``floor`` and
+    ``POOLED_SCALE`` of the typical task's (a task of a few demos that happen to agree is not that precise)."""
+    z, ref = np.full(x.shape, np.nan), np.full(x.shape, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for c in range(x.shape[1]):
+            every = np.flatnonzero(np.isfinite(x[:, c]))
+            outcomes = np.full(len(x), -1)
+            outcomes[every] = modes(x[every, c], floor)
+            # Several outcomes that recur within more than one task: a switch, not where one task's demos went.
+            spans = [len(np.unique(outcomes[every][tasks[every] == t])) > 1 for t in np.unique(tasks[every])]
+            discrete = outcomes.max() > 0 and sum(spans) >= 2
+            fitted = []
+            for t in np.unique(tasks):
+                rows = np.flatnonzero(tasks == t)
+                ok = np.flatnonzero(np.isfinite(x[rows, c]))
+                if len(ok) < OUTCOME_MIN_DEMOS:
+                    continue
+                v = x[rows[ok], c]
+                centre = np.full(len(v), np.median(v))
+                if discrete:
+                    label = outcomes[rows[ok]]
+                    for k in np.unique(label):
+                        mine = label == k
+                        pool = v[mine] if mine.sum() >= 2 else x[outcomes == k, c]
+                        centre[mine] = np.median(pool)
+                else:
+                    if start is not None:
+                        side = np.sign(start[rows[ok], c] - centre)
+                        for s in (-1.0, 1.0):
+                            on = side == s
+                            if on.sum() >= OUTCOME_MIN_SIDE:
+                                centre[on] = np.median(v[on])
+                    label = modes(v - centre, floor)
+                    for k in np.unique(label):
+                        mine = label == k
+                        centre[mine] += np.median((v - centre)[mine])
+                fitted.append((rows[ok], v, centre, max(_sd(v - centre), floor)))
+            typical = POOLED_SCALE * np.median([f[3] for f in fitted]) if fitted else 0.0
+            for at, v, centre, scale in fitted:
+                z[at, c] = np.abs(v - centre) / max(scale, typical)
+                ref[at, c] = centre
+    return z, ref
 
 
 def _padded(rows: list[np.ndarray]) -> np.ndarray:
@@ -97,80 +290,7 @@ def _padded(rows: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def rms(z: np.ndarray) -> np.ndarray:
-    """Root-mean-square of each row's finite entries (NaN for a row with none): the outcome score."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.sqrt(np.nanmean(z ** 2, axis=1))
-
-
-def dimension_floor(last: np.ndarray) -> np.ndarray:
-    """[d] the least robust SD of each dimension: ``OUTCOME_FLOOR`` of its spread of final values ``last`` [N, d]
-    over all the demos (their MAD, else their standard deviation); NaN for a dimension that never varies, which is
-    left out."""
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        spread = 1.4826 * np.nanmedian(np.abs(last - np.nanmedian(last, 0)), 0)
-        spread = np.where(spread > 0, spread, np.nanstd(last, 0))
-    return np.where(spread > 0, OUTCOME_FLOOR * spread, np.nan)
-
-
-def side_reference(first: np.ndarray, last: np.ndarray, tasks: np.ndarray, median: np.ndarray,
-                   min_side: int = OUTCOME_MIN_SIDE) -> np.ndarray:
-    """[N, d] what each demo's end is compared with: per task and dimension, the median end of the task's demos
-    that started on the same side of ``median`` (the task's median end, [N, d]: NaN for a task too small to
-    judge) as it did, where at least ``min_side`` did; otherwise ``median``."""
-    ref = median.copy()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        for t in np.unique(tasks):
-            rows = np.flatnonzero(tasks == t)
-            if not np.isfinite(median[rows[0]]).any():
-                continue
-            side = np.sign(first[rows] - median[rows[0]])
-            for s in (-1.0, 1.0):
-                on = side == s  # [n, d]
-                at = np.where(on, last[rows], np.nan)
-                enough = on.sum(0) >= min_side
-                ref[rows] = np.where(on & enough, np.nanmedian(at, axis=0), ref[rows])
-    return ref
-
-
-def outcome(stats: OutcomeStats, tasks: np.ndarray, combine: Callable[[np.ndarray], np.ndarray] = rms,
-            by_side: bool = True) -> tuple[np.ndarray, list[str]]:
-    """How differently from its task's other demos each demo left the world (see the module docstring), and the
-    dimension that differs most.  ``combine`` puts a demo's [F] robust z together, ``by_side`` compares the ends
-    with the demos that started on the same side (``side_reference``; the sweep behind the constants tries
-    otherwise)."""
-    n = len(stats.ends)
-    out, reasons = np.full(n, np.nan), ["no task of enough demos to compare with"] * n
-    tasks = np.asarray(tasks)
-    for source in sorted(set(stats.sources)):
-        rows = np.flatnonzero(np.asarray(stats.sources) == source)
-        first = _padded([stats.ends[i][0] for i in rows])
-        last = _padded([stats.ends[i][1] for i in rows])
-        d = last.shape[1]
-        features = np.concatenate([last, last - first], 1)
-        floor = np.tile(dimension_floor(last), 2)
-        z, median = task_z(features, tasks[rows], floor, OUTCOME_MIN_DEMOS)
-        sided = np.zeros(last.shape, bool)  # where an end was compared with its side's demos
-        if by_side:
-            whole = median[:, :d].copy()
-            median[:, :d] = side_reference(first, last, tasks[rows], whole)
-            sided = median[:, :d] != whole
-            z[:, :d], _ = task_z(last - median[:, :d], tasks[rows], floor[:d], OUTCOME_MIN_DEMOS)
-        out[rows] = combine(z)
-        for k, i in enumerate(rows):
-            if not np.isfinite(z[k]).any():
-                if not np.isfinite(last[k]).any():
-                    reasons[i] = f"no {source} recorded"
-                continue
-            j = int(np.nanargmax(z[k]))
-            names = stats.names[i]
-            name = names[j % d] if names and len(names) == d else f"{source}[{j % d}]"
-            what = f"{name} at the end" if j < d else f"the change of {name}"
-            against = "the median of its task's demos that started on its side" if j < d and sided[k, j] else \
-                "the task's median"
-            reasons[i] = (f"left the world unlike its task's other demos: {what} {features[k, j]:.3g} "
-                          f"({against} {median[k, j]:.3g}; {z[k, j]:.0f} robust SD)")
-    return out, reasons
+def _padded_pair(moves: np.ndarray, d: int) -> np.ndarray:
+    out = np.zeros((2, d))
+    out[:, :moves.shape[1]] = moves
+    return out

@@ -1,0 +1,121 @@
+"""The model-free audit holds its false-flag rate on clean data of any shape: randomly generated clean datasets
+whose world record holds a quaternion (its sign flipping between demos), a wrapped angle near +-pi, a switch that
+ends on or off, a drawer that ends open or closed, a fixed part constant to float noise, a dimension that is
+always zero, and episodes whose length varies by task and by demo."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from democheck.audit.run import score_table
+from democheck.audit.scorers import SCORERS, Evidence, compute, select
+from democheck.data.demo import Demo, no_frames
+
+NAMES = ["cube.x", "cube.y", "lid.qw", "lid.qx", "lid.qy", "lid.qz", "knob.angle", "switch", "drawer", "fixture.z",
+         "spare"]
+
+
+def _smooth(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
+    t = np.arange(n)[:, None]
+    return np.sin(2 * np.pi * t / n * rng.uniform(0.5, 2, d) + rng.uniform(0, 2 * np.pi, d)) \
+        + rng.normal(0, 0.05, (n, d))
+
+
+def clean_dataset(seed: int, tasks: int = 4, demos: int = 50) -> list[Demo]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for t in range(tasks):
+        goal = rng.uniform(-0.3, 0.3, 2)
+        p_switch, p_open = rng.uniform(0.3, 0.7, 2)
+        length = int(rng.integers(30, 90))
+        for _ in range(demos):
+            n = length + int(rng.integers(-5, 6))
+            s = np.linspace(0, 1, n)[:, None]
+            ease = s * s * (3 - 2 * s)
+            actions = _smooth(rng, n, 4).astype(np.float32)
+            state = np.concatenate([np.cumsum(actions, 0) * 0.05, _smooth(rng, n, 2) * 0.1], 1)
+            start = rng.uniform(-0.3, 0.3, 2)
+            cube = start + ease * (goal + rng.normal(0, 0.005, 2) - start)
+            yaw = rng.uniform(-np.pi, np.pi) + ease[:, 0] * rng.normal(0, 0.2)
+            lid = np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)], 1) * rng.choice([-1, 1])
+            knob = np.angle(np.exp(1j * (np.pi + rng.normal(0, 0.05) + 0.02 * ease[:, 0])))
+            switch = (s[:, 0] > rng.uniform(0.3, 0.7)) * float(rng.random() < p_switch)
+            drawer = 0.15 * ease[:, 0] * float(rng.random() < p_open) + rng.normal(0, 0.002, n)
+            fixture = 0.000462 + rng.normal(0, 1e-7, n)
+            env = np.column_stack([cube, lid, knob, switch, drawer, fixture, np.zeros(n)]).astype(np.float32)
+            out.append(Demo(episode_index=len(out), task=f"task {t}", frames=no_frames(n),
+                            state=state.astype(np.float32), actions=actions, env_state=env,
+                            extra={"env_state_names": NAMES, "timestamp": np.arange(n) / 20.0, "fps": 20.0}))
+    return out
+
+
+def _audit(demos: list[Demo]) -> pd.DataFrame:
+    eps = pd.DataFrame({"episode_index": [d.episode_index for d in demos], "task": [d.task for d in demos]})
+    ev = Evidence(episodes=eps, frames=False)
+    names = [n for n, s in SCORERS.items() if s.model_free and s.in_audit and "frames" not in s.needs]
+    chosen = select(names)
+    consumers = {}
+    for s in chosen:
+        if s.decode is not None:
+            consumers.setdefault(s.source, s.decode(ev, slice(0, len(demos)), "cpu"))
+    for d in demos:
+        for c in consumers.values():
+            c.add(d)
+    ev.behaviour = {k: c.finish() for k, c in consumers.items()}
+    return score_table(compute(ev, chosen))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_clean_data_of_any_shape_is_flagged_at_the_rate_asked_for(seed):
+    table = _audit(clean_dataset(seed))
+    n = len(table)
+    assert table["is_anomaly"].sum() <= stats.binom.interval(0.99, n, 0.01)[1], \
+        table.loc[table["is_anomaly"], "reason"].tolist()
+    # No check reads float noise, a sign flip or a wrap at pi as an extreme outcome.
+    assert np.nanmax(table["outcome"]) < 30, table.loc[table["outcome"].idxmax(), "reason"]
+
+
+def test_a_planted_outcome_still_ranks_first_among_those_shapes():
+    demos = clean_dataset(5)
+    bad = demos[17]
+    bad.env_state = bad.env_state.copy()
+    bad.env_state[len(bad) // 2:, :2] = bad.env_state[len(bad) // 2, :2]  # the cube left half way
+    table = _audit(demos).set_index("episode_index")
+    assert table["outcome"].idxmax() == 17 and table.loc[17, "is_anomaly"]
+    assert "cube." in table.loc[17, "reason"]
+
+
+def test_the_shapes_benchmark_adds_dimensions_that_change_nothing_of_the_ranking(tmp_path):
+    """benchmarks/shapes.py on a tiny suite with an idle and a random demo planted: the copy opens with the extra
+    dimensions named, and audited without a model its planted demos rank as in the original."""
+    import importlib.util
+    from dataclasses import replace
+    from pathlib import Path
+
+    from democheck.sim.suite import generate
+    from tests.conftest import TINY
+
+    from typer.testing import CliRunner
+
+    from democheck.cli import app
+    from democheck.data import open_dataset
+
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "shapes.py"
+    spec = importlib.util.spec_from_file_location("shapes", path)
+    shapes = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(shapes)
+    root = tmp_path / "data"
+    generate(replace(TINY, seed=5, demos_per_task=6, steps=60, defects=(("idle", 1), ("random", 1))), root, workers=1)
+    copy = tmp_path / "shapes"
+    shapes.write_copy(root, copy, seed=3)
+    demo = open_dataset(copy)[0]
+    assert demo.env_state.shape[1] == open_dataset(root)[0].env_state.shape[1] + len(shapes.EXTRA)
+    assert demo.extra["env_state_names"][-len(shapes.EXTRA):] == shapes.EXTRA
+    ranks = []
+    for ds in (root, copy):
+        res = CliRunner().invoke(app, ["audit", str(ds), "--out", str(tmp_path / f"r-{ds.name}"), "--no-model"])
+        assert res.exit_code == 0, res.output
+        table = pd.read_parquet(tmp_path / f"r-{ds.name}" / "scores.parquet")
+        ranks.append(table.loc[table["label"].fillna("clean") != "clean", "rank"].sort_values().tolist())
+    assert len(ranks[0]) == 2 and ranks[0] == ranks[1]
