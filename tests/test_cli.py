@@ -54,6 +54,10 @@ def test_info_cli(tiny_dataset, tmp_path):
     root, _ = tiny_dataset
     res = runner.invoke(app, ["info", str(root)])
     assert res.exit_code == 0 and "lerobot-v3.0" in res.output and "clean: 12" in res.output
+    # What the audit will rely on: the tasks and their sizes, the lengths, each stream and its width.
+    assert "demos per task" in res.output and "3-3 (median 3)" in res.output and "12-12 steps" in res.output
+    assert "observation.environment_state" in res.output and "the environment state" in res.output
+    assert "observation.state" in res.output and "the actions" in res.output
     res = runner.invoke(app, ["info", str(tmp_path / "missing")])
     assert res.exit_code == 2 and "no such file" in res.output
 

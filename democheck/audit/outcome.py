@@ -45,6 +45,7 @@ STILL = 10.0
 RESOLUTION = 1e-6  # ... and more than this share of its size (at least 1): what float noise cannot reach
 
 _QUAT = re.compile(r"^(.*?)[._/\-]?(?:q|quat|quaternion|orientation|rot)?[._/\-]?\[?([wxyz0-3])\]?$", re.I)
+_AXIS = re.compile(r"^(.+?)[._/\-]?(?:pos)?[._/\-]([xyz])$", re.I)
 _ANGLE = re.compile(r"(yaw|pitch|roll|angle|theta|heading)", re.I)
 
 
@@ -85,7 +86,8 @@ class Feature:
 def features_of(names: list[str] | None, first: np.ndarray, last: np.ndarray, source: str = "state"
                 ) -> list[Feature]:
     """The record's dimensions grouped into what is compared: quaternions (by their names or, unnamed, by unit
-    norm at both ends of every demo), angles (by their names), and plain values."""
+    norm at both ends of every demo), angles (by their names), plain values, and where two things named on one
+    axis are against each other (``block.x - goal.x``)."""
     d = first.shape[1]
     names = list(names) if names and len(names) == d else [f"{source}[{j}]" for j in range(d)]
     out, j = [], 0
@@ -98,6 +100,18 @@ def features_of(names: list[str] | None, first: np.ndarray, last: np.ndarray, so
             continue
         out.append(Feature(names[j], [j], "angle" if _ANGLE.search(names[j]) else "value"))
         j += 1
+    # Where two things' positions are named on the same axis (block.x, goal.x), where one is against the other.
+    axes: dict[str, dict[str, int]] = {}
+    for f in out:
+        m = _AXIS.match(f.name) if f.kind == "value" else None
+        if m:
+            axes.setdefault(m.group(2).lower(), {}).setdefault(m.group(1), f.columns[0])
+    for axis, things in axes.items():
+        names_on = list(things)
+        for a in range(len(names_on)):
+            for b in range(a + 1, len(names_on)):
+                out.append(Feature(f"{names_on[a]}.{axis} - {names_on[b]}.{axis}",
+                                   [things[names_on[a]], things[names_on[b]]], "relative"))
     return out
 
 
@@ -124,6 +138,8 @@ def represent(feature: Feature, x: np.ndarray) -> np.ndarray:
         return (q[:, :, None] * q[:, None, :])[:, iu[0], iu[1]]
     if feature.kind == "angle":
         return np.concatenate([np.cos(v), np.sin(v)], 1)
+    if feature.kind == "relative":
+        return v[:, :1] - v[:, 1:]
     return v
 
 
@@ -161,11 +177,11 @@ def unit(feature: Feature, value: np.ndarray, moves: np.ndarray) -> float | None
     rng, jitter = moves[:, 0, feature.columns], moves[:, 1, feature.columns]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        size = np.nanmedian(np.abs(value)) if feature.kind == "value" else 1.0
+        size = np.nanmedian(np.abs(value)) if feature.kind in ("value", "relative") else 1.0
     moving = (rng > STILL * jitter) & (rng > RESOLUTION * max(1.0, float(np.nan_to_num(size))))
     if not moving.any():
         return None
-    if feature.kind != "value":
+    if feature.kind in ("rotation", "angle"):
         return ROTATION_FLOOR
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -41,12 +41,13 @@ from democheck.data.demo import Demo
 FROZEN_STATE_MIN_DEMOS = 4  # a task with fewer demos is compared with every demo
 FROZEN_STATE_LIVE = 0.05  # a dimension is live in a task where its share's FROZEN_STATE_QUANTILE is at most this
 FROZEN_STATE_QUANTILE = 0.75  # over the task's demos: live means still in hardly any of them
-FROZEN_STATE_MIN_SCALE = 0.05  # in the ranking, a robust SD of the score stands for at least 5% of the steps
+FROZEN_STATE_MIN_SCALE = 0.05
+DRIVEN_SHARE = 0.01  # a step is driven when its action changes by this share of the demo's 90th-percentile change  # in the ranking, a robust SD of the score stands for at least 5% of the steps
 
 
 class StateRepeats(PerDemo):
     """Consumer of decoded demos: per state dimension, the longest stretch of steps at which the value repeats
-    while the actions change (its share of the demo's steps, where it starts, how many steps it lasts)."""
+    while the actions change (by more than ``DRIVEN_SHARE`` of the demo's large changes) (its share of the demo's steps, where it starts, how many steps it lasts)."""
 
     fields = ("shares", "starts", "lengths", "steps")
     shares: list[np.ndarray]  # [S]
@@ -57,7 +58,10 @@ class StateRepeats(PerDemo):
     def add(self, demo: Demo) -> None:
         x, a = np.asarray(demo.state), np.asarray(demo.actions)
         n = max(len(x) - 1, 0)
-        driven = np.any(a[1:] != a[:-1], axis=1) if n else np.zeros(0, bool)
+        change = np.abs(np.diff(a, axis=0)).max(axis=1) if n else np.zeros(0)
+        # Driven: the command changes by more than float noise around a held pose -- a share of the demo's own
+        # large changes (a controller holding still at its goal repeats its command to the sixth digit).
+        driven = change > DRIVEN_SHARE * np.quantile(change, 0.9) if n else np.zeros(0, bool)
         repeats = (x[1:] == x[:-1]) & driven[:, None] if n else np.zeros((0, x.shape[1]), bool)
         runs = [longest_run(repeats[:, j]) for j in range(x.shape[1])]
         starts = np.array([s for s, _ in runs], int)

@@ -96,8 +96,12 @@ def info(
     state_key: Annotated[Optional[str], typer.Option(help="Feature holding the robot state (default: observation.state).")] = None,
     action_key: Annotated[Optional[str], typer.Option(help="Feature holding the actions (default: action).")] = None,
 ) -> None:
-    """Describe a dataset as democheck sees it: format, episodes, tasks, camera, splits, labels."""
+    """Describe a dataset as democheck sees it: format, episodes, tasks and their sizes, episode lengths, every
+    recorded stream and what the audit reads it as, splits, labels."""
     with user_errors():
+        from rich.markup import escape
+
+        from democheck.audit.scorers import GROUP_MIN_DEMOS
         from democheck.data import open_dataset
 
         ds = open_dataset(dataset, camera=camera, state_key=state_key, action_key=action_key)
@@ -110,9 +114,32 @@ def info(
         table.add_row("camera", f"{ds.camera} ({h}x{w}x{c})" if ds.has_camera else
                       "none (states and actions only: democheck audit --no-model)")
         table.add_row("state / action dims", f"{ds.state_dim} / {ds.action_dim}")
+        per_task = eps.groupby("task").size()
+        few = per_task[per_task < GROUP_MIN_DEMOS]
+        table.add_row("demos per task", f"{per_task.min()}-{per_task.max()} (median {per_task.median():g})"
+                      + (f"; {len(few)} task(s) under {GROUP_MIN_DEMOS}, judged together" if len(few) else ""))
+        lengths = eps.groupby("task")["length"].median()
+        table.add_row("episode length", f"{int(eps['length'].min())}-{int(eps['length'].max())} steps "
+                      f"(median {eps['length'].median():g}; task medians {lengths.min():g}-{lengths.max():g})")
         for col in ("split", "label"):
             if col in eps:
                 table.add_row(col, ", ".join(f"{k}: {v}" for k, v in eps[col].value_counts().sort_index().items()))
         if "success" in eps and eps["success"].notna().any():
             table.add_row("success", f"{eps['success'].dropna().astype(float).mean():.1%}")
         console.print(table)
+        streams = ds.streams()
+        if streams:
+            recorded = Table(title="what the audit reads", show_header=True)
+            for col in ("stream", "width", "read as"):
+                recorded.add_column(col)
+            for row in streams:
+                recorded.add_row(*row)
+            console.print(recorded)
+        if len(per_task) <= 20:
+            tasks = Table(title="tasks", show_header=True)
+            tasks.add_column("task")
+            tasks.add_column("demos", justify="right")
+            tasks.add_column("median length", justify="right")
+            for name, n in per_task.items():
+                tasks.add_row(escape(str(name)), str(n), f"{lengths[name]:g}")
+            console.print(tasks)

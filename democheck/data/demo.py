@@ -211,6 +211,10 @@ class DemoSet:
             return self._src.image_shape
         return self.image_size, self.image_size, self._src.image_shape[2]
 
+    def streams(self) -> list[tuple[str, str, str]]:
+        """What the dataset records, stream by stream: (name, width or frame shape, what the audit reads it as)."""
+        return self._src.streams() if hasattr(self._src, "streams") else []
+
     @property
     def state_dim(self) -> int:
         return self._src.state_dim

@@ -176,6 +176,23 @@ class LeRobotBase:
                                 if isinstance(env, dict) else None)
         self._cache: OrderedDict[Path, dict[str, Any]] = OrderedDict()
 
+    def streams(self) -> list[tuple[str, str, str]]:
+        """Every recorded feature but the index columns: (name, width or frame shape, what the audit reads it as)."""
+        index = {"timestamp", "frame_index", "episode_index", "index", "task_index"}
+        roles = {self.state_key: "the state", self.action_key: "the actions",
+                 ENV_STATE_KEY: "the environment state (where the objects are)"}
+        out = []
+        for key, f in self.features.items():
+            if key in index or not isinstance(f, dict):
+                continue
+            shape = [int(v) for v in f.get("shape", [1])]
+            if f.get("dtype") in ("video", "image"):
+                h, w, c = self._hwc(shape, f.get("names"))
+                out.append((key, f"{h}x{w}x{c}", "the camera" if key == self.camera else "not read (another camera)"))
+            else:
+                out.append((key, str(int(np.prod(shape))), roles.get(key, "not read")))
+        return out
+
     def _pick_camera(self, camera: str | None) -> str | None:
         cams = [k for k, f in self.features.items() if isinstance(f, dict) and f.get("dtype") in ("video", "image")]
         if not cams and camera is not None:

@@ -70,6 +70,8 @@ class Robomimic:
                                        + (f"choose one of {', '.join(cams)}" if cams else "it records no images"))
                 self.camera = matches[0]
             low = sorted(k for k in obs_keys if obs[k].ndim == 2 and k not in cams)
+            self._widths = {**{k: str(obs[k].shape[1]) for k in low},
+                            **{k: "x".join(str(v) for v in images[k].shape[1:]) for k in cams}}
             self.obs = obs is not None
             if state_key is not None:
                 self.state_keys = [k.strip() for k in state_key.split(",")]
@@ -84,6 +86,10 @@ class Robomimic:
             # robomimic's low-dimensional datasets keep the objects' poses under obs/object: the environment's state.
             self.env_key = "object" if "object" in low and "object" not in self.state_keys else None
             self.action_key = action_key or "actions"
+            if not self.obs and "states" in first:
+                self._widths["states"] = str(first["states"].shape[1])
+            if self.action_key in first:
+                self._widths[self.action_key] = str(first[self.action_key].shape[1])
             if self.action_key not in first:
                 raise DatasetError(f"{path}: {names[0]} has no {self.action_key!r}")
             self.image_shape = tuple(int(v) for v in images[self.camera].shape[1:]) if self.camera else NO_CAMERA
@@ -111,6 +117,21 @@ class Robomimic:
             eps = eps.drop(columns="split")
         self.episodes = eps
         check_episodes(path, eps)
+
+    def streams(self) -> list[tuple[str, str, str]]:
+        """Every recorded stream of the first demo: (name, width or frame shape, what the audit reads it as)."""
+        def role(k: str) -> str:
+            if k == self.camera:
+                return "the camera"
+            if k in self.state_keys:
+                return "the state (part)" if len(self.state_keys) > 1 else "the state"
+            if k == self.action_key:
+                return "the actions"
+            if k == self.env_key:
+                return "the environment state (where the objects are)"
+            return "not read (another camera)" if "x" in self._widths[k] else "not read"
+
+        return [(k, w, role(k)) for k, w in self._widths.items()]
 
     def _group(self, f, episode_index: int):
         return f["data"][self.episodes.loc[episode_index, "name"]]

@@ -1,0 +1,291 @@
+"""A second simulator democheck did not make: the Fetch arm of Gymnasium-Robotics, four tasks done by scripted
+oracles on the simulator's own state, written by LeRobot's own writer, with planted bad demos.  Runs in LeRobot's
+virtual environment (LeRobot pins an older torch), never in democheck's:
+
+    python3.11 -m venv /tmp/lerobot-venv
+    /tmp/lerobot-venv/bin/pip install lerobot==0.4.4 gymnasium-robotics==1.4.2 mujoco==3.3.7
+    MUJOCO_GL=egl /tmp/lerobot-venv/bin/python benchmarks/foreign/fetch_lerobot.py OUT --demos 40 --plant 6 --seed 0
+
+OUT is a LeRobot v3.0 dataset: camera ``observation.images.head`` (AV1 as LeRobot writes it), a 28-d state (the
+Fetch observation and the goal, named), a 10-d ``observation.environment_state`` (the block's position and its
+quaternion as the simulator holds it, the goal; named), 4-d actions (gripper motion and opening), 25 fps;
+``OUT.labels.csv`` beside it holds the ground truth.  The tasks: reach the goal with the gripper, push the block to
+the goal, pick the block and place it at the goal, lift the block.  Episodes last 50-110 steps by task.  Planted
+kinds, each replacing a demo of the task it is labelled with:
+
+- ``idle``: the arm never moves; ``random``: uniformly random actions;
+- ``wrong-task``: another task's oracle in this task's scene (e.g. the block lifted where it should be pushed);
+- ``gave-up``: the oracle until 30-60% of the steps it needs, then still;
+- ``occluded``: a clean demo whose camera a grey card covers over 35-55% of the view;
+- ``jerky``: a shaky teleoperator -- the oracle's actions plus Gaussian noise of SD 0.3-0.5, executed.
+
+Clean demos are kept only where the oracle succeeds, on a layout whose goal the arm has to move to meet.  The same seed gives the same dataset.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import multiprocessing as mp
+import os
+import shutil
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+TASKS = {  # name -> (the task as the dataset names it, Gymnasium-Robotics env, steps)
+    "reach": ("reach the goal with the gripper", "FetchReach-like", 50),
+    "push": ("push the block to the goal", "FetchPush-v4", 90),
+    "pick-place": ("pick up the block and place it at the goal", "FetchPickAndPlace-v4", 110),
+    "lift": ("lift the block", "FetchPickAndPlace-v4", 80),
+}
+KINDS = ("idle", "random", "wrong-task", "gave-up", "occluded", "jerky")
+CAMERA = "head"
+FPS = 25
+STATE_NAMES = ["grip.x", "grip.y", "grip.z", "block.x", "block.y", "block.z", "block_rel.x", "block_rel.y",
+               "block_rel.z", "finger.left", "finger.right", "block.roll", "block.pitch", "block.yaw", "block.vx",
+               "block.vy", "block.vz", "block.wx", "block.wy", "block.wz", "grip.vx", "grip.vy", "grip.vz",
+               "finger.vleft", "finger.vright", "goal.x", "goal.y", "goal.z"]
+ENV_NAMES = ["block.x", "block.y", "block.z", "block.qw", "block.qx", "block.qy", "block.qz", "goal.x", "goal.y",
+             "goal.z"]
+
+_W: dict = {}
+
+
+def _env(task: str):
+    """The worker's environment for ``task`` (reach runs in the pick-and-place scene with the block left
+    alone), one live at a time, rendering without shadows, multisampling or reflections."""
+    import gymnasium as gym
+    import gymnasium_robotics
+
+    env_id = "FetchPickAndPlace-v4" if task in ("reach", "lift") else TASKS[task][1]
+    if _W.get("id") != env_id:
+        if "env" in _W:
+            _W["env"].close()
+        gym.register_envs(gymnasium_robotics)
+        env = gym.make(env_id, render_mode="rgb_array", width=_W["size"], height=_W["size"],
+                       max_episode_steps=1000).unwrapped
+        env.model.vis.quality.shadowsize = 0
+        env.model.vis.quality.offsamples = 0
+        env.model.mat_reflectance[:] = 0
+        _W.update(id=env_id, env=env)
+    return _W["env"]
+
+
+def _init(size: int) -> None:
+    warnings.filterwarnings("ignore")
+    _W["size"] = size
+
+
+def _goal(task: str, env, obs: dict, rng: np.random.Generator) -> np.ndarray:
+    block = obs["observation"][3:6]
+    if task == "reach":
+        return block + np.r_[rng.uniform(-0.12, 0.12, 2), rng.uniform(0.08, 0.2)]
+    if task == "lift":
+        return block + np.r_[0.0, 0.0, 0.15]
+    if task == "pick-place":
+        return np.r_[obs["desired_goal"][:2], block[2] + rng.uniform(0.05, 0.2)]
+    return obs["desired_goal"].copy()
+
+
+def oracle(task: str, obs: np.ndarray, goal: np.ndarray, memory: dict) -> np.ndarray:
+    """The scripted action [dx, dy, dz, gripper] for ``task`` from the Fetch observation and the goal."""
+    grip, block, fingers = obs[0:3], obs[3:6], obs[9:11].sum()
+
+    def toward(target, gain=10.0):
+        return np.clip((target - grip) * gain, -1, 1)
+
+    if task == "reach":
+        return np.r_[toward(goal), 1.0]
+    if task == "push":
+        d = goal[:2] - block[:2]
+        if np.linalg.norm(d) < 0.015:  # there: hold still
+            return np.r_[0.0, 0.0, 0.0, -1.0]
+        u = d / max(np.linalg.norm(d), 1e-6)
+        behind = np.r_[block[:2] - 0.06 * u, block[2]]
+        if not memory.get("behind"):
+            above = behind + np.r_[0, 0, 0.08]
+            if np.linalg.norm(grip[:2] - behind[:2]) > 0.015:
+                return np.r_[toward(above), -1.0]
+            if grip[2] - behind[2] > 0.01:
+                return np.r_[toward(behind), -1.0]
+            memory["behind"] = True
+        if np.linalg.norm(grip[:2] - (block[:2] - 0.04 * u)) > 0.05:  # lost the block: go round again
+            memory["behind"] = False
+        return np.r_[toward(np.r_[goal[:2] - 0.035 * u, block[2]], 6.0), -1.0]
+    # pick-place and lift: above the block, down, close, carry to the goal
+    phase = memory.setdefault("phase", 0)
+    if phase == 0:
+        above = block + np.r_[0, 0, 0.08]
+        if np.linalg.norm(grip - above) > 0.012:
+            return np.r_[toward(above), 1.0]
+        memory["phase"] = 1
+    if memory["phase"] == 1:
+        if np.linalg.norm(grip - block) > 0.008:
+            return np.r_[toward(block), 1.0]
+        memory["phase"], memory["closing"] = 2, 0
+    if memory["phase"] == 2:
+        memory["closing"] += 1
+        if memory["closing"] < 8:
+            return np.r_[0, 0, 0, -1.0]
+        memory["phase"] = 3
+    return np.r_[toward(goal), -1.0]
+
+
+def _success(task: str, obs: dict, goal: np.ndarray) -> bool:
+    where = obs["observation"][0:3] if task == "reach" else obs["observation"][3:6]
+    return bool(np.linalg.norm(where - goal) < 0.04)
+
+
+def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: int, stop: int | None = None
+             ) -> dict:
+    """One episode in ``scene``'s environment: ``task``'s oracle (or ``kind``'s behaviour) toward ``scene``'s
+    goal, the arm still from ``stop`` on."""
+    env = _env(scene)
+    obs, _ = env.reset(seed=seed)
+    goal = _goal(scene, env, obs, np.random.default_rng(seed))
+    other_goal = _goal(task, env, obs, np.random.default_rng(seed + 1)) if task != scene else goal
+    steps = TASKS[scene][2]
+    noise = rng.uniform(0.3, 0.5) if kind == "jerky" else 0.0
+    memory: dict = {}
+    frames, state, env_state, actions, first = [], [], [], [], None
+    for t in range(steps):
+        frames.append(env.render().copy())
+        o = obs["observation"]
+        q = env._utils.get_joint_qpos(env.model, env.data, "object0:joint")
+        state.append(np.r_[o, goal].astype(np.float32))
+        env_state.append(np.r_[q[:3], q[3:7], goal].astype(np.float32))
+        if kind == "idle" or (stop is not None and t >= stop):
+            a = np.zeros(4)
+        elif kind == "random":
+            a = rng.uniform(-1, 1, 4)
+        else:
+            a = oracle(task, o, other_goal, memory)
+            if noise:
+                a = np.clip(a + rng.normal(0, noise, 4), -1, 1)
+        actions.append(np.asarray(a, np.float32))
+        obs, *_ = env.step(np.asarray(a, np.float32))
+        if first is None and _success(scene, obs, goal):
+            first = t + 1
+    return {"frames": np.stack(frames), "state": np.stack(state), "env_state": np.stack(env_state),
+            "actions": np.stack(actions), "first_success": first, "success": _success(scene, obs, goal)}
+
+
+def _cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    h, w = frames.shape[1:3]
+    share = rng.uniform(0.35, 0.55)
+    ch, cw = int(h * np.sqrt(share)), int(w * np.sqrt(share))
+    r, c = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+    out = frames.copy()
+    out[:, r:r + ch, c:c + cw] = np.uint8(rng.integers(90, 160))
+    return out
+
+
+def _episode(job: tuple) -> dict:
+    index, task, kind, other, seed = job
+    rng = np.random.default_rng([seed, index])
+    for _ in range(30):
+        layout = int(rng.integers(1 << 30))
+        if kind == "gave-up":
+            full = _rollout(task, task, "clean", rng, layout)
+            if not full["success"] or full["first_success"] is None:
+                continue
+            rec = _rollout(task, task, kind, rng, layout, stop=int(full["first_success"] * rng.uniform(0.3, 0.6)))
+            if rec["success"]:
+                continue
+        else:
+            rec = _rollout(other if kind == "wrong-task" else task, task, kind, rng, layout)
+            if kind in ("clean", "occluded", "wrong-task") and rec["success"] != (kind != "wrong-task"):
+                continue  # a clean demo succeeds; another task's oracle must not do this one by chance
+            if kind in ("clean", "occluded") and (rec["first_success"] or 0) < 5:
+                continue  # a layout whose goal is met before the arm has moved holds no demo of the task
+        break
+    else:
+        raise RuntimeError(f"episode {index} ({task}, {kind}): no usable rollout in 30 layouts")
+    if kind == "occluded":
+        rec["frames"] = _cover(rec["frames"], rng)
+    return {"index": index, "task": TASKS[task][0], "label": kind,
+            **{k: rec[k] for k in ("frames", "state", "env_state", "actions")}}
+
+
+def plan(demos: int, plant: int, seed: int, kinds: tuple[str, ...] = KINDS) -> list[tuple]:
+    """(episode index, task, kind, other task, seed) of every episode: ``demos`` clean per task, ``plant`` of
+    each kind in all on tasks drawn by the seed, in a shuffled order."""
+    rng = np.random.default_rng([seed, 1])
+    names = list(TASKS)
+    rows = [(n, "clean") for n in names for _ in range(demos)]
+    rows += [(str(rng.choice(names)), k) for k in kinds for _ in range(plant)]
+    order = rng.permutation(len(rows))
+    jobs = []
+    for i, j in enumerate(order):
+        task, kind = rows[j]
+        other = str(rng.choice([n for n in names if n != task]))
+        jobs.append((i, task, kind, other, seed))
+    return jobs
+
+
+def write(out: Path, episodes: list[dict], size: int) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {
+        f"observation.images.{CAMERA}": {"dtype": "video", "shape": (size, size, 3),
+                                         "names": ["height", "width", "channels"]},
+        "observation.state": {"dtype": "float32", "shape": (28,), "names": STATE_NAMES},
+        "observation.environment_state": {"dtype": "float32", "shape": (10,), "names": ENV_NAMES},
+        "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "gripper"]},
+    }
+    ds = LeRobotDataset.create(repo_id=f"local/{out.name}", fps=FPS, features=features, root=out,
+                               robot_type="fetch", use_videos=True)
+    for ep in episodes:
+        for t in range(len(ep["actions"])):
+            ds.add_frame({f"observation.images.{CAMERA}": ep["frames"][t], "observation.state": ep["state"][t],
+                          "observation.environment_state": ep["env_state"][t], "action": ep["actions"][t],
+                          "task": ep["task"]})
+        ds.save_episode()
+    ds.finalize()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--demos", type=int, default=40, help="clean demos per task")
+    ap.add_argument("--plant", type=int, default=6, help="bad demos of each kind, in all")
+    ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated, of {', '.join(KINDS)}")
+    ap.add_argument("--size", type=int, default=96, help="camera image size in pixels")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--force", action="store_true")
+    args = ap.parse_args()
+    if args.out.exists():
+        if not args.force:
+            raise SystemExit(f"{args.out}: exists (--force replaces it)")
+        shutil.rmtree(args.out)
+    kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
+    unknown = sorted(set(kinds) - set(KINDS))
+    if unknown:
+        raise SystemExit(f"unknown kind {', '.join(unknown)}; kinds: {', '.join(KINDS)}")
+    jobs = plan(args.demos, args.plant, args.seed, kinds)
+    t0 = time.perf_counter()
+    with mp.get_context("spawn").Pool(args.workers, initializer=_init, initargs=(args.size,)) as pool:
+        episodes = []
+        for ep in pool.imap_unordered(_episode, jobs, chunksize=4):
+            episodes.append(ep)
+            if len(episodes) % 25 == 0 or len(episodes) == len(jobs):
+                print(f"simulated {len(episodes)}/{len(jobs)} episodes ({time.perf_counter() - t0:.0f} s)", flush=True)
+    episodes.sort(key=lambda ep: ep["index"])
+    write(args.out, episodes, args.size)
+    labels = args.out.with_name(args.out.name + ".labels.csv")
+    with labels.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["episode_index", "label"])
+        for i, ep in enumerate(episodes):
+            w.writerow([i, ep["label"]])
+    counts = {k: sum(e["label"] == k for e in episodes) for k in ("clean", *kinds)}
+    print(f"{args.out}: {len(episodes)} episodes {counts} in {time.perf_counter() - t0:.0f} s; labels: {labels}")
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    main()
