@@ -10,7 +10,8 @@ OUT is a LeRobot v3.0 dataset: camera ``observation.images.head`` (AV1 as LeRobo
 Fetch observation and the goal, named), a 10-d ``observation.environment_state`` (the block's position and its
 quaternion as the simulator holds it, the goal; named), 4-d actions (gripper motion and opening), 25 fps;
 ``OUT.labels.csv`` beside it holds the ground truth.  The tasks: reach the goal with the gripper, push the block to
-the goal, pick the block and place it at the goal, lift the block.  Episodes last 50-110 steps by task.  Planted
+the goal, pick the block and place it at the goal, lift the block.  Episodes last 50-110 steps by task
+(``--length-scale`` stretches them, the arm holding once done; ``--size 480x640`` records as hub datasets do).  Planted
 kinds, each replacing a demo of the task it is labelled with:
 
 - ``idle``: the arm never moves; ``random``: uniformly random actions;
@@ -65,7 +66,7 @@ def _env(task: str):
         if "env" in _W:
             _W["env"].close()
         gym.register_envs(gymnasium_robotics)
-        env = gym.make(env_id, render_mode="rgb_array", width=_W["size"], height=_W["size"],
+        env = gym.make(env_id, render_mode="rgb_array", width=_W["size"][1], height=_W["size"][0],
                        max_episode_steps=1000).unwrapped
         env.model.vis.quality.shadowsize = 0
         env.model.vis.quality.offsamples = 0
@@ -74,9 +75,9 @@ def _env(task: str):
     return _W["env"]
 
 
-def _init(size: int) -> None:
+def _init(size: tuple[int, int], scale: float = 1.0) -> None:
     warnings.filterwarnings("ignore")
-    _W["size"] = size
+    _W["size"], _W["scale"] = size, scale
 
 
 def _goal(task: str, env, obs: dict, rng: np.random.Generator) -> np.ndarray:
@@ -147,7 +148,7 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
     obs, _ = env.reset(seed=seed)
     goal = _goal(scene, env, obs, np.random.default_rng(seed))
     other_goal = _goal(task, env, obs, np.random.default_rng(seed + 1)) if task != scene else goal
-    steps = TASKS[scene][2]
+    steps = int(round(TASKS[scene][2] * _W.get("scale", 1.0)))
     noise = rng.uniform(0.3, 0.5) if kind == "jerky" else 0.0
     memory: dict = {}
     frames, state, env_state, actions, first = [], [], [], [], None
@@ -226,25 +227,27 @@ def plan(demos: int, plant: int, seed: int, kinds: tuple[str, ...] = KINDS) -> l
     return jobs
 
 
-def write(out: Path, episodes: list[dict], size: int) -> None:
+def writer(out: Path, size: tuple[int, int]):
+    """LeRobot's own writer for OUT, to which ``add`` appends one episode at a time."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     features = {
-        f"observation.images.{CAMERA}": {"dtype": "video", "shape": (size, size, 3),
+        f"observation.images.{CAMERA}": {"dtype": "video", "shape": (size[0], size[1], 3),
                                          "names": ["height", "width", "channels"]},
         "observation.state": {"dtype": "float32", "shape": (28,), "names": STATE_NAMES},
         "observation.environment_state": {"dtype": "float32", "shape": (10,), "names": ENV_NAMES},
         "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "gripper"]},
     }
-    ds = LeRobotDataset.create(repo_id=f"local/{out.name}", fps=FPS, features=features, root=out,
-                               robot_type="fetch", use_videos=True)
-    for ep in episodes:
-        for t in range(len(ep["actions"])):
-            ds.add_frame({f"observation.images.{CAMERA}": ep["frames"][t], "observation.state": ep["state"][t],
-                          "observation.environment_state": ep["env_state"][t], "action": ep["actions"][t],
-                          "task": ep["task"]})
-        ds.save_episode()
-    ds.finalize()
+    return LeRobotDataset.create(repo_id=f"local/{out.name}", fps=FPS, features=features, root=out,
+                                 robot_type="fetch", use_videos=True)
+
+
+def add(ds, ep: dict) -> None:
+    for t in range(len(ep["actions"])):
+        ds.add_frame({f"observation.images.{CAMERA}": ep["frames"][t], "observation.state": ep["state"][t],
+                      "observation.environment_state": ep["env_state"][t], "action": ep["actions"][t],
+                      "task": ep["task"]})
+    ds.save_episode()
 
 
 def main() -> None:
@@ -253,7 +256,9 @@ def main() -> None:
     ap.add_argument("--demos", type=int, default=40, help="clean demos per task")
     ap.add_argument("--plant", type=int, default=6, help="bad demos of each kind, in all")
     ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated, of {', '.join(KINDS)}")
-    ap.add_argument("--size", type=int, default=96, help="camera image size in pixels")
+    ap.add_argument("--size", default="96", help="camera image size in pixels: N (square) or HxW, e.g. 480x640")
+    ap.add_argument("--length-scale", type=float, default=1.0,
+                    help="episode lengths times this (the oracle done, the arm holds): 3 gives 150-330 steps")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--force", action="store_true")
@@ -267,21 +272,25 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown kind {', '.join(unknown)}; kinds: {', '.join(KINDS)}")
     jobs = plan(args.demos, args.plant, args.seed, kinds)
+    h, _, w = args.size.partition("x")
+    size = (int(h), int(w or h))
     t0 = time.perf_counter()
-    with mp.get_context("spawn").Pool(args.workers, initializer=_init, initargs=(args.size,)) as pool:
-        episodes = []
-        for ep in pool.imap_unordered(_episode, jobs, chunksize=4):
-            episodes.append(ep)
+    ds, episodes = writer(args.out, size), []
+    with mp.get_context("spawn").Pool(args.workers, initializer=_init, initargs=(size, args.length_scale)) as pool:
+        # In order, one episode at a time into the writer: a set of 480x640 frames does not fit in memory.
+        for ep in pool.imap(_episode, jobs):
+            add(ds, ep)
+            episodes.append({"label": ep["label"]})
             if len(episodes) % 25 == 0 or len(episodes) == len(jobs):
-                print(f"simulated {len(episodes)}/{len(jobs)} episodes ({time.perf_counter() - t0:.0f} s)", flush=True)
-    episodes.sort(key=lambda ep: ep["index"])
-    write(args.out, episodes, args.size)
+                print(f"simulated and written {len(episodes)}/{len(jobs)} episodes ({time.perf_counter() - t0:.0f} s)",
+                      flush=True)
+    ds.finalize()
     labels = args.out.with_name(args.out.name + ".labels.csv")
     with labels.open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["episode_index", "label"])
+        w_ = csv.writer(f)
+        w_.writerow(["episode_index", "label"])
         for i, ep in enumerate(episodes):
-            w.writerow([i, ep["label"]])
+            w_.writerow([i, ep["label"]])
     counts = {k: sum(e["label"] == k for e in episodes) for k in ("clean", *kinds)}
     print(f"{args.out}: {len(episodes)} episodes {counts} in {time.perf_counter() - t0:.0f} s; labels: {labels}")
 
