@@ -131,7 +131,7 @@ def test_jerk_and_saturation_rank_first():
     for name, floor in (("jerk", modelfree.JERK_MIN_SCALE), ("frozen_state", sensors.FROZEN_STATE_MIN_SCALE)):
         assert SCORERS[name].in_suspicion and SCORERS[name].alone and SCORERS[name].ranking_min_scale == floor
     ev = _evidence(_planted("jerk")[0], ["jerk", "motion", "idle", "suspicion"])
-    assert np.argmax(ev.scores["suspicion"]) == 17 and "jerk: far beyond" in ev.reasons["suspicion"][17]
+    assert np.argmax(ev.scores["suspicion"]) == 17 and "jerk: beyond every clean demo" in ev.reasons["suspicion"][17]
     ev = _ranks_first("saturation")
     assert "dimension 0" in ev.reasons["saturation"][17]
 

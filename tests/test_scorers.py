@@ -108,7 +108,7 @@ def test_suspicion_reason_names_the_score_that_ranks_each_demo(evidence):
     # The driver, how unusual, and where: the flailing behaviour, or the cue it left (an arm flung where no
     # training cue has it, which the task uncertainty's novelty part sees).
     assert flailing.split(":")[0] in ("action_error", "motion", "idle", "task_uncertainty")
-    assert "as unusual as 1 clean demo in" in flailing or "far beyond the clean demos" in flailing
+    assert "as unusual as 1 clean demo in" in flailing or "beyond every clean demo" in flailing
     assert "hardly moves" in reasons[labels == "idle"][0] or "still" in reasons[labels == "idle"][0]
     drivers = {part.split(":")[0] for r in reasons if r for part in r.split("; also ")[:1]}
     assert drivers <= {n for n, s in SCORERS.items() if s.in_suspicion}

@@ -94,10 +94,11 @@ REASON_P = 0.05  # a score this surprising (tail probability) is named in the ra
 def combination(ev: Evidence, model_free: bool = False) -> Scores:
     """-log10 of the combined tail probability of the ranking's scores (``scores.combined_log10``), and the
     score that drove it."""
-    names, log_p, _ = ev.combination(model_free)
+    names, log_p, core = ev.combination(model_free)
     if not names:
         return np.full(len(ev.episodes), np.nan), None
     value = combine(names, log_p)
+    references = int(np.asarray(core, bool).sum())
     reasons = []
     for i, row in enumerate(np.nan_to_num(look_odds(names, log_p), nan=0.0)):  # no score: nothing to name
         # The score that drove it most, and up to two more that added to it (often the one that says where).
@@ -105,7 +106,7 @@ def combination(ev: Evidence, model_free: bool = False) -> Scores:
         parts = []
         for j in order:
             own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
-            parts.append(f"{names[j]}: {_odds(float(row[j]))}" + (f"; {own}" if own else ""))
+            parts.append(f"{names[j]}: {_odds(float(row[j]), references)}" + (f"; {own}" if own else ""))
         reasons.append("; also ".join(parts))
     broken = broken_rows(ev)
     if broken.any():  # a broken recording is suspect whatever its other scores (``modelfree.broken``)
@@ -131,15 +132,12 @@ def look_odds(names: list[str], log_p: np.ndarray) -> np.ndarray:
     return out
 
 
-def _odds(log_p: float) -> str:
-    """'as unusual as 1 clean demo in 3,400' for a tail probability (given as its natural log)."""
+def _odds(log_p: float, references: int) -> str:
+    """'as unusual as 1 clean demo in 3,400' for a tail probability (given as its natural log), to two
+    significant figures; past what ``references`` demos believed clean can support, 'beyond every clean demo'."""
     p = float(np.exp(log_p))
     if p >= 0.5:
         return "typical"
-    if p >= 1e-6:
-        return f"as unusual as 1 clean demo in {1 / p:,.0f}"
-    if p > 0:
-        return f"far beyond the clean demos (tail probability {p:.1e})"
-    if np.isfinite(log_p):  # below what a float holds: its power of ten
-        return f"far beyond the clean demos (tail probability 1e{log_p / np.log(10):.0f})"
-    return "beyond any clean demo"
+    if p * (references + 1) < 1:
+        return "beyond every clean demo"
+    return f"as unusual as 1 clean demo in {float(f'{1 / p:.2g}'):,.0f}"
