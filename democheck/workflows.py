@@ -197,7 +197,8 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
         t2 = time.perf_counter()
         demos = [ds[int(e)] for e in table.head(top)["episode_index"]]
         write_report_rrd(tmp / "report.rrd", table, demos, xy, rows, ds.fps, f"democheck audit of {ds.root}",
-                         names={"state": ds.names("state"), "action": ds.names("action")}, fpr=fpr)
+                         names={"state": ds.names("state"), "action": ds.names("action")}, fpr=fpr,
+                         warnings=summary["warnings"])
         t["rrd_s"] = time.perf_counter() - t2
         summary = finish_summary(summary, t)
         write_json(tmp / "summary.json", summary)

@@ -304,6 +304,23 @@ def test_a_missing_video_file_breaks_its_episodes_and_the_audit_goes_on(tiny_dat
     assert "file-001.mp4" in table["reason"][0] and not table["reference"][:4].any()
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert summary["flag"]["broken_recordings"] == 4
+    # One line for the file, naming the episodes it takes down, in the summary and in the terminal; the count line
+    # tells the broken recordings from the demos flagged by their scores.
+    lines = [w for w in summary["warnings"] if "file-001.mp4" in w]
+    assert len(lines) == 1 and "4 episodes (1, 4, 6, 9) flagged as broken recordings" in lines[0], lines
+    said = " ".join(res.output.split())
+    assert "file-001.mp4 cannot be read" in said and "4 broken recordings" in said, res.output
+
+
+def test_runs_of_episodes_read_as_ranges():
+    from democheck.audit.run import spans, unreadable_files
+
+    assert spans([9, 3, 7, 8, 12, 13]) == "3, 7-9, 12-13" and spans([5]) == "5"
+    reasons = ["", "unreadable frames (v/a.mp4: frame 9 is missing)", "unreadable frames (v/a.mp4: bad packet)",
+               "unreadable frames (v/b.mp4: bad); NaN or infinite values in 'action'"]
+    assert unreadable_files(np.array([0, 10, 11, 12]), reasons) == [
+        "v/a.mp4 cannot be read (frame 9 is missing): 2 episodes (10-11) flagged as broken recordings",
+        "v/b.mp4 cannot be read (bad): 1 episode (12) flagged as broken recordings"]
 
 
 def test_nan_in_a_lerobot_episode_is_repaired_reported_and_refused_where_nothing_would_report_it(
@@ -479,3 +496,33 @@ def test_view_binds_the_viewer_to_this_machine_and_keeps_its_log_out_of_the_term
     assert "listening on 127.0.0.1" in " ".join(res.output.split())
     runner.invoke(app, ["view", str(tmp_path), "--bind", "0.0.0.0"])
     assert started[-1][0][1:3] == ["--bind", "0.0.0.0"]
+
+
+def test_a_model_score_that_failed_its_test_is_reported_not_ranked(tiny_dataset, tiny_model, tmp_path):
+    """A controller that explains held-out actions no better than their average, and a model no less sure of the
+    task when nothing happens: their scores stay in the table, leave the ranking, and the audit says why."""
+    import shutil
+
+    from democheck.audit.trust import untrusted
+    from democheck.petnet.checkpoint import load_checkpoint
+
+    assert untrusted(load_checkpoint().meta) == {}  # the shipped model passes both
+    src, _ = tiny_dataset
+    model = tmp_path / "weak"
+    shutil.copytree(tiny_model, model)
+    config = json.loads((model / "config.json").read_text())
+    config["metrics"]["final"]["val_mse"] = 1.09
+    sigma = config["metrics"]["task_sigma"]
+    sigma["still"] = 1.2 * sigma.get("val demos", sigma.get("train demos"))
+    (model / "config.json").write_text(json.dumps(config))
+    assert set(untrusted(config)) == {"action_error", "task_uncertainty"}
+    res = runner.invoke(app, ["audit", str(src), "--out", str(tmp_path / "r"), "--model", str(model),
+                              "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    ranked = summary["flag"]["scores"]
+    assert "action_error" not in ranked and "task_uncertainty" not in ranked and "consistency" in ranked
+    table = pd.read_parquet(tmp_path / "r" / "scores.parquet")
+    assert np.isfinite(table["action_error"]).all() and np.isfinite(table["task_uncertainty"]).all()
+    said = [w for w in summary["warnings"] if "reported, not ranked" in w]
+    assert len(said) == 2 and any("1.1" in w for w in said), summary["warnings"]

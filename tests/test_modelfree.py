@@ -990,3 +990,14 @@ def test_a_dataset_whose_every_demo_names_its_own_task_is_compared_as_one(tmp_pa
     warning = json.loads((tmp_path / "r" / "summary.json").read_text())["warnings"][0]
     assert warning.startswith("21 of 21 tasks have fewer than 5 demos") and "as if the dataset were one task" in warning
     assert "wrong task cannot be told apart" in warning
+
+
+def test_coupling_says_nothing_of_actions_that_never_change_and_never_prints_a_negative_information():
+    from democheck.audit import coupling
+
+    demos, bad = _planted("idle")
+    demos[bad].actions[:] = demos[bad].actions[0]  # an arm never driven: the same command throughout
+    ev = _evidence(demos, ["coupling"])
+    assert np.isnan(ev.scores["coupling"][bad]) and "actions that never change" in ev.reasons["coupling"][bad]
+    assert np.isfinite(np.delete(ev.scores["coupling"], bad)).all()
+    assert coupling._nats(-0.33) == "about 0 nats" and coupling._nats(1.234) == "1.2 nats"

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from scipy.stats import binom
-from sklearn.metrics import roc_auc_score
+
+from democheck.audit.metrics import detection
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from run import linter  # noqa: E402
@@ -30,8 +31,7 @@ CHECKS = ("motion", "idle", "jerk", "saturation", "duplicate", "dynamics", "lag"
 
 
 def auroc(bad: np.ndarray, clean: np.ndarray) -> float:
-    bad, clean = np.nan_to_num(bad, nan=-np.inf), np.nan_to_num(clean, nan=-np.inf)
-    return float(roc_auc_score(np.r_[np.ones(len(bad)), np.zeros(len(clean))], np.r_[bad, clean]))
+    return detection(np.r_[np.ones(len(bad), bool), np.zeros(len(clean), bool)], np.r_[bad, clean])["auroc"]
 
 
 def main() -> None:

@@ -25,16 +25,15 @@ Clean demos are kept only where the oracle succeeds, on a layout whose goal the 
 
 from __future__ import annotations
 
-import argparse
-import csv
-import multiprocessing as mp
 import os
-import shutil
-import time
+import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from record import KINDS, cover, options, parser, plan, record  # noqa: E402
 
 TASKS = {  # name -> (the task as the dataset names it, Gymnasium-Robotics env, steps)
     "reach": ("reach the goal with the gripper", "FetchReach-like", 50),
@@ -42,7 +41,6 @@ TASKS = {  # name -> (the task as the dataset names it, Gymnasium-Robotics env, 
     "pick-place": ("pick up the block and place it at the goal", "FetchPickAndPlace-v4", 110),
     "lift": ("lift the block", "FetchPickAndPlace-v4", 80),
 }
-KINDS = ("idle", "random", "wrong-task", "gave-up", "occluded", "jerky")
 CAMERA = "head"
 FPS = 25
 STATE_NAMES = ["grip.x", "grip.y", "grip.z", "block.x", "block.y", "block.z", "block_rel.x", "block_rel.y",
@@ -174,16 +172,6 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
             "actions": np.stack(actions), "first_success": first, "success": _success(scene, obs, goal)}
 
 
-def _cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    h, w = frames.shape[1:3]
-    share = rng.uniform(0.35, 0.55)
-    ch, cw = int(h * np.sqrt(share)), int(w * np.sqrt(share))
-    r, c = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
-    out = frames.copy()
-    out[:, r:r + ch, c:c + cw] = np.uint8(rng.integers(90, 160))
-    return out
-
-
 def _episode(job: tuple) -> dict:
     index, task, kind, other, seed = job
     rng = np.random.default_rng([seed, index])
@@ -206,93 +194,29 @@ def _episode(job: tuple) -> dict:
     else:
         raise RuntimeError(f"episode {index} ({task}, {kind}): no usable rollout in 30 layouts")
     if kind == "occluded":
-        rec["frames"] = _cover(rec["frames"], rng)
+        rec["frames"] = cover(rec["frames"], rng)
     return {"index": index, "task": TASKS[task][0], "label": kind,
             **{k: rec[k] for k in ("frames", "state", "env_state", "actions")}}
 
 
-def plan(demos: int, plant: int, seed: int, kinds: tuple[str, ...] = KINDS) -> list[tuple]:
-    """(episode index, task, kind, other task, seed) of every episode: ``demos`` clean per task, ``plant`` of
-    each kind in all on tasks drawn by the seed, in a shuffled order."""
-    rng = np.random.default_rng([seed, 1])
-    names = list(TASKS)
-    rows = [(n, "clean") for n in names for _ in range(demos)]
-    rows += [(str(rng.choice(names)), k) for k in kinds for _ in range(plant)]
-    order = rng.permutation(len(rows))
-    jobs = []
-    for i, j in enumerate(order):
-        task, kind = rows[j]
-        other = str(rng.choice([n for n in names if n != task]))
-        jobs.append((i, task, kind, other, seed))
-    return jobs
-
-
-def writer(out: Path, size: tuple[int, int]):
-    """LeRobot's own writer for OUT, to which ``add`` appends one episode at a time."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    features = {
+def features(size: tuple[int, int]) -> dict:
+    return {
         f"observation.images.{CAMERA}": {"dtype": "video", "shape": (size[0], size[1], 3),
                                          "names": ["height", "width", "channels"]},
         "observation.state": {"dtype": "float32", "shape": (28,), "names": STATE_NAMES},
         "observation.environment_state": {"dtype": "float32", "shape": (10,), "names": ENV_NAMES},
         "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "gripper"]},
     }
-    return LeRobotDataset.create(repo_id=f"local/{out.name}", fps=FPS, features=features, root=out,
-                                 robot_type="fetch", use_videos=True)
-
-
-def add(ds, ep: dict) -> None:
-    for t in range(len(ep["actions"])):
-        ds.add_frame({f"observation.images.{CAMERA}": ep["frames"][t], "observation.state": ep["state"][t],
-                      "observation.environment_state": ep["env_state"][t], "action": ep["actions"][t],
-                      "task": ep["task"]})
-    ds.save_episode()
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("out", type=Path)
-    ap.add_argument("--demos", type=int, default=40, help="clean demos per task")
-    ap.add_argument("--plant", type=int, default=6, help="bad demos of each kind, in all")
-    ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated, of {', '.join(KINDS)}")
-    ap.add_argument("--size", default="96", help="camera image size in pixels: N (square) or HxW, e.g. 480x640")
+    ap = parser(__doc__, demos=40, size="96")
     ap.add_argument("--length-scale", type=float, default=1.0,
                     help="episode lengths times this (the oracle done, the arm holds): 3 gives 150-330 steps")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--force", action="store_true")
     args = ap.parse_args()
-    if args.out.exists():
-        if not args.force:
-            raise SystemExit(f"{args.out}: exists (--force replaces it)")
-        shutil.rmtree(args.out)
-    kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
-    unknown = sorted(set(kinds) - set(KINDS))
-    if unknown:
-        raise SystemExit(f"unknown kind {', '.join(unknown)}; kinds: {', '.join(KINDS)}")
-    jobs = plan(args.demos, args.plant, args.seed, kinds)
-    h, _, w = args.size.partition("x")
-    size = (int(h), int(w or h))
-    t0 = time.perf_counter()
-    ds, episodes = writer(args.out, size), []
-    with mp.get_context("spawn").Pool(args.workers, initializer=_init, initargs=(size, args.length_scale)) as pool:
-        # In order, one episode at a time into the writer: a set of 480x640 frames does not fit in memory.
-        for ep in pool.imap(_episode, jobs):
-            add(ds, ep)
-            episodes.append({"label": ep["label"]})
-            if len(episodes) % 25 == 0 or len(episodes) == len(jobs):
-                print(f"simulated and written {len(episodes)}/{len(jobs)} episodes ({time.perf_counter() - t0:.0f} s)",
-                      flush=True)
-    ds.finalize()
-    labels = args.out.with_name(args.out.name + ".labels.csv")
-    with labels.open("w", newline="") as f:
-        w_ = csv.writer(f)
-        w_.writerow(["episode_index", "label"])
-        for i, ep in enumerate(episodes):
-            w_.writerow([i, ep["label"]])
-    counts = {k: sum(e["label"] == k for e in episodes) for k in ("clean", *kinds)}
-    print(f"{args.out}: {len(episodes)} episodes {counts} in {time.perf_counter() - t0:.0f} s; labels: {labels}")
+    kinds, size = options(args)
+    record(args.out, plan(list(TASKS), args.demos, args.plant, args.seed, kinds), _episode, args.workers,
+           _init, (size, args.length_scale), features(size), FPS, "fetch")
 
 
 if __name__ == "__main__":

@@ -114,7 +114,15 @@ class CouplingStats(PerDemo):
         steps = np.unique(np.linspace(0, n - 1, min(n, COUPLING_MAX_STEPS)).round().astype(int))
         x, y = state[steps], actions[steps]
         ok = x.size and y.size and np.isfinite(x).all() and np.isfinite(y).all()
-        self.information.append(ksg_mutual_information(x, y) if ok else float("nan"))
+        # Actions that never change share no information with anything: the estimate would be noise (negative);
+        # the check says nothing, and the motion checks say the arm does not move.
+        still = ok and not _standardised(y).any()
+        self.information.append(ksg_mutual_information(x, y) if ok and not still else float("nan"))
+
+
+def _nats(value: float) -> str:
+    """An estimate of mutual information as a reader takes it: never below 0 (the estimator's bias can be)."""
+    return f"{value:.2g} nats" if value > 0.005 else "about 0 nats"
 
 
 def coupling(stats: CouplingStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
@@ -123,6 +131,7 @@ def coupling(stats: CouplingStats, tasks: np.ndarray) -> tuple[np.ndarray, list[
     info = np.asarray(stats.information, np.float64)
     medians = pd.Series(info).groupby(np.asarray(tasks)).transform("median").to_numpy()
     reasons = [f"its actions go with its state less than its task's others': state-action mutual information "
-               f"{value:.2f} nats (its task's median {median:.2f})" if np.isfinite(value)
-               else "too short, or no state, to relate its actions to" for value, median in zip(info, medians)]
+               f"{_nats(value)} (its task's median {_nats(median)})" if np.isfinite(value)
+               else "too short, no state, or actions that never change: nothing to relate"
+               for value, median in zip(info, medians)]
     return -info, reasons

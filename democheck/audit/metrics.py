@@ -17,10 +17,12 @@ def precision_at_k(is_bad: np.ndarray, scores: np.ndarray, k: int | None = None)
 
 def detection(is_bad: np.ndarray, scores: np.ndarray) -> dict[str, float]:
     """AUROC, AUPRC and precision at k (k = number of bad demos) of one scorer for one kind versus clean."""
+    from scipy.stats import rankdata
     from sklearn.metrics import average_precision_score, roc_auc_score
 
     is_bad = np.asarray(is_bad, bool)
-    s = np.nan_to_num(np.asarray(scores, float), nan=np.nanmin(scores) if np.isfinite(scores).any() else 0.0)
+    # Only the order matters: ranks keep +inf (a broken demo) on top and put NaN (nothing to say) at the bottom.
+    s = rankdata(np.nan_to_num(np.asarray(scores, float), nan=-np.inf))
     both = 0 < is_bad.sum() < len(is_bad)
     return {"auroc": float(roc_auc_score(is_bad, s)) if both else float("nan"),
             "auprc": float(average_precision_score(is_bad, s)) if both else float("nan"),

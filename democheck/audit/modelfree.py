@@ -294,6 +294,7 @@ MOTION_MIN_SCALE = 0.1  # in log units
 
 
 MOTION_FEATURES = ("mean |action|", "mean |change of action|")
+HARDLY_MOVES = 0.2  # under this share of its task's median motion, a reason says the arm hardly moves
 
 
 def motion(features: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
@@ -303,7 +304,7 @@ def motion(features: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[st
                          for i in range(logs.shape[1])])
     pick = np.argmax(z, axis=1)
     reasons = [f"{MOTION_FEATURES[j]} {features[i, j]:.2g} x its median"
-               + (" (the arm hardly moves)" if features[i, j] < 1 else "") for i, j in enumerate(pick)]
+               + (" (the arm hardly moves)" if features[i, j] < HARDLY_MOVES else "") for i, j in enumerate(pick)]
     return z.max(axis=1), reasons
 
 

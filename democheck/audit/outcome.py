@@ -211,7 +211,9 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[st
             for part, x, sided in (("at the end", end, True), ("change", end - start, False)):
                 z, ref = _task_gaps(x, start if sided else None, tasks[rows], u)
                 best = np.nanargmax(np.where(np.isnan(z), -np.inf, z), axis=1)
-                z_cols.append(np.sqrt(np.nanmean(z ** 2, axis=1)) if z.shape[1] > 1 else z[:, 0])
+                with warnings.catch_warnings():  # a demo of a task too small to compare has only NaN
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    z_cols.append(np.sqrt(np.nanmean(z ** 2, axis=1)) if z.shape[1] > 1 else z[:, 0])
                 what.append((f, part))
                 values.append(x[np.arange(len(x)), best])
                 refs.append(ref[np.arange(len(x)), best])

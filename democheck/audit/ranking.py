@@ -73,18 +73,19 @@ def combine(names: list[str], log_p: np.ndarray) -> np.ndarray:
     return -combined_log10(log_p, alone_columns(names), look_columns(names))
 
 
-def ranked(available, tasks: np.ndarray, model_free: bool = False) -> list[str]:
+def ranked(available, tasks: np.ndarray, model_free: bool = False, untrusted=()) -> list[str]:
     """The scores the ranking combines, of those ``available`` (names, or columns by name): every
     ``in_suspicion`` scorer's, less the task embedding's on a dataset of one task (``in_single_task_ranking``),
-    less the model's with ``model_free``, less a column with no score at all (the outcome of a dataset whose
-    tasks are all too small to compare): a look that cannot see anything must not cost the others' correction."""
+    less the model's with ``model_free`` and those it did not earn (``untrusted``, ``trust.untrusted``), less a
+    column with no score at all (the outcome of a dataset whose tasks are all too small to compare): a look that
+    cannot see anything must not cost the others' correction."""
     one_task = len(np.unique(tasks)) == 1
     columns = isinstance(available, (dict, pd.DataFrame))
 
     def scored(n: str) -> bool:
         return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
 
-    return [n for n, s in registry.SCORERS.items() if s.in_suspicion and n in available
+    return [n for n, s in registry.SCORERS.items() if s.in_suspicion and n in available and n not in untrusted
             and (s.model_free or not model_free) and (s.in_single_task_ranking or not one_task) and scored(n)]
 
 

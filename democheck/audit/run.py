@@ -9,6 +9,8 @@ into a report folder (tables, summary, Rerun recording).
 
 from __future__ import annotations
 
+import re
+
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -17,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from democheck import pool
-from democheck.audit import ranking, scorers as registry, shards
+from democheck.audit import ranking, scorers as registry, shards, trust
 from democheck.audit.scorers import GROUP_MIN_DEMOS, Evidence, Scorer
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.flagging import (DEFAULT_FPR, broken_recordings, conformal_p, exact_copies, expected_false_flags,
@@ -253,7 +255,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         "model_trained_on_this_dataset": fingerprint is not None and fingerprint == trained_on,
         "demos": len(table), "tasks": int(table["task"].nunique()), "flagged": flagged,
         "suspects_txt": flagged, "top": top,
-        "flag": flag_summary(table, fpr),
+        "flag": flag_summary(table, fpr, ev.untrusted),
         "scores": {n: registry.SCORERS[n].description for n in shown} | {
             "p_value": "the combined tail probability of the ranking's scores (suspicion = -log10 p_value)",
             "reason": "what put the demo where it ranks: the score with the smallest tail probability, and where "
@@ -281,13 +283,44 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         summary["no_model"] = why_no_model or "audited with the model-free checks alone (--no-model)"
     if "label" in table:
         summary["labels"] = table["label"].value_counts().to_dict()
-    summary["warnings"] = warnings(table, ckpt)
+    summary["warnings"] = (unreadable_files(ev.episodes["episode_index"].to_numpy(), ev.reasons.get("broken"))
+                           + warnings(table, ckpt))
     return table, summary
 
 
-def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
+_UNREADABLE = re.compile(r"unreadable frames \((?P<file>[^()]+?): (?P<why>.*)\)$")
+
+
+def unreadable_files(episodes: np.ndarray, reasons: list[str] | None) -> list[str]:
+    """One line per file whose frames cannot be read, with the episodes it takes down (``reasons``: the broken
+    check's, in ``episodes``' order): a truncated video is one fault, not one suspect per episode it holds."""
+    if not reasons:
+        return []
+    files: dict[str, tuple[list[int], str]] = {}
+    for episode, reason in zip(episodes, reasons):
+        for part in (reason or "").split("; "):
+            m = _UNREADABLE.match(part)
+            if m:
+                files.setdefault(m["file"], ([], m["why"]))[0].append(int(episode))
+    return [f"{path} cannot be read ({why}): {len(eps)} episode{'s' * (len(eps) > 1)} ({spans(eps)}) flagged as "
+            "broken recordings" for path, (eps, why) in files.items()]
+
+
+def spans(values: list[int]) -> str:
+    """Sorted integers as runs, e.g. '3, 7-9, 12'."""
+    out: list[str] = []
+    for v in sorted(values):
+        if out and int(out[-1].rsplit("-", 1)[-1]) == v - 1:
+            out[-1] = f"{out[-1].split('-')[0]}-{v}"
+        else:
+            out.append(str(v))
+    return ", ".join(out)
+
+
+def flag_summary(table: pd.DataFrame, fpr: float, untrusted=()) -> dict[str, Any]:
     """How the flags were set and what they should cost: the level, the number of false flags to expect were the
-    unflagged demos clean, and, with labels, the observed recall per kind and share of clean demos flagged."""
+    unflagged demos clean, and, with labels, the observed recall per kind and share of clean demos flagged;
+    ``untrusted``: the model's scores left out of the ranking (``trust.untrusted``)."""
     flagged = table["is_anomaly"].to_numpy(bool)
     copies, broken = exact_copies(table), broken_recordings(table)
     reference = table["reference"].to_numpy(bool)
@@ -303,7 +336,7 @@ def flag_summary(table: pd.DataFrame, fpr: float) -> dict[str, Any]:
         "reference": f"the audited demos' robust core ({int(reference.sum())} of {len(table)}): the demos whose "
                      f"combined tail probability is above {CORE_P:g} once each score's tail is fitted on them, "
                      "refitted until it no longer changes -- believed clean while the bad demos are a minority",
-        "scores": ranking.ranked(table, table["task"].to_numpy()),
+        "scores": ranking.ranked(table, table["task"].to_numpy(), untrusted=untrusted),
     }
     left_out = [n for n, s in registry.SCORERS.items() if s.in_suspicion and not s.in_single_task_ranking
                 and n in table] if table["task"].nunique() == 1 else []
@@ -337,6 +370,7 @@ def warnings(table: pd.DataFrame, ckpt: Checkpoint | None) -> list[str]:
                    "suspects, and a demo of the wrong task cannot be told apart")
     if ckpt is None:
         return out
+    out += [why for name, why in trust.untrusted(ckpt.meta).items() if name in table]
     trained = (ckpt.meta.get("data", {}).get("task_split") or {}).get("trained")
     if trained is not None:
         new = sorted(set(table["task"]) - set(trained))

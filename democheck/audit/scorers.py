@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
-from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, sensors
+from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, sensors, trust
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.scores import CONSISTENCY_K, consistency_parts
@@ -94,11 +94,16 @@ class Evidence:
         """The ranking's scores (``ranked``), their tail probabilities (natural logs, [N, K]) fitted on the audited
         demos' robust core (``scores.robust_tails``), and that core [N]: the reference the flags are calibrated
         on.  Computed once for each set of scores (the ranking and the audit's flags both read it)."""
-        names = ranking.ranked(self.scores, self.tasks, model_free)
+        names = ranking.ranked(self.scores, self.tasks, model_free, self.untrusted)
         key = tuple(names)
         if key not in self._combinations:
             self._combinations[key] = ranking.ranking_tails(self, names)
         return (names, *self._combinations[key])
+
+    @property
+    def untrusted(self) -> dict[str, str]:
+        """The model's scores that stay out of the ranking, and why (``trust.untrusted``)."""
+        return trust.untrusted(self.model.meta) if self.model is not None else {}
 
     @property
     def tasks(self) -> np.ndarray:
@@ -195,17 +200,16 @@ class Scorer:
 # PETNet's scores
 # ---------------------------------------------------------------------------
 
-def _dimension_reasons(values: np.ndarray, what: str) -> list[str]:
-    """'<what> on dimension k' for the largest entry of each row of [N, z] values."""
-    out = []
-    for row in values:
-        ok = np.isfinite(row)
-        out.append(f"{what} on dimension {int(np.argmax(np.where(ok, row, -np.inf)))}" if ok.any() else "")
-    return out
+def _against_task(values: np.ndarray, groups: np.ndarray, words: str) -> list[str]:
+    """'<words> (k x its task's median)' for each demo, in the terms of its comparison group."""
+    median = pd.Series(values).groupby(np.asarray(groups)).transform("median").to_numpy()
+    return [f"{words} ({v / m:.2g} x its task's median)" if np.isfinite(v) and m > 0 else words
+            for v, m in zip(values, median)]
 
 
 def _task_uncertainty(ev: Evidence) -> Scores:
-    return ev.posterior.task_uncertainty(), _dimension_reasons(ev.posterior.sigma, "widest")
+    values = ev.posterior.task_uncertainty()
+    return values, _against_task(values, ev.groups, "the model cannot tell the task from its first and last frames")
 
 
 def _task_uncertainty_head(ev: Evidence) -> Scores:
@@ -218,8 +222,9 @@ def _novelty(ev: Evidence) -> Scores:
 
 
 def _consistency(ev: Evidence) -> Scores:
-    value, apart = consistency_parts(ev.posterior, ev.tasks)
-    return value, _dimension_reasons(apart, "furthest from its task")
+    value, _ = consistency_parts(ev.posterior, ev.tasks)
+    return value, _against_task(value, ev.groups, "its first and last frames read as another task than its "
+                                                  "task's other demos")
 
 
 def _action_error(ev: Evidence) -> Scores:

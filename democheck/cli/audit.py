@@ -88,9 +88,13 @@ def print_audit(summary: dict, out: Path) -> None:
                       "[red]yes[/]" if r["is_anomaly"] else "", driver)
     console.print(table)
     level = flag.get("p_value_at_level")
-    console.print(f"{summary['flagged']} flagged at --fpr {flag['fpr']:g}"
+    apart = {"broken recordings": flag.get("broken_recordings", 0), "exact copies": flag.get("exact_copies", 0)}
+    scored = max(summary["flagged"] - sum(apart.values()), 0)
+    console.print(f"{summary['flagged']} flagged at --fpr {flag['fpr']:g}: "
+                  + "".join(f"{n} {what}, " for what, n in apart.items() if n)
+                  + f"{scored} by their scores"
                   + (f" (on this data: a p_value at most {level:.3g})" if level is not None else "")
-                  + f"; about {flag['expected_false_flags']:.1f} false flags expected among them", highlight=False)
+                  + f"; about {flag['expected_false_flags']:.1f} false flags expected among those", highlight=False)
     if flag.get("one_task"):
         console.print(flag["one_task"], highlight=False)
     for w in summary.get("warnings", []):

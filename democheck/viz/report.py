@@ -184,20 +184,23 @@ def _log_video(rec: rr.RecordingStream, path: str, frames: np.ndarray, fps: floa
 
 def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embedding: np.ndarray,
                      embedded_rows: np.ndarray, fps: float, title: str, names: dict[str, list[str]] | None = None,
-                     fpr: float | None = None) -> None:
+                     fpr: float | None = None, warnings: list[str] | None = None) -> None:
     """One recording with a reviewer's blueprint: the ranked list beside each suspect's evidence, the map and the
     score histograms.
 
     ``suspects`` are the top demos in rank order; ``embedding`` [M, 2] are t-SNE positions of ``table`` rows
     ``embedded_rows``; ``names``: the dataset's names of its ``state`` and ``action`` dimensions; ``fpr``: the
-    flag's level (marked on the suspicion histogram's title).
+    flag's level (marked on the suspicion histogram's title); ``warnings``: the audit's, under the ranked list
+    (an unreadable file among them).
     """
     rec = rr.RecordingStream("democheck")
     rec.save(str(path))
     top = len(suspects)
     flagged = table["is_anomaly"].to_numpy(bool)
-    rec.log("suspects", rr.TextDocument(suspects_markdown(table, max(top, 20), title, fpr),
-                                        media_type=rr.MediaType.MARKDOWN), static=True)
+    text = suspects_markdown(table, max(top, 20), title, fpr)
+    if warnings:
+        text += "\n\n## Warnings\n\n" + "\n".join(f"- {w}" for w in warnings)
+    rec.log("suspects", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
     if len(embedded_rows):
         sub = table.iloc[embedded_rows]
         labels = [f"#{r} ep{e}: {t}" for r, e, t in zip(sub["rank"], sub["episode_index"], sub["task"])]

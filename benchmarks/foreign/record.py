@@ -1,0 +1,105 @@
+"""What the generators of simulators democheck did not make share: the options, the plan of clean and planted
+episodes, the grey card of an occluded demo, and LeRobot's own writer fed in order, one episode at a time, by
+worker processes (a set of 480x640 frames does not fit in memory).  Runs in LeRobot's virtual environment.
+
+An episode, as a generator's worker returns it: ``index``, ``task`` (the dataset's words), ``label`` (``clean`` or
+a planted kind), ``frames`` (T x H x W x 3 uint8), ``state``, ``env_state`` and ``actions`` (T x d float32).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import multiprocessing as mp
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+KINDS = ("idle", "random", "wrong-task", "gave-up", "occluded", "jerky")
+
+
+def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--demos", type=int, default=demos, help="clean demos per task")
+    ap.add_argument("--plant", type=int, default=6, help="bad demos of each kind, in all")
+    ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated, of {', '.join(KINDS)}")
+    ap.add_argument("--size", default=size, help="camera image size in pixels: N (square) or HxW, e.g. 480x640")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--force", action="store_true")
+    return ap
+
+
+def options(args: argparse.Namespace) -> tuple[tuple[str, ...], tuple[int, int]]:
+    """The kinds asked for and the image size (height, width); OUT cleared when --force allows it."""
+    if args.out.exists():
+        if not args.force:
+            raise SystemExit(f"{args.out}: exists (--force replaces it)")
+        shutil.rmtree(args.out)
+    kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
+    unknown = sorted(set(kinds) - set(KINDS))
+    if unknown:
+        raise SystemExit(f"unknown kind {', '.join(unknown)}; kinds: {', '.join(KINDS)}")
+    h, _, w = args.size.partition("x")
+    return kinds, (int(h), int(w or h))
+
+
+def plan(names: list[str], demos: int, plant: int, seed: int, kinds: tuple[str, ...]) -> list[tuple]:
+    """(episode index, task, kind, other task, seed) of every episode: ``demos`` clean per task, ``plant`` of
+    each kind in all on tasks drawn by the seed, in a shuffled order."""
+    rng = np.random.default_rng([seed, 1])
+    rows = [(n, "clean") for n in names for _ in range(demos)]
+    rows += [(str(rng.choice(names)), k) for k in kinds for _ in range(plant)]
+    order = rng.permutation(len(rows))
+    jobs = []
+    for i, j in enumerate(order):
+        task, kind = rows[j]
+        other = str(rng.choice([n for n in names if n != task]))
+        jobs.append((i, task, kind, other, seed))
+    return jobs
+
+
+def cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The frames with a grey card over 35-55% of the view, the same card in every frame."""
+    h, w = frames.shape[1:3]
+    share = rng.uniform(0.35, 0.55)
+    ch, cw = int(h * np.sqrt(share)), int(w * np.sqrt(share))
+    r, c = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+    out = frames.copy()
+    out[:, r:r + ch, c:c + cw] = np.uint8(rng.integers(90, 160))
+    return out
+
+
+def record(out: Path, jobs: list[tuple], episode: Callable[[tuple], dict], workers: int,
+           init: Callable, initargs: tuple, features: dict, fps: int, robot_type: str) -> None:
+    """Simulate ``jobs`` with ``episode`` in ``workers`` spawned processes (``init(*initargs)`` in each) and write
+    them with LeRobot's writer to OUT; OUT.labels.csv beside it holds each episode's label."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    camera = next(k for k, f in features.items() if f["dtype"] == "video")
+    ds = LeRobotDataset.create(repo_id=f"local/{out.name}", fps=fps, features=features, root=out,
+                               robot_type=robot_type, use_videos=True)
+    t0, labels = time.perf_counter(), []
+    with mp.get_context("spawn").Pool(workers, initializer=init, initargs=initargs) as pool:
+        for ep in pool.imap(episode, jobs):
+            for t in range(len(ep["actions"])):
+                ds.add_frame({camera: ep["frames"][t], "observation.state": ep["state"][t],
+                              "observation.environment_state": ep["env_state"][t], "action": ep["actions"][t],
+                              "task": ep["task"]})
+            ds.save_episode()
+            labels.append(ep["label"])
+            if len(labels) % 25 == 0 or len(labels) == len(jobs):
+                print(f"simulated and written {len(labels)}/{len(jobs)} episodes ({time.perf_counter() - t0:.0f} s)",
+                      flush=True)
+    ds.finalize()
+    path = out.with_name(out.name + ".labels.csv")
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["episode_index", "label"])
+        w.writerows(enumerate(labels))
+    counts = {k: labels.count(k) for k in dict.fromkeys(["clean", *sorted(set(labels) - {"clean"})])}
+    print(f"{out}: {len(labels)} episodes {counts} in {time.perf_counter() - t0:.0f} s; labels: {path}")
