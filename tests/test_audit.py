@@ -181,7 +181,9 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
     assert logged.shape == truth.shape
     assert np.abs(logged.astype(int) - truth.astype(int)).mean() < 12  # the suspect's own frames, re-encoded
     sigma = rrd[f"{base}/sigma"][0].column("BarChart:values").to_pylist()[0]
-    assert sigma is not None
+    bars = sigma[0]  # the suspect's task sigma per dimension over the unflagged demos' median
+    typical = np.median(np.stack(table["sigma"][~table["is_anomaly"]]), axis=0)
+    assert bars["shape"] == [10] and np.allclose(bars["buffer"], table["sigma"].iloc[0] / typical, rtol=1e-5)
     actions = [b for b in rrd[f"{base}/actions"] if "Scalars:scalars" in b.schema.names][0]
     assert actions.num_rows == 12 and len(actions.column("Scalars:scalars").to_pylist()[0]) == 7
     pts = rrd["/map/demos"][0].column("Points2D:positions").to_pylist()[0]
@@ -404,7 +406,10 @@ def test_fail_on_trips_and_fpr_sets_the_flags(tiny_dataset, tiny_model, tmp_path
         assert res.exit_code == 0, res.output
         summary = json.loads((out / "summary.json").read_text())
         counts[fpr] = summary["flagged"]
-        assert summary["flag"]["fpr"] == float(fpr) and summary["flag"]["expected_false_flags"] >= 0
+        table = pd.read_parquet(out / "scores.parquet")
+        assert summary["flag"]["fpr"] == float(fpr)
+        # fpr times the reference's size: what the flags cost were the unflagged demos clean
+        assert summary["flag"]["expected_false_flags"] == pytest.approx(float(fpr) * table["reference"].sum(), abs=0.01)
         drop = json.loads(out.with_suffix(".drop").read_text())
         keep = json.loads(out.with_suffix(".keep").read_text())
         assert len(drop) == summary["flagged"] and sorted(drop + keep) == list(range(12)) and drop == sorted(drop)

@@ -174,24 +174,13 @@ def standardise(x: np.ndarray, stats: dict[str, float]) -> np.ndarray:
     return (x - stats["median"]) / stats["scale"]
 
 
-# How a score is put in robust standard deviations before the ranking compares it with others: against all the
-# demos scored ("all"), or within its task ("task": each demo's distance from its task's median, over the MAD of
-# those distances across all demos), so that a task whose demos all score high -- a harder task, one the model
-# knows less -- does not fill the top ranks, while a task of a dozen demos does not need a scale of its own.
-# Chosen on two development sets (Meta-World mw-dev, 10 tasks x ~24 demos, a your-data model; push-v1-dev +
-# probes, the shipped model; ``benchmarks/suspicion_choices.py``), mean AUROC of the ranking over their 13 kinds:
-# all 0.917; each task's own median and MAD 0.947; "task" 0.958 (with the motion check and the action error on a
-# log scale: mw-dev 0.949, push-v1-dev 0.961).  A trimmed novelty density was measured in the ranking too and left
-# out: on mw-dev it flagged 6-13% of clean demos at the threshold below.  (mw-dev was made by a Meta-World
-# generator that rendered about a third of its clean demos from a broken GL state; ``modelfree.view`` was chosen
-# on its regenerated successor, mw2-dev.)
-CALIBRATION = "task"
-CALIBRATIONS = ("all", "task")
-
-
-def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, how: str = CALIBRATION, min_scale: float = 0.0,
+# Scores are put in robust standard deviations within their task (a distance from the task's median over the MAD
+# of those distances across all demos), so that a harder task's demos do not fill the top ranks and a task of a
+# dozen demos needs no scale of its own; the alternatives measured: docs/decisions.md ("Calibration").
+def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, min_scale: float = 0.0,
                core: np.ndarray | None = None) -> np.ndarray:
-    """``x`` in robust standard deviations (median, 1.4826 x MAD): of all demos, or within each demo's task.
+    """``x`` in robust standard deviations (median, 1.4826 x MAD) within each demo's task (of all demos without
+    ``tasks`` or with one task).
 
     ``min_scale``: the least spread a standard deviation stands for, in ``x``'s units -- for a measurement that
     scripted or very regular demos repeat almost exactly, where a MAD near zero would call any small difference
@@ -200,11 +189,9 @@ def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, how: str = CALIBR
     task's bad demos move neither the centre its clean demos are judged from nor the unit."""
     x = np.asarray(x, np.float64)
     core = np.ones(len(x), bool) if core is None else np.asarray(core, bool)
-    if how == "all" or tasks is None or len(np.unique(tasks)) < 2:
+    if tasks is None or len(np.unique(tasks)) < 2:
         stats = robust_stats(x[core] if core.any() else x)
         return standardise(x, {**stats, "scale": max(stats["scale"], min_scale)})
-    if how not in CALIBRATIONS:
-        raise ValueError(f"calibration {how!r}; one of {', '.join(CALIBRATIONS)}")
     finite = np.where(np.isfinite(x), x, np.nan)
     tasks = np.asarray(tasks)
     every = pd.Series(finite).groupby(tasks).transform("median").to_numpy()

@@ -1,0 +1,44 @@
+"""The parts of benchmarks/foreign's generators that run without LeRobot's environment: the plan of clean and
+planted episodes, the occluding card, the options (the simulators and LeRobot's writer run in LeRobot's own
+virtual environment, not here)."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "foreign"))
+import record  # noqa: E402
+
+
+def test_the_plan_holds_every_task_and_kind_in_a_seeded_order():
+    jobs = record.plan(["a", "b", "c"], demos=4, plant=2, seed=3, kinds=record.KINDS)
+    assert [j[0] for j in jobs] == list(range(12 + 2 * len(record.KINDS)))
+    kinds = [j[2] for j in jobs]
+    assert kinds.count("clean") == 12 and all(kinds.count(k) == 2 for k in record.KINDS)
+    assert sum(j[1] == "a" and j[2] == "clean" for j in jobs) == 4
+    assert all(j[3] != j[1] and j[3] in "abc" for j in jobs)  # the other task (wrong-task) is another task
+    assert jobs == record.plan(["a", "b", "c"], 4, 2, 3, record.KINDS)
+    assert jobs != record.plan(["a", "b", "c"], 4, 2, 4, record.KINDS)
+
+
+def test_the_card_covers_35_to_55_percent_of_every_frame_alike():
+    frames = np.zeros((5, 48, 64, 3), np.uint8)
+    for seed in range(20):
+        out = record.cover(frames, np.random.default_rng(seed))
+        covered = (out != 0).any(axis=3)
+        assert (covered == covered[0]).all() and 0.3 < covered[0].mean() < 0.56
+    assert (frames == 0).all()  # the input is left alone
+
+
+def test_options_refuse_an_existing_folder_and_an_unknown_kind(tmp_path):
+    ap = record.parser("doc", demos=5, size="96")
+    (tmp_path / "x").mkdir()
+    with pytest.raises(SystemExit, match="exists"):
+        record.options(ap.parse_args([str(tmp_path / "x")]))
+    with pytest.raises(SystemExit, match="unknown kind bored"):
+        record.options(ap.parse_args([str(tmp_path / "y"), "--kinds", "idle,bored"]))
+    kinds, size = record.options(ap.parse_args([str(tmp_path / "x"), "--force", "--size", "480x640",
+                                                "--kinds", "idle,jerky"]))
+    assert kinds == ("idle", "jerky") and size == (480, 640) and not (tmp_path / "x").exists()
