@@ -13,8 +13,8 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
   ``*quat*``, or of unit norm throughout) as its outer product ``q q^T``, the same for ``q`` and ``-q``; an angle
   named so (``yaw``, ``angle``, ...) as its cosine and sine, so that +pi and -pi are one angle.
 - **Units from how the feature moves**: a value's robust SD is at least ``END_FLOOR`` of its spread at the end
-  over all the demos and ``MOVE_FLOOR`` of how far the demos that move it move it within an episode; a rotation's
-  at least ``ROTATION_FLOOR``.  A feature no demo moves (a fixed part, whose values differ by float noise) says nothing.
+  over all the demos and ``MOVE_FLOOR`` of how far the task that works it most moves it within a typical episode
+  (the median over its demos that move it); a rotation's at least ``ROTATION_FLOOR``.  A feature no demo moves (a fixed part, whose values differ by float noise) says nothing.
 
 NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.  A consumer of the audit's decoding pass like the other
 model-free checks (``democheck.audit.modelfree``); ``benchmarks/shapes.py`` measures what the shapes cost.
@@ -170,10 +170,10 @@ def _sd(v: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(v - np.median(v))))
 
 
-def unit(feature: Feature, value: np.ndarray, moves: np.ndarray) -> float | None:
+def unit(feature: Feature, value: np.ndarray, moves: np.ndarray, tasks: np.ndarray) -> float | None:
     """The least robust SD of a feature (see the module docstring), None when no demo moves it (it says
     nothing).  ``value`` [N, m] its represented values at the end, ``moves`` [N, 2, d] each demo's range and
-    jitter per record dimension."""
+    jitter per record dimension, ``tasks`` [N] what each demo is compared with."""
     rng, jitter = moves[:, 0, feature.columns], moves[:, 1, feature.columns]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -185,7 +185,10 @@ def unit(feature: Feature, value: np.ndarray, moves: np.ndarray) -> float | None
         return ROTATION_FLOOR
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        moved = float(np.nanmedian(rng[moving]))
+        # How far the task that works this part moves it in a typical demo: not the median over every demo that
+        # stirs it, which a door every task jostles by a milliradian would make a milliradian.
+        moved = max(float(np.nanmedian(np.where(moving, rng, np.nan)[tasks == t])) for t in np.unique(tasks)
+                    if moving[tasks == t].any())
         spread = float(1.4826 * np.nanmedian(np.abs(value - np.nanmedian(value, 0))))
     return max(MOVE_FLOOR * moved, END_FLOOR * spread)
 
@@ -205,7 +208,7 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[st
         z_cols, what, values, refs = [], [], [], []
         for f in features_of(names, first, last, source):
             end, start = represent(f, last), represent(f, first)
-            u = unit(f, end, moves)
+            u = unit(f, end, moves, tasks[rows])
             if u is None:
                 continue
             for part, x, sided in (("at the end", end, True), ("change", end - start, False)):
