@@ -15,6 +15,7 @@ import json
 import shlex
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Callable
 
@@ -29,6 +30,7 @@ from democheck.audit.run import audit, finish_summary, for_model, suspects, writ
 from democheck.audit.ocsvm import reference
 from democheck.audit.flagging import DEFAULT_FPR, flagged_regardless, flags
 from democheck.data import open_dataset
+from democheck.data.demo import DemoSet
 from democheck.data.cache import build_cache, dataset_fingerprint
 from democheck.data.subset import write_subset
 from democheck.errors import DatasetError, DemocheckError
@@ -146,6 +148,20 @@ def object_pair_groups(ds) -> dict[str, str]:
     return out
 
 
+class Suspects(Sequence):
+    """The top demos, each read from the dataset when the report reaches it: twenty hub-sized demos held at once
+    are gigabytes of frames."""
+
+    def __init__(self, ds: DemoSet, episodes: list[int]):
+        self.ds, self.episodes = ds, episodes
+
+    def __len__(self) -> int:
+        return len(self.episodes)
+
+    def __getitem__(self, i):
+        return self.ds[int(self.episodes[i])]
+
+
 def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None = None, top: int = 20,
                   camera: str | None = None, task: str | None = None, device: str = "auto", force: bool = False,
                   on_progress: Callable[[str, int, int], None] | None = None, actions: bool = True,
@@ -195,7 +211,7 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
         xy, rows = embed_2d(table, top)
         t["tsne_s"] = time.perf_counter() - t1
         t2 = time.perf_counter()
-        demos = [ds[int(e)] for e in table.head(top)["episode_index"]]
+        demos = Suspects(ds, table.head(top)["episode_index"].tolist())
         write_report_rrd(tmp / "report.rrd", table, demos, xy, rows, ds.fps, f"democheck audit of {ds.root}",
                          names={"state": ds.names("state"), "action": ds.names("action")}, fpr=fpr,
                          warnings=summary["warnings"])

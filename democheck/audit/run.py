@@ -30,7 +30,7 @@ from democheck.data.demo import DemoSet
 from democheck.errors import DatasetError, DemocheckError
 from democheck.fsutil import to_json
 from democheck.petnet.checkpoint import Checkpoint
-from democheck.petnet.encode import encode_demos
+from democheck.petnet.encode import encode, encode_demos, reads_end_states
 from democheck.petnet.posterior import TaskPosterior
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
@@ -72,6 +72,17 @@ def cue_posteriors(ds: DemoSet, model, device, batch: int | None = None,
     return TaskPosterior.concat(parts)
 
 
+def still_cues(ds: DemoSet, model, device) -> tuple[np.ndarray, np.ndarray]:
+    """The task uncertainty of ``trust.STILL_SAMPLE`` evenly spread demos' still cues (the first frame twice: a
+    demo where nothing happens) and of their real cues, for the test task uncertainty must pass to rank."""
+    eps = ds.episode_indices
+    pick = [eps[i] for i in np.unique(np.linspace(0, len(eps) - 1, min(len(eps), trust.STILL_SAMPLE)).astype(int))]
+    cues, reads = ds.cue_frames_many(pick), reads_end_states(model)
+    starts = ds.end_states(pick, first=True) if reads else None  # nothing happened: it ends where it started
+    still = encode(model, np.repeat(cues[:, :1], 2, axis=1), device, end_states=starts).task_uncertainty()
+    return still, encode(model, cues, device, end_states=ds.end_states(pick) if reads else None).task_uncertainty()
+
+
 def decoding_pass(ds: DemoSet, consumers: list, on_progress: Callable[[int, int], None] | None = None) -> None:
     """Decode every demo of ``ds`` once, in ``ds.episode_indices`` order, and feed it to each consumer."""
     n = len(ds)
@@ -85,7 +96,8 @@ def decoding_pass(ds: DemoSet, consumers: list, on_progress: Callable[[int, int]
 def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[Scorer], device: Any,
                     tecnet: Checkpoint | None = None, episodes: pd.DataFrame | None = None, seed: int = 0,
                     on_progress: Progress | None = None, timings: dict[str, float] | None = None,
-                    workers: int = 1, engine: str = "local", ray_address: str | None = None) -> Evidence:
+                    workers: int = 1, engine: str = "local", ray_address: str | None = None,
+                    still: tuple[np.ndarray, np.ndarray] | None = None) -> Evidence:
     """Score the demos of ``sets``, pooled in order, with ``scorers``: the cue pass (PETNet, when ``ckpt`` is
     given, and TecNets when given), one decoding pass per dataset for the scorers that need every frame, then
     each scorer.
@@ -126,7 +138,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
         if episodes is None:
             episodes = pd.concat([ds.episodes.reset_index() for ds in sets], ignore_index=True)
         ev = Evidence(episodes=episodes, posterior=post, model=ckpt, embedding=embedding, seed=seed,
-                      frames=all(ds.has_camera for ds in sets))
+                      frames=all(ds.has_camera for ds in sets), still=still)
         decoding = {}
         for s in scorers:  # scorers that share a behaviour key share its consumer
             if s.can_decode(ev):
@@ -231,8 +243,9 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         ds.strict()
     t = dict(timings or {})
     chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
+    still = still_cues(ds, ckpt.model, device) if ckpt is not None and ds.has_camera else None
     ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers,
-                         engine=engine, ray_address=ray_address)
+                         engine=engine, ray_address=ray_address, still=still)
     broken = ranking.broken_rows(ev)
     if len(broken) and broken.all():  # nothing left to compare a demo with: the dataset, not a demo, is what is broken
         raise DatasetError(f"{ds.root}: every episode is broken, e.g. episode "

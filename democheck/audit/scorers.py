@@ -81,6 +81,7 @@ class Evidence:
     reasons: dict[str, list[str]] = field(default_factory=dict)
     seed: int = 0
     frames: bool = True  # the demos have camera frames (False: a dataset that records no camera, ``NO_CAMERA``)
+    still: tuple[np.ndarray, np.ndarray] | None = None  # task uncertainty of still cues and real ones (trust)
     _z: np.ndarray | None = field(default=None, repr=False)
     _combinations: dict[tuple, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
@@ -102,8 +103,9 @@ class Evidence:
 
     @property
     def untrusted(self) -> dict[str, str]:
-        """The model's scores that stay out of the ranking, and why (``trust.untrusted``)."""
-        return trust.untrusted(self.model.meta) if self.model is not None else {}
+        """The model's scores that stay out of the ranking, and why (``trust.untrusted``, on the still cues'
+        test where the audit ran it)."""
+        return trust.untrusted(self.model.meta, self.still) if self.model is not None else {}
 
     @property
     def tasks(self) -> np.ndarray:

@@ -278,15 +278,17 @@ class DemoSet:
             return self._sized(many([int(e) for e in episode_indices]))
         return self._sized(np.stack([self._src.cue_frames(int(e)) for e in episode_indices]))
 
-    def end_states(self, episode_indices: list[int]) -> np.ndarray:
-        """The state at each episode's last step, float32 [N, S], without decoding frames where the format allows
-        (a reader's ``end_state``; otherwise the whole demo is read)."""
-        one = getattr(self._src, "end_state", None) or (lambda e: self._src.load(e).state[-1])
+    def end_states(self, episode_indices: list[int], first: bool = False) -> np.ndarray:
+        """The state at each episode's last step (``first``: its first), float32 [N, S], without decoding frames
+        where the format allows (a reader's ``end_state``; otherwise the whole demo is read)."""
+        at = 0 if first else -1
+        reader = getattr(self._src, "end_state", None)
+        one = (lambda e: reader(e, first=first)) if reader else (lambda e: self._src.load(e).state[at])
         out = np.zeros((len(episode_indices), self.state_dim), np.float32)
         for i, e in enumerate(episode_indices):
             out[i] = one(int(e))
             if not np.isfinite(out[i]).all():  # read as the whole demo is: repaired, or refused when strict
-                out[i] = self._src.load(int(e)).state[-1]
+                out[i] = self._src.load(int(e)).state[at]
         return out
 
     def by_task(self) -> dict[str, list[int]]:

@@ -291,11 +291,12 @@ class LeRobotBase:
     def _data_path(self, episode_index: int) -> Path:
         raise NotImplementedError
 
-    def end_state(self, episode_index: int) -> np.ndarray:
-        """The state at an episode's last step, float32 [S], from its data file without decoding any frame."""
+    def end_state(self, episode_index: int, first: bool = False) -> np.ndarray:
+        """The state at an episode's last step (``first``: its first), float32 [S], from its data file without
+        decoding any frame."""
         path = self._data_path(episode_index)
-        entry, _, e = self._rows(path, episode_index)
-        return entry["state"][e - 1]
+        entry, s, e = self._rows(path, episode_index)
+        return entry["state"][s if first else e - 1]
 
     def _decode_images(self, entry: dict[str, Any], s: int, e: int, path: Path) -> np.ndarray:
         from io import BytesIO

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import re
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -176,19 +177,19 @@ def _log_video(rec: rr.RecordingStream, path: str, frames: np.ndarray, fps: floa
             stamps = asset.read_frame_timestamps_nanos()
             rec.send_columns(path, indexes=[rr.TimeColumn("frame", sequence=t[:len(stamps)])],
                              columns=rr.VideoFrameReference.columns_nanos(stamps))
-        else:  # non-square frames: plain images
+        else:  # non-square frames: JPEG images (a hub camera's raw frames would be a gigabyte a suspect)
             for i, img in enumerate(frames):
                 rec.set_time("frame", sequence=i)
-                rec.log(path, rr.Image(img))
+                rec.log(path, rr.Image(img).compress(jpeg_quality=90))
 
 
-def write_report_rrd(path: Path, table: pd.DataFrame, suspects: list[Demo], embedding: np.ndarray,
+def write_report_rrd(path: Path, table: pd.DataFrame, suspects: Sequence[Demo], embedding: np.ndarray,
                      embedded_rows: np.ndarray, fps: float, title: str, names: dict[str, list[str]] | None = None,
                      fpr: float | None = None, warnings: list[str] | None = None) -> None:
     """One recording with a reviewer's blueprint: the ranked list beside each suspect's evidence, the map and the
     score histograms.
 
-    ``suspects`` are the top demos in rank order; ``embedding`` [M, 2] are t-SNE positions of ``table`` rows
+    ``suspects`` are the top demos in rank order (read one at a time); ``embedding`` [M, 2] are t-SNE positions of ``table`` rows
     ``embedded_rows``; ``names``: the dataset's names of its ``state`` and ``action`` dimensions; ``fpr``: the
     flag's level (marked on the suspicion histogram's title); ``warnings``: the audit's, under the ranked list
     (an unreadable file among them).
