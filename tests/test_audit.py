@@ -242,7 +242,7 @@ def test_robomimic_reader_and_audit(tiny_model, tmp_path):
     assert demo.frames.shape == (8, 16, 16, 3) and demo.env_state.shape == (8, 10)  # obs/object, not the state
     np.testing.assert_array_equal(ds.cue_frames(2), demo.frames[[0, -1]])
     np.testing.assert_array_equal(ds.end_states([2, 5]), np.stack([demo.state[-1], ds[5].state[-1]]))
-    np.testing.assert_array_equal(ds.end_states([2, 5], first=True), np.stack([demo.state[0], ds[5].state[0]]))
+    np.testing.assert_array_equal(ds.end_states([2, 5], at=0.0), np.stack([demo.state[0], ds[5].state[0]]))
     import shutil
 
     import h5py
@@ -506,8 +506,9 @@ def test_view_binds_the_viewer_to_this_machine_and_keeps_its_log_out_of_the_term
 
 def test_a_model_score_that_failed_its_test_is_reported_not_ranked(tiny_dataset, tiny_model, tmp_path):
     """A controller that explains held-out actions no better than their average: its action error stays in the
-    table, leaves the ranking, and the audit says why.  Task uncertainty ranks only where a cue in which nothing
-    happens reads more uncertain than 9 in 10 real cues of the audited demos (else the model's training means)."""
+    table, leaves the ranking, and the audit says why.  Task uncertainty ranks only where the model is at least
+    twice as unsure of the demos whose arm hardly moves as of the others (else of cues cut short, else by its
+    training record)."""
     import shutil
 
     from democheck.audit.trust import untrusted
@@ -515,11 +516,16 @@ def test_a_model_score_that_failed_its_test_is_reported_not_ranked(tiny_dataset,
 
     assert untrusted(load_checkpoint().meta) == {}  # the shipped model passes both
     meta = {"metrics": {"final": {"val_mse": 0.3}, "task_sigma": {"val demos": 1.0, "still": 1.5}}}
-    real = np.linspace(1.0, 2.0, 50)
+    real = np.linspace(1.0, 2.0, 51)  # median 1.5
     assert "task_uncertainty" in untrusted(meta)  # by the means recorded at training: 1.5 < 2 x 1.0
-    assert untrusted(meta, (np.full(8, 2.5), real)) == {}  # above every real cue: it ranks
-    why = untrusted(meta, (np.full(8, 1.5), real))["task_uncertainty"]
-    assert "median task uncertainty 1.5, against 1.9 or less for 90%" in why and "reported, not ranked" in why
+    assert untrusted(meta, still=(np.full(8, 3.5), real)) == {}  # cut cues over twice as uncertain: it ranks
+    why = untrusted(meta, still=(np.full(8, 2.5), real))["task_uncertainty"]
+    assert "demos cut 10% of the way in: median task uncertainty 2.5, the same demos whole 1.5" in why
+    assert "reported, not ranked" in why
+    # Where the data holds demos whose arm hardly moves, they decide, whatever the cut cues say.
+    assert "task_uncertainty" in untrusted(meta, (np.full(8, 3.5), real), idle=(np.full(3, 2.0), real))
+    assert untrusted(meta, (np.full(8, 2.5), real), idle=(np.full(3, 3.1), real)) == {}
+    assert "task_uncertainty" in untrusted(meta, (np.full(8, 2.5), real), idle=(np.full(1, 9.0), real))
     src, _ = tiny_dataset
     model = tmp_path / "weak"
     shutil.copytree(tiny_model, model)

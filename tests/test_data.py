@@ -61,7 +61,7 @@ def test_round_trip_matches_resimulation(tiny_dataset):
         np.testing.assert_array_equal(cue[1], demo.frames[-1])
     eps = ds.episode_indices
     np.testing.assert_array_equal(ds.end_states(eps), np.stack([ds[e].state[-1] for e in eps]))
-    np.testing.assert_array_equal(ds.end_states(eps, first=True), np.stack([ds[e].state[0] for e in eps]))
+    np.testing.assert_array_equal(ds.end_states(eps, at=0.0), np.stack([ds[e].state[0] for e in eps]))
 
 
 def test_video_quality_at_64(tmp_path):

@@ -73,14 +73,16 @@ def cue_posteriors(ds: DemoSet, model, device, batch: int | None = None,
 
 
 def still_cues(ds: DemoSet, model, device) -> tuple[np.ndarray, np.ndarray]:
-    """The task uncertainty of ``trust.STILL_SAMPLE`` evenly spread demos' still cues (the first frame twice: a
-    demo where nothing happens) and of their real cues, for the test task uncertainty must pass to rank."""
+    """The task uncertainty of ``trust.STILL_SAMPLE`` evenly spread demos' cues cut short (their first frame and
+    the one ``trust.STILL_AT`` of the way in, with the state there: a demo that stopped almost at once) and of
+    their real cues, for the test task uncertainty must pass to rank."""
     eps = ds.episode_indices
     pick = [eps[i] for i in np.unique(np.linspace(0, len(eps) - 1, min(len(eps), trust.STILL_SAMPLE)).astype(int))]
-    cues, reads = ds.cue_frames_many(pick), reads_end_states(model)
-    starts = ds.end_states(pick, first=True) if reads else None  # nothing happened: it ends where it started
-    still = encode(model, np.repeat(cues[:, :1], 2, axis=1), device, end_states=starts).task_uncertainty()
-    return still, encode(model, cues, device, end_states=ds.end_states(pick) if reads else None).task_uncertainty()
+    reads = reads_end_states(model)
+    short = encode(model, ds.cue_frames_many(pick, at=trust.STILL_AT), device,
+                   end_states=ds.end_states(pick, at=trust.STILL_AT) if reads else None).task_uncertainty()
+    real = encode(model, ds.cue_frames_many(pick), device, end_states=ds.end_states(pick) if reads else None)
+    return short, real.task_uncertainty()
 
 
 def decoding_pass(ds: DemoSet, consumers: list, on_progress: Callable[[int, int], None] | None = None) -> None:
@@ -297,7 +299,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     if "label" in table:
         summary["labels"] = table["label"].value_counts().to_dict()
     summary["warnings"] = (unreadable_files(ev.episodes["episode_index"].to_numpy(), ev.reasons.get("broken"))
-                           + warnings(table, ckpt))
+                           + warnings(table, ckpt, ev.untrusted))
     return table, summary
 
 
@@ -368,9 +370,11 @@ def flag_summary(table: pd.DataFrame, fpr: float, untrusted=()) -> dict[str, Any
     return out
 
 
-def warnings(table: pd.DataFrame, ckpt: Checkpoint | None) -> list[str]:
+def warnings(table: pd.DataFrame, ckpt: Checkpoint | None, untrusted: dict[str, str] | None = None
+             ) -> list[str]:
     """What makes this audit's scores less trustworthy, in a sentence each: tasks too small to judge a demo by,
-    tasks the model never learnt, and images unlike any it was trained on."""
+    the model's scores left out of the ranking (``untrusted``, default: by its training record alone), tasks the
+    model never learnt, and images unlike any it was trained on."""
     out = []
     small, tasks = registry.small_tasks(table["task"]), table["task"].nunique()
     if len(small):
@@ -383,7 +387,8 @@ def warnings(table: pd.DataFrame, ckpt: Checkpoint | None) -> list[str]:
                    "suspects, and a demo of the wrong task cannot be told apart")
     if ckpt is None:
         return out
-    out += [why for name, why in trust.untrusted(ckpt.meta).items() if name in table]
+    left_out = trust.untrusted(ckpt.meta) if untrusted is None else untrusted
+    out += [why for name, why in left_out.items() if name in table]
     trained = (ckpt.meta.get("data", {}).get("task_split") or {}).get("trained")
     if trained is not None:
         new = sorted(set(table["task"]) - set(trained))

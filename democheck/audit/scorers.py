@@ -103,9 +103,16 @@ class Evidence:
 
     @property
     def untrusted(self) -> dict[str, str]:
-        """The model's scores that stay out of the ranking, and why (``trust.untrusted``, on the still cues'
-        test where the audit ran it)."""
-        return trust.untrusted(self.model.meta, self.still) if self.model is not None else {}
+        """The model's scores that stay out of the ranking, and why (``trust.untrusted``: on the demos whose arm
+        the motion check finds hardly moving, else on the cut cues where the audit encoded them)."""
+        if self.model is None:
+            return {}
+        idle = None
+        if self.posterior is not None and "motion" in self.behaviour:
+            still = np.asarray(self.behaviour["motion"])[:, 0] < modelfree.HARDLY_MOVES  # mean |action|
+            sigma = self.posterior.task_uncertainty()
+            idle = (sigma[still], sigma[~still])
+        return trust.untrusted(self.model.meta, self.still, idle)
 
     @property
     def tasks(self) -> np.ndarray:

@@ -1,6 +1,7 @@
-"""Whether a model's scores may vote in the ranking: each model score has a test the model passed or failed when
-it was trained, read from its checkpoint.  A score that failed stays in the table and the report, leaves the
-ranking, and the audit says why in a warning; the model-free checks still judge those demos."""
+"""Whether a model's scores may vote in the ranking: each model score has a test -- the controller's, from its
+training record; task uncertainty's, on the audited data where it can be -- and a score that failed stays in the
+table and the report, leaves the ranking, and the audit says why in a warning; the model-free checks still judge
+those demos."""
 
 from __future__ import annotations
 
@@ -13,19 +14,24 @@ import numpy as np
 # half of what the demos do -- then a demo it fails to explain says little, and one that does nothing looks well
 # explained.
 CONTROLLER_MAX_MSE = 0.5
-# A cue in which nothing happens (the first frame twice) must be more uncertain than this share of the audited
-# demos' real cues, at its median, for task uncertainty to vote: else a demo where the arm does nothing looks
-# like any other.  A model audited without that test (``untrusted`` given no ``still``) is judged by the means
-# its training recorded: the still cues' at least STILL_MIN_RATIO times the real ones'.
-STILL_QUANTILE = 0.9
+# Task uncertainty votes only where the model is clearly less sure of the task when (almost) nothing happens: the
+# median task uncertainty of such demos at least STILL_MIN_RATIO times the others' median.  Such demos are, in
+# order: those of the audited data whose arm the motion check finds hardly moving (at least IDLE_MIN_DEMOS of
+# them); else cues cut short -- a demo's first frame and the one STILL_AT of the way in, as if it had stopped
+# there (a recorded idle demo is not its first frame twice: an arm settles after reset); else, without a camera,
+# the still cues (the first frame twice) the model's training recorded, by their means.
 STILL_MIN_RATIO = 2.0
-STILL_SAMPLE = 64  # demos whose still cue the audit encodes for the test
+IDLE_MIN_DEMOS = 2
+STILL_AT = 0.1
+STILL_SAMPLE = 64  # demos whose cut cue the audit encodes for the test
 
 
-def untrusted(meta: dict[str, Any], still: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, str]:
+def untrusted(meta: dict[str, Any], still: tuple[np.ndarray, np.ndarray] | None = None,
+              idle: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, str]:
     """The model scores that failed their test, each with the sentence that says why (empty: none, or a model
-    trained before the tests were recorded).  ``still``: the task uncertainty of still cues and of the real cues
-    of the same audited demos, where the audit measured them (``run.still_cues``)."""
+    trained before the tests were recorded).  ``still``: the task uncertainty of cut cues and of the real cues
+    of the same audited demos, where the audit measured them (``run.still_cues``); ``idle``: the task uncertainty
+    of the demos whose arm the motion check finds hardly moving and of the others."""
     metrics = meta.get("metrics") or {}
     out = {}
     mse = (metrics.get("final") or {}).get("val_mse")
@@ -33,19 +39,23 @@ def untrusted(meta: dict[str, Any], still: tuple[np.ndarray, np.ndarray] | None 
         out["action_error"] = (f"the model's controller explains held-out demos' actions barely better than their "
                                f"average does (normalised error {mse:.2g}; the average scores 1): its action error "
                                "is reported, not ranked, since an arm that does nothing would look well explained")
-    if still is not None and len(still[0]):
-        level, real = float(np.median(still[0])), float(np.quantile(still[1], STILL_QUANTILE))
-        failed = not level > real
-        measured = (f"a cue of the first frame twice: median task uncertainty {level:.2g}, against {real:.2g} or "
-                    f"less for {STILL_QUANTILE:.0%} of the same demos' real cues")
+    if idle is not None and len(idle[0]) >= IDLE_MIN_DEMOS and len(idle[1]):
+        level, real = float(np.median(idle[0])), float(np.median(idle[1]))
+        measured = (f"the {len(idle[0])} demos whose arm hardly moves: median task uncertainty {level:.2g}, the "
+                    f"others' {real:.2g}")
+    elif still is not None and len(still[0]):
+        level, real = float(np.median(still[0])), float(np.median(still[1]))
+        measured = (f"demos cut {STILL_AT:.0%} of the way in: median task uncertainty {level:.2g}, the same demos "
+                    f"whole {real:.2g}")
     else:
         sigma = metrics.get("task_sigma") or {}
         real, level = sigma.get("val demos", sigma.get("train demos")), sigma.get("still")
-        failed = bool(real) and level is not None and level < STILL_MIN_RATIO * real
-        measured = failed and (f"at training, a cue of the first frame twice: mean task uncertainty {level:.2g}, "
-                               f"real demos {real:.2g}")
+        measured = (f"at training, a cue of the first frame twice: mean task uncertainty {level:.2g}, real demos "
+                    f"{real:.2g}") if real and level is not None else ""
+    failed = bool(measured) and not level >= STILL_MIN_RATIO * real
     if failed:
-        out["task_uncertainty"] = (f"the model is not less sure of the task when nothing happens ({measured}): its "
-                                   "task uncertainty is reported, not ranked; the motion checks find an arm that "
-                                   "does nothing")
+        out["task_uncertainty"] = (f"the model is not clearly less sure of the task when almost nothing happens "
+                                   f"({measured}; it should be at least {STILL_MIN_RATIO:g} times): its task "
+                                   "uncertainty is reported, not ranked; the motion checks find an arm that does "
+                                   "nothing")
     return out

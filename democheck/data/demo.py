@@ -271,24 +271,34 @@ class DemoSet:
         """First and last frame of one episode, uint8 [2, H, W, 3], without decoding the rest."""
         return self._sized(self._src.cue_frames(int(episode_index)))
 
-    def cue_frames_many(self, episode_indices: list[int]) -> np.ndarray:
-        """Cues of several episodes, uint8 [N, 2, H, W, 3]; opens each video file once where the format allows."""
+    def cue_frames_many(self, episode_indices: list[int], at: float = 1.0) -> np.ndarray:
+        """Cues of several episodes, uint8 [N, 2, H, W, 3]; opens each video file once where the format allows.
+        ``at`` < 1: the second frame is that share of the way from the first, not the last."""
         many = getattr(self._src, "cues", None)
         if many is not None:
-            return self._sized(many([int(e) for e in episode_indices]))
+            return self._sized(many([int(e) for e in episode_indices], at=at) if at < 1.0
+                               else many([int(e) for e in episode_indices]))
+        if at < 1.0:
+            return self._sized(np.stack([f[[0, int(round(at * (len(f) - 1)))]]
+                                         for f in (self._src.load(int(e)).frames for e in episode_indices)]))
         return self._sized(np.stack([self._src.cue_frames(int(e)) for e in episode_indices]))
 
-    def end_states(self, episode_indices: list[int], first: bool = False) -> np.ndarray:
-        """The state at each episode's last step (``first``: its first), float32 [N, S], without decoding frames
-        where the format allows (a reader's ``end_state``; otherwise the whole demo is read)."""
-        at = 0 if first else -1
+    def end_states(self, episode_indices: list[int], at: float = 1.0) -> np.ndarray:
+        """The state at each episode's last step (``at``: that share of the way from its first), float32 [N, S],
+        without decoding frames where the format allows (a reader's ``end_state``; otherwise the whole demo is
+        read)."""
         reader = getattr(self._src, "end_state", None)
-        one = (lambda e: reader(e, first=first)) if reader else (lambda e: self._src.load(e).state[at])
+
+        def whole(e: int) -> np.ndarray:
+            state = self._src.load(e).state
+            return state[int(round(at * (len(state) - 1)))]
+
+        one = (lambda e: reader(e, at=at)) if reader else whole
         out = np.zeros((len(episode_indices), self.state_dim), np.float32)
         for i, e in enumerate(episode_indices):
             out[i] = one(int(e))
             if not np.isfinite(out[i]).all():  # read as the whole demo is: repaired, or refused when strict
-                out[i] = self._src.load(int(e)).state[at]
+                out[i] = whole(int(e))
         return out
 
     def by_task(self) -> dict[str, list[int]]:

@@ -291,12 +291,12 @@ class LeRobotBase:
     def _data_path(self, episode_index: int) -> Path:
         raise NotImplementedError
 
-    def end_state(self, episode_index: int, first: bool = False) -> np.ndarray:
-        """The state at an episode's last step (``first``: its first), float32 [S], from its data file without
-        decoding any frame."""
+    def end_state(self, episode_index: int, at: float = 1.0) -> np.ndarray:
+        """The state at an episode's last step (``at``: that share of the way from its first), float32 [S], from
+        its data file without decoding any frame."""
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
-        return entry["state"][s if first else e - 1]
+        return entry["state"][s + int(round(at * (e - 1 - s)))]
 
     def _decode_images(self, entry: dict[str, Any], s: int, e: int, path: Path) -> np.ndarray:
         from io import BytesIO
@@ -409,23 +409,27 @@ class LeRobotV3(LeRobotBase):
             frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s)
         return self._make_demo(episode_index, frames, entry, s, e, unreadable)
 
-    def cues(self, episode_indices: list[int]) -> np.ndarray:
-        """First and last frames of many episodes, decoding each video file in one pass."""
+    def cues(self, episode_indices: list[int], at: float = 1.0) -> np.ndarray:
+        """First and last frames of many episodes (``at``: the second frame that share of the way from the first),
+        decoding each video file in one pass."""
         if self.camera_dtype != "video":  # images, or no camera
+            if at < 1.0:
+                frames = (self.load(e).frames for e in episode_indices)
+                return np.stack([f[[0, int(round(at * (len(f) - 1)))]] for f in frames])
             return np.stack([self.cue_frames(e) for e in episode_indices])
         h, w, c = self.image_shape
         out = np.empty((len(episode_indices), 2, h, w, c), np.uint8)
         by_file: dict[Path, list[tuple[int, int, int]]] = {}
         for i, e in enumerate(episode_indices):
             vpath, start, stop = self._video_span(e)
-            by_file.setdefault(vpath, []).append((i, start, stop - 1))
+            by_file.setdefault(vpath, []).append((i, start, start + int(round(at * (stop - 1 - start)))))
         for vpath, items in by_file.items():
             wanted = sorted({f for _, a, b in items for f in (a, b)})
             try:
                 frames = dict(zip(wanted, video.read_frames(vpath, wanted, self.fps)))
             except DatasetError:  # a file that cannot be read whole: each episode's own, black where it fails
-                for i, _, _ in items:
-                    out[i] = self.cue_frames(episode_indices[i])
+                for i, a, b in items:
+                    out[i] = self._readable(lambda: video.read_frames(vpath, [a, b], self.fps), 2)[0]
                 continue
             for i, a, b in items:
                 out[i, 0], out[i, 1] = frames[a], frames[b]

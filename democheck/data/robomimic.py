@@ -183,12 +183,12 @@ class Robomimic:
                     split=split if isinstance(split, str) else None, env_state=env_state,
                     damaged=[*unreadable, *bad_state.values(), *bad_actions.values()])
 
-    def end_state(self, episode_index: int, first: bool = False) -> np.ndarray:
-        """The state at an episode's last step (``first``: its first), float32 [S], reading one row of each state
-        key."""
+    def end_state(self, episode_index: int, at: float = 1.0) -> np.ndarray:
+        """The state at an episode's last step (``at``: that share of the way from its first), float32 [S],
+        reading one row of each state key."""
         with self._h5.File(self.root, "r") as f:
             obs = self._state_group(self._group(f, episode_index))
-            parts = [np.asarray(obs[k][0 if first else obs[k].shape[0] - 1], np.float32).reshape(-1)
+            parts = [np.asarray(obs[k][int(round(at * (obs[k].shape[0] - 1)))], np.float32).reshape(-1)
                      for k in self.state_keys]
         return np.concatenate(parts) if parts else np.zeros(0, np.float32)
 
