@@ -1,6 +1,8 @@
 """The model-free checks rank the defect each is for first, say where it is, and the combination's flags
 keep the false-positive rate they state."""
 
+import re
+
 import numpy as np
 import pytest
 import pandas as pd
@@ -131,7 +133,7 @@ def test_jerk_and_saturation_rank_first():
     for name, floor in (("jerk", modelfree.JERK_MIN_SCALE), ("frozen_state", sensors.FROZEN_STATE_MIN_SCALE)):
         assert SCORERS[name].in_suspicion and SCORERS[name].alone and SCORERS[name].ranking_min_scale == floor
     ev = _evidence(_planted("jerk")[0], ["jerk", "motion", "idle", "suspicion"])
-    assert np.argmax(ev.scores["suspicion"]) == 17 and "jerk: beyond every clean demo" in ev.reasons["suspicion"][17]
+    assert np.argmax(ev.scores["suspicion"]) == 17 and "(jerk, beyond every clean demo)" in ev.reasons["suspicion"][17]
     ev = _ranks_first("saturation")
     assert "dimension 0" in ev.reasons["saturation"][17]
 
@@ -347,7 +349,10 @@ def test_model_free_suspicion_without_a_model_ranks_the_still_arm_first():
     demos, bad = _planted("idle")
     ev = _evidence(demos, [n for n, s in SCORERS.items() if s.model_free and s.in_audit])
     assert int(np.argmax(ev.scores["suspicion"])) == bad
-    assert ev.reasons["suspicion"][bad].startswith(("idle:", "motion:", "coupling:"))
+    # What happened first, in the check's words; which check and how rare after.
+    assert ev.reasons["suspicion"][bad].startswith(("the arm stands still", "the arm hardly moves",
+                                                    "its actions go with its state less")), ev.reasons["suspicion"][bad]
+    assert re.search(r"\((idle|motion|coupling), beyond every clean demo\)", ev.reasons["suspicion"][bad])
 
 
 def test_a_normal_tail_keeps_the_rate_on_normal_scores_and_sees_how_far_out_a_demo_is():
@@ -577,7 +582,7 @@ def test_sensor_faults_planted_in_a_dataset_lerobot_wrote_are_found(tmp_path):
     assert labels[first] == "sensor-nan" and table.loc[first, "reason"].startswith("broken: NaN or infinite values")
     frozen = table.index[kind == "frozen-state"][0]
     assert table.loc[frozen, "frozen_state"] > table["frozen_state"][kind == "clean"].max()
-    assert "holds one value while the arm is driven" in table.loc[frozen, "reason"]
+    assert "holds one value while the arm is driven" in table.loc[frozen, "details"]
     assert table["is_anomaly"][np.isin(kind, ["frozen-state", "sensor-nan"])].all()
     dead = table.index[kind == "dead-dim"][0]
     assert not table.loc[dead, "is_anomaly"] and table.loc[dead, "frozen_state"] == 0
@@ -682,7 +687,8 @@ def test_colours_rank_the_demo_whose_object_is_missing_first_wherever_the_object
     ev = _evidence(demos, ["colours", "view"])
     z = ev.scores["colours"]
     assert z[17] > 5 and np.abs(np.delete(z, 17)).max() < 2, np.sort(z)[-3:]
-    assert ev.reasons["colours"][17].startswith("less of the colour #20e0e0 than its task's other demos: 0% of")
+    assert ev.reasons["colours"][17].startswith("the view's colours changed: less of #20e0e0 than its task's other "
+                                                "demos: 0% of")
     # The block moves from demo to demo, so where the picture differs says little: view does not see it.
     assert ev.scores["view"][17] < 3
 

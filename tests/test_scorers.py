@@ -5,9 +5,12 @@ with one idle, one random, one occluded and one wrong-object demo planted, and o
 most of the view) beside it; each scorer is judged, as bench judges it, on the clean demos plus its kind.
 """
 
+import re
+
 import numpy as np
 import pytest
 
+from democheck.audit import ranking
 from democheck.audit.run import gather_evidence
 from democheck.audit.scorers import NEEDS, SCORERS, Evidence, select
 from democheck.data import open_dataset
@@ -113,10 +116,14 @@ def test_suspicion_reason_names_the_score_that_ranks_each_demo(evidence):
     labels = evidence.episodes["label"].to_numpy()
     reasons = np.asarray(evidence.reasons["suspicion"], dtype=object)
     flailing = reasons[labels == "random"][0]
-    # The driver, how unusual, and where: the flailing behaviour, or the cue it left (an arm flung where no
-    # training cue has it, which the task uncertainty's novelty part sees).
-    assert flailing.split(":")[0] in ("action_error", "motion", "idle", "task_uncertainty")
-    assert "as unusual as 1 clean demo in" in flailing or "beyond every clean demo" in flailing
-    assert "hardly moves" in reasons[labels == "idle"][0] or "still" in reasons[labels == "idle"][0]
-    drivers = {part.split(":")[0] for r in reasons if r for part in r.split("; also ")[:1]}
+    # What happened, then the driver and how unusual: the flailing behaviour, or the cue it left (an arm flung where
+    # no training cue has it, which the task uncertainty's novelty part sees).
+    first = flailing.split("; also ")[0]
+    assert re.search(r"\((action_error|motion|idle|task_uncertainty), (as unusual as 1 clean demo in|beyond every "
+                     r"clean demo)", first), first
+    idle = reasons[labels == "idle"][0]
+    assert "the arm hardly moves" in idle or "the arm stands still" in idle, idle
+    drivers = set(ranking.drivers(evidence))
     assert drivers <= {n for n, s in SCORERS.items() if s.in_suspicion}
+    for r, d in zip(reasons, ranking.drivers(evidence)):  # each reason's first clause ends with its driver
+        assert not r or f"({d}, " in r.split("; also ")[0] or r.startswith(f"{d}: "), (d, r)

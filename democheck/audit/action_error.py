@@ -73,7 +73,7 @@ class ActionErrors:
 
 def _peak(per_t: np.ndarray, t: np.ndarray) -> str:
     """Where a demo's action error peaks: the sampled timesteps around its largest error that stay above half of
-    it, e.g. 'peaks at timesteps 55-70'."""
+    it, e.g. '... most at timesteps 55-70'."""
     i = int(np.argmax(per_t))
     high = per_t >= 0.5 * per_t[i]
     lo, hi = i, i
@@ -81,7 +81,8 @@ def _peak(per_t: np.ndarray, t: np.ndarray) -> str:
         lo -= 1
     while hi < len(per_t) - 1 and high[hi + 1]:
         hi += 1
-    return f"peaks at timestep {int(t[i])}" if lo == hi else f"peaks at timesteps {int(t[lo])}-{int(t[hi])}"
+    where = f"timestep {int(t[i])}" if lo == hi else f"timesteps {int(t[lo])}-{int(t[hi])}"
+    return f"the controller, told the task, does otherwise, most at {where}"
 
 
 def action_errors(demos, ckpt: Checkpoint, z: np.ndarray, device: Any, steps: int = ACTION_STEPS,

@@ -114,7 +114,8 @@ def colours(stats: ColourStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str
             reasons.append("coloured like its task's other demos")
             continue
         more = shares[i, j] > median[i, j]
-        reasons.append(f"{'more' if more else 'less'} of the colour {colour_hex(j)} than its task's other demos: "
+        reasons.append(f"the view's colours changed: {'more' if more else 'less'} of {colour_hex(j)} than its "
+                       "task's other demos: "
                        f"{_percent(shares[i, j])} of the view against their median {_percent(median[i, j])} "
                        f"({z[i, j]:.0f} robust SD)")
     return calibrated(rms, tasks, min_scale=COLOUR_MIN_SCALE), reasons

@@ -48,6 +48,7 @@ import warnings
 
 import cv2
 import numpy as np
+import pandas as pd
 
 from democheck.audit.scores import calibrated
 from democheck.data.demo import Demo
@@ -148,8 +149,8 @@ def idle(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
         still = (c / scale).mean(1) < STILL
         out[i] = float(still.mean())
         start, n = longest_run(still)
-        reasons.append(f"still at {100 * out[i]:.0f}% of steps; longest {steps_text(start, start + n, len(c) + 1)}"
-                       if n else "never still")
+        reasons.append(f"the arm stands still at {100 * out[i]:.0f}% of steps, longest "
+                       f"{steps_text(start, start + n, len(c) + 1)}" if n else "never still")
     return out, reasons
 
 
@@ -174,7 +175,7 @@ def jerk(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
             continue
         per_step = third.mean(1)
         out[i] = float(np.log(per_step.mean() + 1e-9))
-        reasons.append(f"largest at frame {int(np.argmax(per_step)) + 2}")
+        reasons.append(f"the actions shake, most at frame {int(np.argmax(per_step)) + 2}")
     return out, reasons
 
 
@@ -297,14 +298,24 @@ MOTION_FEATURES = ("mean |action|", "mean |change of action|")
 HARDLY_MOVES = 0.2  # under this share of its task's median motion, a reason says the arm hardly moves
 
 
+def _moves(ratio: float) -> str:
+    """What a demo's motion, as a multiple of its task's median, says of the arm."""
+    if ratio < HARDLY_MOVES:
+        return "the arm hardly moves"
+    return "the arm moves less than its task's demos" if ratio < 1 else "the actions move more than its task's demos"
+
+
 def motion(features: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """The larger robust |z| within its task of a demo's two ``MotionStats`` features on a log scale, and which."""
     logs = np.log(np.maximum(features, MOTION_FLOOR))
     z = np.column_stack([np.abs(calibrated(logs[:, i], tasks, min_scale=MOTION_MIN_SCALE))
                          for i in range(logs.shape[1])])
     pick = np.argmax(z, axis=1)
-    reasons = [f"{MOTION_FEATURES[j]} {features[i, j]:.2g} x its median"
-               + (" (the arm hardly moves)" if features[i, j] < HARDLY_MOVES else "") for i, j in enumerate(pick)]
+    # In words, against its own task's median (what the robust z compares it with).
+    ratio = features / np.maximum(pd.DataFrame(features).groupby(np.asarray(tasks)).transform("median").to_numpy(),
+                                  MOTION_FLOOR)
+    reasons = [f"{_moves(ratio[i, j])}: {MOTION_FEATURES[j]} {ratio[i, j]:.2g} x its task's median"
+               for i, j in enumerate(pick)]
     return z.max(axis=1), reasons
 
 
@@ -394,5 +405,6 @@ def view(thumbs: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
         where = [_PLACES[0][min(int(3 * rows.mean() / u.shape[0]), 2)],
                  _PLACES[1][min(int(3 * cols.mean() / u.shape[1]), 2)]]
         place = "the centre" if where == ["middle", "centre"] else f"the {' '.join(where)}"
-        reasons.append(f"{100 * f:.0f}% of the view unlike its task's other demos' (mostly {place})")
+        reasons.append(f"the view is covered or changed: {100 * f:.0f}% of it unlike its task's other demos' "
+                       f"(mostly {place})")
     return z, reasons

@@ -238,15 +238,20 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[st
     return out, reasons
 
 
+def _robust_sd_text(z: float) -> str:
+    """A distance in robust SD as a reader takes it: past 100 the number says no more than 'far'."""
+    return f"{z:.2g} robust SD" if z < 100 else "over 100 robust SD"
+
+
 def _reason(feature: Feature, part: str, value: float, ref: float, z: float) -> str:
     if feature.kind == "rotation":
         what = f"{feature.name} at the end" if part == "at the end" else f"how {feature.name} changed"
-        return f"left the world unlike its task's other demos: {what} differs from theirs ({z:.2g} robust SD)"
+        return f"left the world unlike its task's other demos: {what} differs from theirs ({_robust_sd_text(z)})"
     what = f"{feature.name} at the end" if part == "at the end" else f"the change of {feature.name}"
     if feature.kind == "angle":
         what += " (cosine and sine)"
     return (f"left the world unlike its task's other demos: {what} {value:.3g} where its task's demos reach "
-            f"{ref:.3g} ({z:.2g} robust SD)")
+            f"{ref:.3g} ({_robust_sd_text(z)})")
 
 
 def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor: float

@@ -102,18 +102,68 @@ def combination(ev: Evidence, model_free: bool = False) -> Scores:
     references = int(np.asarray(core, bool).sum())
     reasons = []
     for i, row in enumerate(np.nan_to_num(look_odds(names, log_p), nan=0.0)):  # no score: nothing to name
-        # The score that drove it most, and up to two more that added to it (often the one that says where).
-        order = [j for j in np.argsort(row, kind="stable")[:3] if j == np.argmin(row) or row[j] < np.log(REASON_P)]
+        order = clauses(names, row, references)
         parts = []
-        for j in order:
+        for j in order:  # what the check saw in its own words first, then which check and how rare
             own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
-            parts.append(f"{names[j]}: {_odds(float(row[j]), references)}" + (f"; {own}" if own else ""))
+            odds = _odds(float(row[j]), references)
+            parts.append(f"{own} ({names[j]}, {odds})" if own else f"{names[j]}: {odds}")
         reasons.append("; also ".join(parts))
     broken = broken_rows(ev)
     if broken.any():  # a broken recording is suspect whatever its other scores (``modelfree.broken``)
         value = np.where(broken, np.inf, value)
         reasons = [f"broken: {ev.reasons['broken'][i]}" if broken[i] else r for i, r in enumerate(reasons)]
     return value, reasons
+
+
+# The checks whose words say what the demo did, in the order a reason prefers them: the arm, then the world it left,
+# then what the camera saw.  The recording faults come after them, then the coupling (a frozen sensor and an
+# operator who let go both loosen it), the model's readings last.
+WHAT_HAPPENED = ("idle", "motion", "jerk", "outcome", "view", "colours")
+
+
+def clauses(names: list[str], row: np.ndarray, references: int) -> list[int]:
+    """The looks a demo's reason names (``row``: their log tail probabilities), in the order it names them: up to
+    three, the smallest probability and those under ``REASON_P``.  First, of those beyond every clean demo (or the
+    smallest alone), what the demo did (``WHAT_HAPPENED``) before how it was recorded before the model's reading of
+    it -- a reviewer acts on the behaviour; then by probability."""
+    order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(REASON_P)]
+
+    def kind(j: int) -> int:
+        if names[j] in WHAT_HAPPENED:
+            return WHAT_HAPPENED.index(names[j])
+        s = registry.SCORERS[names[j]]
+        return len(WHAT_HAPPENED) + (0 if s.alone else 1 if s.model_free else 2)
+
+    beyond = [j for j in order if np.exp(row[j]) * (references + 1) < 1] or order[:1]
+    lead = min(beyond, key=lambda j: (kind(j), row[j]))
+    return [lead, *[j for j in order if j != lead]][:3]
+
+
+def drivers(ev: Evidence, model_free: bool = False) -> list[str]:
+    """The check each demo's reason names first (``clauses``; ``broken`` for a broken recording)."""
+    names, log_p, core = ev.combination(model_free)
+    if not names:
+        return [""] * len(ev.episodes)
+    rows = np.nan_to_num(look_odds(names, log_p), nan=0.0)
+    references = int(np.asarray(core, bool).sum())
+    broken = broken_rows(ev)
+    return ["broken" if broken[i] else names[clauses(names, r, references)[0]] for i, r in enumerate(rows)]
+
+
+REASON_CHARS = 160  # a reason keeps the driving check's clause and adds the others' while it stays this short
+
+
+def brief(reason: str) -> str:
+    """A reason as the table's ``reason`` holds it: the driving check's clause whole, then the others' while the
+    whole stays within ``REASON_CHARS`` (all of them are in ``details``)."""
+    parts = str(reason).split("; also ")
+    out = parts[0]
+    for part in parts[1:]:
+        if len(out) + len("; also ") + len(part) > REASON_CHARS:
+            break
+        out += "; also " + part
+    return out
 
 
 def look_odds(names: list[str], log_p: np.ndarray) -> np.ndarray:

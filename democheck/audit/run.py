@@ -195,12 +195,15 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
     # The reference the flags are calibrated on: the robust core the ranking's tails were fitted on.
     table["reference"] = ev.combination()[2] if "suspicion" in ev.scores else np.zeros(len(table), bool)
     table["p_reference"] = conformal_p(suspicion, table["reference"].to_numpy())
-    table["reason"] = ev.reasons.get("suspicion", [""] * len(table))
+    table["details"] = ev.reasons.get("suspicion", [""] * len(table))
+    table["driven_by"] = ranking.drivers(ev) if "suspicion" in ev.scores else [""] * len(table)
     copies = exact_copies(table)
     table["is_anomaly"] = flags(table["p_reference"].to_numpy(), fpr, flagged_regardless(table))
     if copies is not None and copies.any():
         dup = ev.reasons["duplicate"]
-        table["reason"] = [dup[i] if copies[i] else r for i, r in enumerate(table["reason"])]
+        table["details"] = [dup[i] if copies[i] else r for i, r in enumerate(table["details"])]
+        table["driven_by"] = ["duplicate" if copies[i] else d for i, d in enumerate(table["driven_by"])]
+    table["reason"] = [ranking.brief(r) for r in table["details"]]
     if ev.posterior is not None:
         ref = (ev.model.meta.get("reference") or {}).get("ocsvm") if ev.model is not None else None
         sigma = ev.posterior.sigma
@@ -273,8 +276,10 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         "flag": flag_summary(table, fpr, ev.untrusted),
         "scores": {n: registry.SCORERS[n].description for n in shown} | {
             "p_value": "the combined tail probability of the ranking's scores (suspicion = -log10 p_value)",
-            "reason": "what put the demo where it ranks: the score with the smallest tail probability, and where "
-                      "the demo is worst",
+            "reason": "what put the demo where it ranks, in the words of the check with the smallest tail "
+                      "probability first (the check and how rare after), then others while it stays short",
+            "details": "the reason whole: up to three checks' words, each with how rare",
+            "driven_by": "the check the reason names first (broken, duplicate: flagged regardless)",
             "reference": "in the robust core the ranking's tails were fitted on: the demos believed clean, which "
                          "the flags are calibrated on",
             "p_reference": "the share of the reference demos at least as suspect (conformal; beyond the most "
@@ -284,7 +289,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
             "score": "the old name of task_uncertainty, kept for one release"},
         "top_suspects": table.head(top)[["rank", "episode_index", "task",
                                          *[n for n in shown if n != "novelty"], "p_value",
-                                         "is_anomaly", "reason"]].to_dict(orient="records"),
+                                         "is_anomaly", "driven_by", "reason"]].to_dict(orient="records"),
         "timing": t,
     }
     if ckpt is not None:

@@ -81,7 +81,7 @@ def print_audit(summary: dict, out: Path) -> None:
                          overflow="ellipsis", max_width=24 if col == "task" else None,
                          min_width=None if col == "task" else max(len(col), 12 if col == "driven by" else 0))
     for r in summary["top_suspects"]:
-        driver = (r.get("reason") or "").split(":", 1)[0]
+        driver = r.get("driven_by") or ""
         table.add_row(str(r["rank"]), str(r["episode_index"]), r["task"],
                       short(r["suspicion"]) if r.get("suspicion") is not None
                       else "inf" if r.get("p_value") == 0 else "n/a",  # a broken recording: suspect regardless

@@ -128,7 +128,7 @@ def suspects_markdown(table: pd.DataFrame, top: int, title: str, fpr: float | No
 def _suspect_markdown(row: dict, cols: list[str]) -> str:
     head = f"## #{row['rank']}: episode {row['episode_index']} -- {'FLAGGED' if row['is_anomaly'] else 'not flagged'}"
     scores = ", ".join(f"{c.replace('_', ' ')} {_cell(row[c])}" for c in ["suspicion", *cols] if c in row)
-    reason = str(row.get("reason", "")).replace("; also ", "\n\nalso ")
+    reason = str(row.get("details") or row.get("reason", "")).replace("; also ", "\n\nalso ")
     return f"{head}\n\ntask: {row['task']}\n\n{scores}\n\n{reason}"
 
 
