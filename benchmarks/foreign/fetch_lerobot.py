@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from record import KINDS, cover, options, parser, plan, record  # noqa: E402
+from record import episode, options, parser, plan, record  # noqa: E402
 
 TASKS = {  # name -> (the task as the dataset names it, Gymnasium-Robotics env, steps)
     "reach": ("reach the goal with the gripper", "FetchReach-like", 50),
@@ -173,30 +173,8 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
 
 
 def _episode(job: tuple) -> dict:
-    index, task, kind, other, seed = job
-    rng = np.random.default_rng([seed, index])
-    for _ in range(30):
-        layout = int(rng.integers(1 << 30))
-        if kind == "gave-up":
-            full = _rollout(task, task, "clean", rng, layout)
-            if not full["success"] or full["first_success"] is None:
-                continue
-            rec = _rollout(task, task, kind, rng, layout, stop=int(full["first_success"] * rng.uniform(0.3, 0.6)))
-            if rec["success"]:
-                continue
-        else:
-            rec = _rollout(other if kind == "wrong-task" else task, task, kind, rng, layout)
-            if kind in ("clean", "occluded", "wrong-task") and rec["success"] != (kind != "wrong-task"):
-                continue  # a clean demo succeeds; another task's oracle must not do this one by chance
-            if kind in ("clean", "occluded") and (rec["first_success"] or 0) < 5:
-                continue  # a layout whose goal is met before the arm has moved holds no demo of the task
-        break
-    else:
-        raise RuntimeError(f"episode {index} ({task}, {kind}): no usable rollout in 30 layouts")
-    if kind == "occluded":
-        rec["frames"] = cover(rec["frames"], rng)
-    return {"index": index, "task": TASKS[task][0], "label": kind,
-            **{k: rec[k] for k in ("frames", "state", "env_state", "actions")}}
+    # A layout whose goal is met before the arm has moved (5 steps) holds no demo of the task.
+    return episode(job, _rollout, {name: words for name, (words, *_) in TASKS.items()}, min_first=5)
 
 
 def features(size: tuple[int, int]) -> dict:

@@ -74,6 +74,37 @@ def cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return out
 
 
+def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min_first: int = 0) -> dict:
+    """One planned episode (a ``plan`` job): ``rollout(task, scene, kind, rng, layout, stop=None)`` on layouts the
+    job's seed draws until one fits its kind -- a clean or occluded demo succeeds (its goal met no sooner than
+    ``min_first`` steps in), another task's oracle does not do this one by chance, a demo that gave up stops at
+    30-60% of the steps the oracle needs and fails.  ``words``: each task as the dataset names it."""
+    index, task, kind, other, seed = job
+    rng = np.random.default_rng([seed, index])
+    for _ in range(30):
+        layout = int(rng.integers(1 << 30))
+        if kind == "gave-up":
+            full = rollout(task, task, "clean", rng, layout)
+            if not full["success"] or full["first_success"] is None:
+                continue
+            rec = rollout(task, task, kind, rng, layout, stop=int(full["first_success"] * rng.uniform(0.3, 0.6)))
+            if rec["success"]:
+                continue
+        else:
+            rec = rollout(other if kind == "wrong-task" else task, task, kind, rng, layout)
+            if kind in ("clean", "occluded", "wrong-task") and rec["success"] != (kind != "wrong-task"):
+                continue
+            if kind in ("clean", "occluded") and (rec["first_success"] or 0) < min_first:
+                continue
+        break
+    else:
+        raise RuntimeError(f"episode {index} ({task}, {kind}): no usable rollout in 30 layouts")
+    if kind == "occluded":
+        rec["frames"] = cover(rec["frames"], rng)
+    return {"index": index, "task": words[task], "label": kind,
+            **{k: rec[k] for k in ("frames", "state", "env_state", "actions")}}
+
+
 def record(out: Path, jobs: list[tuple], episode: Callable[[tuple], dict], workers: int,
            init: Callable, initargs: tuple, features: dict, fps: int, robot_type: str) -> None:
     """Simulate ``jobs`` with ``episode`` in ``workers`` spawned processes (``init(*initargs)`` in each) and write
