@@ -42,3 +42,16 @@ def test_options_refuse_an_existing_folder_and_an_unknown_kind(tmp_path):
     kinds, size = record.options(ap.parse_args([str(tmp_path / "x"), "--force", "--size", "480x640",
                                                 "--kinds", "idle,jerky"]))
     assert kinds == ("idle", "jerky") and size == (480, 640) and not (tmp_path / "x").exists()
+
+
+def test_planted_actions_are_what_each_kind_says():
+    rng = np.random.default_rng(0)
+    oracle = lambda: np.full(3, 0.9)  # noqa: E731
+    assert (record.planted_action("idle", 0, None, rng, 0.0, 3, oracle) == 0).all()
+    assert (record.planted_action("gave-up", 5, 5, rng, 0.0, 3, oracle) == 0).all()  # stopped from step 5
+    assert (record.planted_action("gave-up", 4, 5, rng, 0.0, 3, oracle) == 0.9).all()
+    random = np.stack([record.planted_action("random", t, None, rng, 0.0, 3, oracle) for t in range(200)])
+    assert random.min() >= -1 and random.max() <= 1 and random.std() > 0.5
+    jerky = np.stack([record.planted_action("jerky", t, None, rng, 0.4, 3, oracle) for t in range(200)])
+    assert jerky.max() <= 1 and 0.2 < jerky.std() < 0.5 and (record.planted_action("clean", 0, None, rng, 0.0, 3,
+                                                                                      oracle) == 0.9).all()

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from record import episode, options, parser, plan, record  # noqa: E402
+from record import episode, options, parser, plan, planted_action, record  # noqa: E402
 
 TASKS = {  # name -> (the task as the dataset names it, Gymnasium-Robotics env, steps)
     "reach": ("reach the goal with the gripper", "FetchReach-like", 50),
@@ -156,14 +156,7 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
         q = env._utils.get_joint_qpos(env.model, env.data, "object0:joint")
         state.append(np.r_[o, goal].astype(np.float32))
         env_state.append(np.r_[q[:3], q[3:7], goal].astype(np.float32))
-        if kind == "idle" or (stop is not None and t >= stop):
-            a = np.zeros(4)
-        elif kind == "random":
-            a = rng.uniform(-1, 1, 4)
-        else:
-            a = oracle(task, o, other_goal, memory)
-            if noise:
-                a = np.clip(a + rng.normal(0, noise, 4), -1, 1)
+        a = planted_action(kind, t, stop, rng, noise, 4, lambda: oracle(task, o, other_goal, memory))
         actions.append(np.asarray(a, np.float32))
         obs, *_ = env.step(np.asarray(a, np.float32))
         if first is None and _success(scene, obs, goal):

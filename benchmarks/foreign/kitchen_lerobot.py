@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from record import episode, options, parser, plan, record  # noqa: E402
+from record import episode, options, parser, plan, planted_action, record  # noqa: E402
 
 TASKS = {  # name -> (the task as the dataset names it, steps)
     "slide": ("open the slide cabinet", 60),
@@ -157,14 +157,7 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
         o = obs["observation"]
         state.append(o[:18].astype(np.float32))
         env_state.append(o[18:39].astype(np.float32))
-        if kind == "idle" or (stop is not None and t >= stop):
-            a = np.zeros(9)
-        elif kind == "random":
-            a = rng.uniform(-1, 1, 9)
-        else:
-            a = oracle(env, memory)
-            if noise:
-                a = np.clip(a + rng.normal(0, noise, 9), -1, 1)
+        a = planted_action(kind, t, stop, rng, noise, 9, lambda: oracle(env, memory))
         actions.append(np.asarray(a, np.float32))
         obs, *_ = env.step(np.asarray(a, np.float64))
         if first is None and _success(scene, env, start):

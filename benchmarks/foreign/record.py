@@ -63,6 +63,18 @@ def plan(names: list[str], demos: int, plant: int, seed: int, kinds: tuple[str, 
     return jobs
 
 
+def planted_action(kind: str, t: int, stop: int | None, rng: np.random.Generator, noise: float, dims: int,
+                   oracle: Callable[[], np.ndarray]) -> np.ndarray:
+    """The action at step ``t`` of a demo of ``kind``: none (idle, or stopped from ``stop`` on), uniform in [-1, 1]
+    (random), else the oracle's, with Gaussian noise of SD ``noise`` where that is not 0 (jerky)."""
+    if kind == "idle" or (stop is not None and t >= stop):
+        return np.zeros(dims)
+    if kind == "random":
+        return rng.uniform(-1, 1, dims)
+    a = oracle()
+    return np.clip(a + rng.normal(0, noise, dims), -1, 1) if noise else a
+
+
 def cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """The frames with a grey card over 35-55% of the view, the same card in every frame."""
     h, w = frames.shape[1:3]
