@@ -14,7 +14,8 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
   named so (``yaw``, ``angle``, ...) as its cosine and sine, so that +pi and -pi are one angle.
 - **Units from how the feature moves**: a value's robust SD is at least ``END_FLOOR`` of its spread at the end
   over all the demos and ``MOVE_FLOOR`` of how far the task that works it most moves it within a typical episode
-  (the median over its demos that move it); a rotation's at least ``ROTATION_FLOOR``.  A feature no demo moves (a fixed part, whose values differ by float noise) says nothing.
+  (the median over its demos that move it); a rotation's at least ``ROTATION_FLOOR``.  A feature no demo moves (a
+  fixed part, whose values differ by float noise) says nothing.
 
 NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.  A consumer of the audit's decoding pass like the other
 model-free checks (``democheck.audit.modelfree``); ``benchmarks/shapes.py`` measures what the shapes cost.

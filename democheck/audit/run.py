@@ -276,8 +276,9 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         "flag": flag_summary(table, fpr, ev.untrusted),
         "scores": {n: registry.SCORERS[n].description for n in shown} | {
             "p_value": "the combined tail probability of the ranking's scores (suspicion = -log10 p_value)",
-            "reason": "what put the demo where it ranks, in the words of the check with the smallest tail "
-                      "probability first (the check and how rare after), then others while it stays short",
+            "reason": "what put the demo where it ranks: first what happened, in the words of a check beyond every "
+                      "clean demo that says what the demo did (the check and how rare after), then others while it "
+                      "stays short",
             "details": "the reason whole: up to three checks' words, each with how rare",
             "driven_by": "the check the reason names first (broken, duplicate: flagged regardless)",
             "reference": "in the robust core the ranking's tails were fitted on: the demos believed clean, which "
@@ -328,13 +329,13 @@ def unreadable_files(episodes: np.ndarray, reasons: list[str] | None) -> list[st
 
 def spans(values: list[int]) -> str:
     """Sorted integers as runs, e.g. '3, 7-9, 12'."""
-    out: list[str] = []
+    runs: list[list[int]] = []
     for v in sorted(values):
-        if out and int(out[-1].rsplit("-", 1)[-1]) == v - 1:
-            out[-1] = f"{out[-1].split('-')[0]}-{v}"
+        if runs and runs[-1][1] == v - 1:
+            runs[-1][1] = v
         else:
-            out.append(str(v))
-    return ", ".join(out)
+            runs.append([v, v])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def flag_summary(table: pd.DataFrame, fpr: float, untrusted=()) -> dict[str, Any]:
