@@ -133,6 +133,8 @@ def read_frames(path: str | Path, indices: list[int] | np.ndarray, fps: float) -
                     raise DatasetError(f"{path}: frame {k} is missing (video truncated or corrupt?)")
     except av.FFmpegError as exc:
         raise DatasetError(f"{path}: unreadable video ({exc})") from None
+    except OverflowError:  # a frame number no video holds (from damaged metadata): no position to seek to
+        raise DatasetError(f"{path}: frame {want[-1]} is missing (video truncated or its metadata corrupt?)") from None
     except UnicodeDecodeError:  # PyAV decodes the container's metadata as UTF-8 when it opens it
         raise DatasetError(f"{path}: unreadable video (its metadata is not valid UTF-8)") from None
     return np.stack([out[int(i)] for i in indices])
