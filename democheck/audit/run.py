@@ -9,6 +9,7 @@ into a report folder (tables, summary, Rerun recording).
 
 from __future__ import annotations
 
+import functools
 import re
 
 import time
@@ -99,7 +100,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
                     tecnet: Checkpoint | None = None, episodes: pd.DataFrame | None = None, seed: int = 0,
                     on_progress: Progress | None = None, timings: dict[str, float] | None = None,
                     workers: int = 1, engine: str = "local", ray_address: str | None = None,
-                    still: tuple[np.ndarray, np.ndarray] | None = None) -> Evidence:
+                    still: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> Evidence:
     """Score the demos of ``sets``, pooled in order, with ``scorers``: the cue pass (PETNet, when ``ckpt`` is
     given, and TecNets when given), one decoding pass per dataset for the scorers that need every frame, then
     each scorer.
@@ -248,7 +249,9 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         ds.strict()
     t = dict(timings or {})
     chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
-    still = still_cues(ds, ckpt.model, device) if ckpt is not None and ds.has_camera else None
+    # Encoded only if the data holds too few hardly-moving demos to test task uncertainty on (``trust.untrusted``),
+    # and then once.
+    still = functools.cache(lambda: still_cues(ds, ckpt.model, device)) if ckpt is not None and ds.has_camera else None
     ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers,
                          engine=engine, ray_address=ray_address, still=still)
     broken = ranking.broken_rows(ev)

@@ -81,7 +81,8 @@ class Evidence:
     reasons: dict[str, list[str]] = field(default_factory=dict)
     seed: int = 0
     frames: bool = True  # the demos have camera frames (False: a dataset that records no camera, ``NO_CAMERA``)
-    still: tuple[np.ndarray, np.ndarray] | None = None  # task uncertainty of still cues and real ones (trust)
+    # Task uncertainty of cut cues and of the same demos' real ones (``trust``), or how to measure it when needed.
+    still: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
     _z: np.ndarray | None = field(default=None, repr=False)
     _combinations: dict[tuple, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 

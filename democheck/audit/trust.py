@@ -5,6 +5,7 @@ those demos."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -26,12 +27,14 @@ STILL_AT = 0.1
 STILL_SAMPLE = 64  # demos whose cut cue the audit encodes for the test
 
 
-def untrusted(meta: dict[str, Any], still: tuple[np.ndarray, np.ndarray] | None = None,
+def untrusted(meta: dict[str, Any],
+              still: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
               idle: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, str]:
     """The model scores that failed their test, each with the sentence that says why (empty: none, or a model
     trained before the tests were recorded).  ``still``: the task uncertainty of cut cues and of the real cues
-    of the same audited demos, where the audit measured them (``run.still_cues``); ``idle``: the task uncertainty
-    of the demos whose arm the motion check finds hardly moving and of the others."""
+    of the same audited demos, where the audit measured them (``run.still_cues``; a callable is called only when
+    ``idle`` does not decide); ``idle``: the task uncertainty of the demos whose arm the motion check finds hardly
+    moving and of the others."""
     metrics = meta.get("metrics") or {}
     out = {}
     mse = (metrics.get("final") or {}).get("val_mse")
@@ -43,7 +46,7 @@ def untrusted(meta: dict[str, Any], still: tuple[np.ndarray, np.ndarray] | None 
         level, real = float(np.median(idle[0])), float(np.median(idle[1]))
         measured = (f"the {len(idle[0])} demos whose arm hardly moves: median task uncertainty {level:.2g}, the "
                     f"others' {real:.2g}")
-    elif still is not None and len(still[0]):
+    elif still is not None and len((still := still() if callable(still) else still)[0]):
         level, real = float(np.median(still[0])), float(np.median(still[1]))
         measured = (f"demos cut {STILL_AT:.0%} of the way in: median task uncertainty {level:.2g}, the same demos "
                     f"whole {real:.2g}")

@@ -189,9 +189,9 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: Sequence[Demo], 
     """One recording with a reviewer's blueprint: the ranked list beside each suspect's evidence, the map and the
     score histograms.
 
-    ``suspects`` are the top demos in rank order (read one at a time); ``embedding`` [M, 2] are t-SNE positions of ``table`` rows
-    ``embedded_rows``; ``names``: the dataset's names of its ``state`` and ``action`` dimensions; ``fpr``: the
-    flag's level (marked on the suspicion histogram's title); ``warnings``: the audit's, under the ranked list
+    ``suspects`` are the top demos in rank order (read one at a time); ``embedding`` [M, 2] are t-SNE positions of
+    ``table`` rows ``embedded_rows``; ``names``: the dataset's names of its ``state`` and ``action`` dimensions;
+    ``fpr``: the flag's level (marked on the suspicion histogram's title); ``warnings``: the audit's, under the ranked list
     (an unreadable file among them).
     """
     rec = rr.RecordingStream("democheck")
