@@ -1,7 +1,8 @@
 """The model-free audit holds its false-flag rate on clean data of any shape: randomly generated clean datasets
 whose world record holds a quaternion (its sign flipping between demos), a wrapped angle near +-pi, a switch that
 ends on or off, a drawer that ends open or closed, a fixed part constant to float noise, a dimension that is
-always zero, and episodes whose length varies by task and by demo."""
+always zero, a slide that most demos push against its stop and the rest leave short of it at any point, and
+episodes whose length varies by task and by demo."""
 
 import numpy as np
 import pandas as pd
@@ -13,7 +14,7 @@ from democheck.audit.scorers import SCORERS, Evidence, compute, select
 from democheck.data.demo import Demo, no_frames
 
 NAMES = ["cube.x", "cube.y", "lid.qw", "lid.qx", "lid.qy", "lid.qz", "knob.angle", "switch", "drawer", "fixture.z",
-         "spare"]
+         "spare", "slide"]
 
 
 def _smooth(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
@@ -28,6 +29,7 @@ def clean_dataset(seed: int, tasks: int = 4, demos: int = 50) -> list[Demo]:
     for t in range(tasks):
         goal = rng.uniform(-0.3, 0.3, 2)
         p_switch, p_open = rng.uniform(0.3, 0.7, 2)
+        p_stop = rng.uniform(0.5, 0.7)
         length = int(rng.integers(30, 90))
         for _ in range(demos):
             n = length + int(rng.integers(-5, 6))
@@ -43,7 +45,9 @@ def clean_dataset(seed: int, tasks: int = 4, demos: int = 50) -> list[Demo]:
             switch = (s[:, 0] > rng.uniform(0.3, 0.7)) * float(rng.random() < p_switch)
             drawer = 0.15 * ease[:, 0] * float(rng.random() < p_open) + rng.normal(0, 0.002, n)
             fixture = 0.000462 + rng.normal(0, 1e-7, n)
-            env = np.column_stack([cube, lid, knob, switch, drawer, fixture, np.zeros(n)]).astype(np.float32)
+            reach = 0.44 if rng.random() < p_stop else rng.uniform(0.2, 0.43)
+            slide = reach * ease[:, 0] + rng.normal(0, 1e-5, n)
+            env = np.column_stack([cube, lid, knob, switch, drawer, fixture, np.zeros(n), slide]).astype(np.float32)
             out.append(Demo(episode_index=len(out), task=f"task {t}", frames=no_frames(n),
                             state=state.astype(np.float32), actions=actions, env_state=env,
                             extra={"env_state_names": NAMES, "timestamp": np.arange(n) / 20.0, "fps": 20.0}))
@@ -119,3 +123,33 @@ def test_the_shapes_benchmark_adds_dimensions_that_change_nothing_of_the_ranking
         table = pd.read_parquet(tmp_path / f"r-{ds.name}" / "scores.parquet")
         ranks.append(table.loc[table["label"].fillna("clean") != "clean", "rank"].sort_values().tolist())
     assert len(ranks[0]) == 2 and ranks[0] == ranks[1]
+
+
+def test_a_spread_beside_a_pile_is_an_outcome_and_a_few_failures_beside_it_are_not():
+    """Half a task's kettles rest where they stood (a pile), the rest were pushed up onto the grate at any height:
+    the pushed ones are an outcome of their own.  Three failures of twelve beside a pile of successes are not, and a
+    pile of a few demos that happen to agree is no pile."""
+    from democheck.audit.outcome import modes
+
+    rng = np.random.default_rng(0)
+    pile = 1.619 + rng.normal(0, 2e-4, 27)
+    pushed = 1.62 + rng.uniform(0.005, 0.1, 25)
+    label = modes(np.r_[pile, pushed], floor=2.5e-4)
+    assert len(set(label[:27])) == 1 and len(set(label[27:])) == 1 and label[0] != label[-1]
+    assert not modes(np.r_[pile, pushed], floor=2.5e-4, piles=False).any()  # no gap: no switch either
+    successes, failures = 0.44 + rng.normal(0, 1e-5, 40), rng.uniform(0.1, 0.4, 3)
+    assert not modes(np.r_[successes, failures], floor=2e-3).any()
+    assert not modes(np.r_[successes[:6], rng.uniform(0.1, 0.4, 6)], floor=2e-3).any()  # six agreeing: no pile
+
+
+def test_the_clean_shapes_benchmark_runs_and_reports_the_rate(capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "clean_shapes.py"
+    spec = importlib.util.spec_from_file_location("clean_shapes", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    result = bench.main(["--seeds", "3-3"])
+    assert result["of"] == 200 and result["flagged"] <= stats.binom.interval(0.99, 200, 0.01)[1]
+    assert "clean demos flagged" in capsys.readouterr().out

@@ -8,7 +8,9 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
 - **A task may end in several ways** (a button toggles a lock; a push stops short of its goal on the side it came
   from): a demo's value is measured against the median of its task's demos that started on the same side and
   reached the same outcome (``modes``: an outcome a share ``MODE_SHARE`` of the task reaches, well apart from the
-  others), not against the whole task's median, so the minority's outcome is not an anomaly.
+  others), not against the whole task's median, so the minority's outcome is not an anomaly.  Values piled at
+  one place (a kettle most demos leave where it stands, a slide against its stop) beside a spread of others are
+  two outcomes too, each measured in its own spread, once the spread holds that share.
 - **Rotations are compared as rotations**: a quaternion (four consecutive dimensions named ``*w/x/y/z`` or
   ``*quat*``, or of unit norm throughout) as its outer product ``q q^T``, the same for ``q`` and ``-q``; an angle
   named so (``yaw``, ``angle``, ...) as its cosine and sine, so that +pi and -pi are one angle.
@@ -35,6 +37,7 @@ from democheck.data.demo import Demo
 OUTCOME_MIN_DEMOS = 4
 MODE_SHARE = 0.2  # an outcome this share of a task's demos reach (at least 2) is one of its outcomes,
 MODE_GAP = 6.0  # when it lies this many robust SD from the task's other outcomes
+PILE_MIN = 10  # demos in a pile: fewer that happen to agree are no pile (see ``modes``)
 OUTCOME_MIN_SIDE = 2  # demos (itself among them) that started on its side for the side to be its reference
 POOLED_SCALE = 0.5  # a task's robust SD of a feature is at least this share of the median task's
 END_FLOOR = 0.05  # a value's least robust SD: this share of its spread at the end over all the demos,
@@ -144,10 +147,16 @@ def represent(feature: Feature, x: np.ndarray) -> np.ndarray:
     return v
 
 
-def modes(r: np.ndarray, floor: float, depth: int = 2) -> np.ndarray:
+def modes(r: np.ndarray, floor: float, depth: int = 2, piles: bool = True) -> np.ndarray:
     """[m] which outcome each of a task's values ``r`` (finite) belongs to: the values split at their widest gap
     where both sides hold at least ``MODE_SHARE`` of them (and 2) and the gap is ``MODE_GAP`` times either side's
-    robust SD (at least ``floor``) -- twice over at most, so up to four outcomes; one outcome (all 0) otherwise."""
+    robust SD (at least ``floor``) -- twice over at most, so up to four outcomes; one outcome (all 0) otherwise.
+
+    With ``piles``, a pile comes first: where half the values (at least ``PILE_MIN``) lie close together (a part
+    against its stop, an object most demos leave where it rests) and the values above it or below it spread
+    ``MODE_GAP`` times wider, each such side that holds ``MODE_SHARE`` of them is an outcome of its own -- a
+    spread beside a pile is not measured in the pile's spread of almost nothing, while a few failures beside a
+    pile of successes stay failures.  A pile is no switch: without ``piles`` only gaps split."""
     m = len(r)
     label = np.zeros(m, int)
     least = max(2, int(np.ceil(MODE_SHARE * m)))
@@ -155,6 +164,14 @@ def modes(r: np.ndarray, floor: float, depth: int = 2) -> np.ndarray:
         return label
     order = np.argsort(r, kind="stable")
     v = r[order]
+    half = (m + 1) // 2
+    i = int(np.argmin(v[half - 1:] - v[:m - half + 1]))  # the shortest run of half the values
+    centre, reach = np.median(v[i:i + half]), MODE_GAP * max(_sd(v[i:i + half]), floor)
+    for side in (r < centre - reach, r > centre + reach) if piles and half >= PILE_MIN else ():
+        if side.sum() >= least and _sd(r[side]) > reach:
+            label[side] = label.max() + 1
+    if label.any():
+        return label
     cuts = np.arange(least, m - least + 1)  # the split before position c
     gaps = v[cuts] - v[cuts - 1]
     c = int(cuts[np.argmax(gaps)])
@@ -162,8 +179,8 @@ def modes(r: np.ndarray, floor: float, depth: int = 2) -> np.ndarray:
     if v[c] - v[c - 1] <= MODE_GAP * spread:
         return label
     low, high = order[:c], order[c:]
-    label[low] = modes(r[low], floor, depth - 1)
-    label[high] = modes(r[high], floor, depth - 1) + label[low].max() + 1
+    label[low] = modes(r[low], floor, depth - 1, piles)
+    label[high] = modes(r[high], floor, depth - 1, piles) + label[low].max() + 1
     return label
 
 
@@ -272,7 +289,7 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
         for c in range(x.shape[1]):
             every = np.flatnonzero(np.isfinite(x[:, c]))
             outcomes = np.full(len(x), -1)
-            outcomes[every] = modes(x[every, c], floor)
+            outcomes[every] = modes(x[every, c], floor, piles=False)
             # Several outcomes that recur within more than one task: a switch, not where one task's demos went.
             spans = [len(np.unique(outcomes[every][tasks[every] == t])) > 1 for t in np.unique(tasks[every])]
             discrete = outcomes.max() > 0 and sum(spans) >= 2
@@ -301,10 +318,15 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
                     for k in np.unique(label):
                         mine = label == k
                         centre[mine] += np.median((v - centre)[mine])
-                fitted.append((rows[ok], v, centre, max(_sd(v - centre), floor)))
-            typical = POOLED_SCALE * np.median([f[3] for f in fitted]) if fitted else 0.0
-            for at, v, centre, scale in fitted:
-                z[at, c] = np.abs(v - centre) / max(scale, typical)
+                pooled = max(_sd(v - centre), floor)
+                # Each outcome in its own spread where that is wider than the task's (a spread beside a pile).
+                scale = np.full(len(v), pooled)
+                for k in np.unique(label):
+                    scale[label == k] = max(pooled, _sd((v - centre)[label == k]))
+                fitted.append((rows[ok], v, centre, scale, pooled))
+            typical = POOLED_SCALE * np.median([f[4] for f in fitted]) if fitted else 0.0
+            for at, v, centre, scale, _ in fitted:
+                z[at, c] = np.abs(v - centre) / np.maximum(scale, typical)
                 ref[at, c] = centre
     return z, ref
 

@@ -101,6 +101,7 @@ Every score is one number per demo, higher = more suspect:
 
 from __future__ import annotations
 
+import warnings
 from typing import Callable
 
 import numpy as np
@@ -289,9 +290,10 @@ def brown_scale(log_p: np.ndarray) -> tuple[float, float] | None:
     core = 10.0 ** sidak_log10(log_p) > BROWN_CORE
     if k < 2 or core.sum() < BROWN_MIN_DEMOS:
         return None
-    from scipy.stats import spearmanr
+    from scipy.stats import ConstantInputWarning, spearmanr
 
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConstantInputWarning)  # a constant column: handled just below
         rho = np.atleast_2d(spearmanr(-np.nan_to_num(log_p[core], nan=0.0)).correlation)
     rho = np.nan_to_num(rho, nan=0.0)  # a column constant over the core (no score there) depends on nothing
     # Never taken as less variable than independent scores: negative dependence is not counted on.
