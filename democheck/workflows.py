@@ -15,7 +15,7 @@ import json
 import shlex
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Callable
 
@@ -45,7 +45,7 @@ from democheck.petnet.encode import encode_demos
 from democheck.petnet.recipe import DEFAULT_RECIPE, load_recipe, training_config
 from democheck.petnet.train import TrainConfig, TrainResult, finish_rows, resolve_device, train
 from democheck.sim.suite import generate, load_recipe as load_suite
-from democheck.viz.report import embed_2d, write_bench_rrd, write_eval_rrd, write_report_rrd
+from democheck.viz.report import MAX_TABS, embed_2d, write_bench_rrd, write_eval_rrd, write_report_rrd
 
 
 def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: bool = False, force: bool = False,
@@ -162,6 +162,27 @@ class Suspects(Sequence):
         return self.ds[int(self.episodes[i])]
 
 
+class Typical(Mapping):
+    """Per task of the report's suspects, its unflagged demo the ranking finds least suspect (read when the report
+    reaches it): what a demo of that task looks like, to compare a suspect with."""
+
+    def __init__(self, ds: DemoSet, table: pd.DataFrame, shown: int):
+        self.ds = ds
+        clean = table[~table["is_anomaly"].to_numpy(bool)]
+        least = clean.loc[clean.groupby("task", sort=False)["suspicion"].idxmin()] if len(clean) else clean
+        tasks = set(table.head(shown)["task"])
+        self.episodes = {t: int(e) for t, e in zip(least["task"], least["episode_index"]) if t in tasks}
+
+    def __len__(self) -> int:
+        return len(self.episodes)
+
+    def __iter__(self):
+        return iter(self.episodes)
+
+    def __getitem__(self, task):
+        return self.ds[self.episodes[task]]
+
+
 def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None = None, top: int = 20,
                   camera: str | None = None, task: str | None = None, device: str = "auto", force: bool = False,
                   on_progress: Callable[[str, int, int], None] | None = None, actions: bool = True,
@@ -208,13 +229,14 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
     with atomic_output_dir(out, force=force) as tmp:
         write_tables(tmp, table, suspects(table))
         t1 = time.perf_counter()
-        xy, rows = embed_2d(table, top)
+        shown = min(max(top, int(table["is_anomaly"].sum())), MAX_TABS)  # every flagged demo gets a tab
+        xy, rows = embed_2d(table, shown)
         t["tsne_s"] = time.perf_counter() - t1
         t2 = time.perf_counter()
-        demos = Suspects(ds, table.head(top)["episode_index"].tolist())
+        demos = Suspects(ds, table.head(shown)["episode_index"].tolist())
         write_report_rrd(tmp / "report.rrd", table, demos, xy, rows, ds.fps, f"democheck audit of {ds.root}",
                          names={"state": ds.names("state"), "action": ds.names("action")}, fpr=fpr,
-                         warnings=summary["warnings"])
+                         warnings=summary["warnings"], typical=Typical(ds, table, shown))
         t["rrd_s"] = time.perf_counter() - t2
         summary = finish_summary(summary, t)
         write_json(tmp / "summary.json", summary)

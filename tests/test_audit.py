@@ -198,6 +198,16 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
     series = [b for b in rrd[f"{base}/actions"] if "SeriesLines:names" in b.schema.names][0]
     assert series.column("SeriesLines:names").to_pylist()[0] == ds.names("action")
     assert ds.names("action")[0] == "shoulder_pan.torque"  # as the dataset's info.json names it
+    # Every flagged demo has a tab (at least --top), each beside a clean demo of its task; the flag level is
+    # drawn on the suspicion histogram.
+    abouts = [k for k in rrd if k.startswith("/suspects/") and k.endswith("/about")]
+    assert len(abouts) == max(3, int(table["is_anomaly"].sum()))
+    typical = [k for k in rrd if k.startswith("/typical/") and k.endswith("/actions")]
+    assert len(typical) == table.head(len(abouts))["task"].nunique()
+    assert "Beside it: episode" in about
+    beside = int(about.split("Beside it: episode ")[1].split(",")[0])
+    assert not table.set_index("episode_index").loc[beside, "is_anomaly"]
+    assert "/scores/suspicion/level" in rrd or not table["is_anomaly"].any()
     for name in ("suspicion", "task_uncertainty", "action_error"):
         bars = rrd[f"/scores/{name}/all"][0]
         centres = np.asarray(bars.column("BarChart:abscissa").to_pylist()[0][0]["buffer"])

@@ -70,7 +70,9 @@ def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
         start, length = longest_run(frozen)
         out[i] = length / n
         scattered = int(frozen.sum()) - length  # repeats elsewhere, outside the longest stretch
-        reasons.append(f"the frame repeats while the arm moves over {steps_text(start, start + length, n + 1)}"
+        # A still picture cannot tell a camera that stopped from an arm that left its view: both are named.
+        reasons.append(f"the picture stays the same while the actions change over "
+                       f"{steps_text(start, start + length, n + 1)} (the camera stopped, or the arm left its view)"
                        + (f"; {scattered} more repeated frames elsewhere" if scattered else "") if length
                        else "frames change while the arm moves")
     return out, reasons

@@ -8,10 +8,16 @@ Entities:
                                   unflagged demos' (1 = typical), with a model
     suspects/<rank>_ep<e>/actions its actions, one series per dimension, named as the dataset names them
     suspects/<rank>_ep<e>/state   its robot state, likewise
+    typical/<task>/video, actions the unflagged demo of each suspect's task that the ranking finds least
+                                  suspect, shown beside the suspect to compare with
     map/demos                     2-D t-SNE map of every demo's task mean, coloured by suspicion (hover: rank,
-                                  episode, task); map/flagged the flagged demos on top, labelled
+                                  episode, task); map/flagged the flagged demos on top, the first few labelled
     scores/<name>/all, /flagged   a histogram per score (bars as wide as their bins; the flagged demos' share
-                                  of each bar in red), suspicion with the flag level
+                                  of each bar in red); suspicion on a log axis with the flag level as a bar
+                                  (scores/suspicion/level)
+
+Every flagged demo gets a tab (at least the top ``--top``, at most ``MAX_TABS``); frames over ``MAX_SIDE``
+pixels are scaled down for the recording.
 
 The bench's recording (``write_bench_rrd``):
     bench                         bench.md: the tables, the verdicts, the figures' numbers (markdown)
@@ -27,7 +33,7 @@ from __future__ import annotations
 
 import re
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -43,9 +49,14 @@ from democheck.evaluate.meta_test import fmt_rate
 
 FLAG_RED = [230, 40, 40]
 BAR_BLUE = [90, 140, 220]
-# Scores shown as histograms, and how: on a log10 scale where the score's right tail is long.
-HISTOGRAMS = {"suspicion": False, "task_uncertainty": False, "consistency": False, "action_error": True,
+LEVEL_GREY = [200, 200, 200]
+# Scores shown as histograms, and how: on a log10 scale where the score's right tail is long (suspicion,
+# itself -log10 of a probability, as log10(1 + suspicion): hundreds beside a flag level of 2-4).
+HISTOGRAMS = {"suspicion": True, "task_uncertainty": False, "consistency": False, "action_error": True,
               "motion": False, "idle": False, "novelty": True, "outcome": True}
+MAX_TABS = 200  # suspects recorded with their evidence: every flagged demo up to this many
+MAX_SIDE = 320  # frames larger than this (either side) are scaled down in the recording
+MAP_LABELS = 5  # flagged demos named on the map (more labels overlap; hover names the rest)
 
 
 def _ramp(values: np.ndarray) -> np.ndarray:
@@ -104,56 +115,85 @@ def _cell(value) -> str:
     return str(value)
 
 
-def suspects_markdown(table: pd.DataFrame, top: int, title: str, fpr: float | None = None) -> str:
-    """The ranked list: what a reviewer decides by first (rank, episode, the ranking, the flag, why), then the
-    task and every other registered score the table has, and what each column means."""
+def suspects_markdown(table: pd.DataFrame, top: int, title: str, fpr: float | None = None,
+                      warnings: list[str] | None = None) -> str:
+    """The ranked list: the audit's warnings first, then what a reviewer decides by (rank, episode, the ranking,
+    the flag, why), the task and every other registered score the table has, and how to read the report."""
     cols = [n for n, s in SCORERS.items() if s.in_audit and n in table and n != "suspicion"]
-    lines = [f"# {title}", "", "| rank | episode | suspicion | flagged | why | task | "
-             + " | ".join(c.replace("_", " ") for c in cols) + " |",
-             "|---:|---:|---:|:---:|---|---|" + "---:|" * len(cols)]
+    n_flagged = int(table["is_anomaly"].sum())
+    lines = [f"# {title}", "", f"**{n_flagged} of {len(table)} demos flagged.** Each flagged demo (and each of "
+             "the top suspects) has a tab on the right: why, its video beside a clean demo of its task, its "
+             "actions and state (hover a curve for the dataset's name of it). The map places demos by the model's "
+             "task embedding, colour = suspicion (yellow = most suspect), red = flagged; hover a point for its "
+             "episode. In the histograms red is the flagged demos' part of a bar; suspicion is drawn as "
+             "log10(1 + suspicion), with a grey bar where the flags start.", ""]
+    if warnings:
+        lines += ["## Warnings", "", *[f"- {w}" for w in warnings], ""]
+    lines += ["| rank | episode | suspicion | flagged | why | task | "
+              + " | ".join(c.replace("_", " ") for c in cols) + " |",
+              "|---:|---:|---:|:---:|---|---|" + "---:|" * len(cols)]
     for r in table.head(top).to_dict(orient="records"):
         why, task = (str(x).replace("|", "\\|") for x in (short_reason(r.get("reason", "")), r["task"]))
         lines.append(f"| {r['rank']} | {r['episode_index']} | {_cell(r['suspicion'])} | "
                      f"{'**yes**' if r['is_anomaly'] else ''} | {why} | {task} | "
                      + " | ".join(_cell(r[c]) for c in cols) + " |")
     level = f"at most {fpr:g}" if fpr is not None else "at most the false-positive rate asked for"
-    lines += ["", f"{int(table['is_anomaly'].sum())} of {len(table)} demos flagged.", "",
-              *[f"- {c.replace('_', ' ')}: {SCORERS[c].description}" for c in ["suspicion", *cols]],
+    lines += ["", *[f"- {c.replace('_', ' ')}: {SCORERS[c].description}" for c in ["suspicion", *cols]],
               f"- flagged: a share of the reference demos (the audited demos' robust core, believed clean) at least as "
               f"suspect (p_reference) {level}, an exact copy of another demo, or a broken recording (summary.json, flag)",
-              "- why: the score that drove the ranking, how rare among clean demos, and where in the demo"]
+              "- why: what happened in the demo, then the check that says so and how rare that is among clean demos"]
     return "\n".join(lines)
 
 
-def _suspect_markdown(row: dict, cols: list[str]) -> str:
+def _suspect_markdown(row: dict, cols: list[str], clean: int | None = None) -> str:
     head = f"## #{row['rank']}: episode {row['episode_index']} -- {'FLAGGED' if row['is_anomaly'] else 'not flagged'}"
     scores = ", ".join(f"{c.replace('_', ' ')} {_cell(row[c])}" for c in ["suspicion", *cols] if c in row)
     reason = str(row.get("details") or row.get("reason", "")).replace("; also ", "\n\nalso ")
-    return f"{head}\n\ntask: {row['task']}\n\n{scores}\n\n{reason}"
+    beside = f"\n\nBeside it: episode {clean}, the least suspect unflagged demo of the same task." if clean is not None else ""
+    return f"{head}\n\ntask: {row['task']}\n\n{reason}\n\n{scores}{beside}"
 
 
-def _histogram(rec: rr.RecordingStream, path: str, values: np.ndarray, flagged: np.ndarray, bins: int = 30) -> None:
-    """Bars as wide as their bins (``path/all``), and the flagged demos' part of each bar (``path/flagged``)."""
+def _histogram(rec: rr.RecordingStream, path: str, values: np.ndarray, flagged: np.ndarray, bins: int = 30,
+               level: float | None = None) -> None:
+    """Bars as wide as their bins (``path/all``), the flagged demos' part of each bar (``path/flagged``), and
+    ``level`` (where the flags start) as a thin bar as high as the tallest (``path/level``)."""
     ok = np.isfinite(values)
     if not ok.any():
         return
     v, f = values[ok], flagged[ok]
     lo, hi = float(v.min()), float(v.max())
+    if level is not None and np.isfinite(level):
+        lo, hi = min(lo, level), max(hi, level)
     if hi - lo < 1e-12:
         lo, hi = lo - 0.5, hi + 0.5
     edges = np.linspace(lo, hi, bins + 1)
     centres, widths = (edges[:-1] + edges[1:]) / 2, np.diff(edges) * 0.95
-    rec.log(f"{path}/all", rr.BarChart(np.histogram(v, edges)[0], abscissa=centres, widths=widths, color=BAR_BLUE),
-            static=True)
+    counts = np.histogram(v, edges)[0]
+    rec.log(f"{path}/all", rr.BarChart(counts, abscissa=centres, widths=widths, color=BAR_BLUE), static=True)
     rec.log(f"{path}/flagged", rr.BarChart(np.histogram(v[f], edges)[0], abscissa=centres, widths=widths,
                                            color=FLAG_RED), static=True)
+    if level is not None and np.isfinite(level):
+        rec.log(f"{path}/level", rr.BarChart([int(counts.max())], abscissa=[level], widths=[(hi - lo) / 200],
+                                             color=LEVEL_GREY), static=True)
+
+
+def _fit(frames: np.ndarray) -> np.ndarray:
+    """Frames no larger than ``MAX_SIDE`` on either side, for the recording."""
+    h, w = frames.shape[1:3]
+    k = MAX_SIDE / max(h, w)
+    if k >= 1:
+        return frames
+    import cv2
+
+    size = (max(2, int(round(w * k / 2)) * 2), max(2, int(round(h * k / 2)) * 2))
+    return np.stack([cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in frames])
 
 
 def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray | None, fps: float,
               names: dict[str, list[str]] | None = None) -> None:
     t = np.arange(len(demo))
     if demo.frames.size:  # else a dataset without a camera (``NO_CAMERA``): its state and actions alone
-        _log_video(rec, f"{base}/video", demo.frames, fps, t)
+        _log_video(rec, f"{base}/video", _fit(demo.frames), fps, t)
     if sigma is not None:
         rec.log(f"{base}/sigma", rr.BarChart(sigma), static=True)
     frame = [rr.TimeColumn("frame", sequence=t)]
@@ -185,22 +225,21 @@ def _log_video(rec: rr.RecordingStream, path: str, frames: np.ndarray, fps: floa
 
 def write_report_rrd(path: Path, table: pd.DataFrame, suspects: Sequence[Demo], embedding: np.ndarray,
                      embedded_rows: np.ndarray, fps: float, title: str, names: dict[str, list[str]] | None = None,
-                     fpr: float | None = None, warnings: list[str] | None = None) -> None:
+                     fpr: float | None = None, warnings: list[str] | None = None,
+                     typical: Mapping[str, Demo] | None = None) -> None:
     """One recording with a reviewer's blueprint: the ranked list beside each suspect's evidence, the map and the
     score histograms.
 
     ``suspects`` are the top demos in rank order (read one at a time); ``embedding`` [M, 2] are t-SNE positions of
     ``table`` rows ``embedded_rows``; ``names``: the dataset's names of its ``state`` and ``action`` dimensions;
-    ``fpr``: the flag's level (marked on the suspicion histogram's title); ``warnings``: the audit's, under the ranked list
-    (an unreadable file among them).
+    ``fpr``: the flag's level (a bar on the suspicion histogram); ``warnings``: the audit's, at the head of the
+    ranked list (an unreadable file among them); ``typical``: per task, a clean demo to show beside its suspects.
     """
     rec = rr.RecordingStream("democheck")
     rec.save(str(path))
     top = len(suspects)
     flagged = table["is_anomaly"].to_numpy(bool)
-    text = suspects_markdown(table, max(top, 20), title, fpr)
-    if warnings:
-        text += "\n\n## Warnings\n\n" + "\n".join(f"- {w}" for w in warnings)
+    text = suspects_markdown(table, max(top, 20), title, fpr, warnings)
     rec.log("suspects", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
     if len(embedded_rows):
         sub = table.iloc[embedded_rows]
@@ -209,58 +248,73 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: Sequence[Demo], 
                                          labels=labels, show_labels=False, draw_order=1.0), static=True)
         is_flagged = flagged[embedded_rows]
         if is_flagged.any():
+            named = np.flatnonzero(is_flagged)[:MAP_LABELS]  # rows are in rank order: the most suspect
             rec.log("map/flagged", rr.Points2D(embedding[is_flagged], radii=1.1, colors=FLAG_RED,
                                                labels=[f"#{r} ep{e}" for r, e in zip(sub["rank"][is_flagged],
                                                                                    sub["episode_index"][is_flagged])],
-                                               show_labels=int(is_flagged.sum()) <= 12, draw_order=2.0),
-                    static=True)
+                                               show_labels=False, draw_order=2.0), static=True)
+            rec.log("map/named", rr.Points2D(embedding[named], radii=1.1, colors=FLAG_RED, draw_order=3.0,
+                                             labels=[f"#{r}" for r in sub["rank"].to_numpy()[named]],
+                                             show_labels=True), static=True)
     hist_views = []
     for name, log10 in HISTOGRAMS.items():
         if name not in table:
             continue
         values = table[name].to_numpy(np.float64)
-        if log10:
-            values = np.log10(np.maximum(values, 1e-12))
-        _histogram(rec, f"scores/{name}", values, flagged)
-        what = name.replace("_", " ") + (" (log10)" if log10 else "")
-        level = flag_level(table, fpr) if name == "suspicion" and fpr is not None else None
-        if level is not None:  # a level of 0: every flagged demo's p_value is below what a float holds
-            what += (f": flagged from {-np.log10(level):.3g} up" if level > 0 else ": flagged far up") + f" (fpr {fpr:g})"
+        level = None
+        if name == "suspicion":
+            values = np.log10(1 + np.maximum(values, 0))
+            p = flag_level(table, fpr) if fpr is not None else None
+            level = np.log10(1 - np.log10(p)) if p else None  # p of 0: below what a float holds, no bar
+            what = "suspicion, log10(1+x)"
+        else:
+            if log10:
+                values = np.log10(np.maximum(values, 1e-12))
+            what = name.replace("_", " ") + (", log10" if log10 else "")
+        _histogram(rec, f"scores/{name}", values, flagged, level=level)
         hist_views.append(rrb.BarChartView(origin=f"scores/{name}", name=what, plot_legend=rrb.PlotLegend(visible=False)))
     sigma = np.stack(table["sigma"].to_numpy()) if len(table) and "sigma" in table else None
-    typical = np.median(sigma[~flagged] if (~flagged).any() else sigma, axis=0) if sigma is not None else None
+    typical_sigma = np.median(sigma[~flagged] if (~flagged).any() else sigma, axis=0) if sigma is not None else None
+    shown = {}  # task -> the typical demo's entity path and episode
+    for k, (task, demo) in enumerate((typical or {}).items()):
+        shown[task] = (f"typical/{k:03d}", demo.episode_index, bool(demo.frames.size))
+        _log_demo(rec, shown[task][0], demo, None, fps, names)
     cols = [n for n, s in SCORERS.items() if s.in_suspicion and n in table]
     tabs = []
     for demo, row in zip(suspects, table.head(top).to_dict(orient="records")):
         base = suspect_path(row["rank"], row["episode_index"])
-        rec.log(f"{base}/about", rr.TextDocument(_suspect_markdown(row, cols), media_type=rr.MediaType.MARKDOWN),
-                static=True)
-        ratio = None if sigma is None else np.asarray(row["sigma"], np.float64) / np.maximum(typical, 1e-12)
+        other = shown.get(row["task"])
+        rec.log(f"{base}/about", rr.TextDocument(_suspect_markdown(row, cols, other and other[1]),
+                                                 media_type=rr.MediaType.MARKDOWN), static=True)
+        ratio = None if sigma is None else np.asarray(row["sigma"], np.float64) / np.maximum(typical_sigma, 1e-12)
         _log_demo(rec, base, demo, ratio, fps, names)
-        # No legends over the curves: hovering a curve names it (as the dataset names its dimensions).
-        plots = [rrb.TimeSeriesView(origin=f"{base}/{what}", name=f"{what} (hover a curve for its name)",
-                                    plot_legend=rrb.PlotLegend(visible=False)) for what in ("actions", "state")]
+        plots = [rrb.TimeSeriesView(origin=f"{base}/{what}", name=what, plot_legend=rrb.PlotLegend(visible=False))
+                 for what in ("actions", "state")]
         if sigma is not None:
-            plots.insert(0, rrb.BarChartView(origin=f"{base}/sigma", name="sigma / median of unflagged (1 = typical)",
+            plots.insert(0, rrb.BarChartView(origin=f"{base}/sigma", name="sigma (1 = typical)",
                                              plot_legend=rrb.PlotLegend(visible=False)))
-        why = rrb.TextDocumentView(origin=f"{base}/about", name="why")
-        tabs.append(rrb.Vertical(
-            rrb.Horizontal(why, rrb.Spatial2DView(origin=f"{base}/video", name="video"), column_shares=[1, 1])
-            if demo.frames.size else why,
-            rrb.Horizontal(*plots), row_shares=[3, 2],
-            name=f"#{row['rank']} ep{row['episode_index']}{' FLAGGED' if row['is_anomaly'] else ''}"))
+        top_row = [rrb.TextDocumentView(origin=f"{base}/about", name="why")]
+        if demo.frames.size:
+            top_row.append(rrb.Spatial2DView(origin=f"{base}/video", name=f"ep {row['episode_index']}"))
+        if other is not None:
+            plots.append(rrb.TimeSeriesView(origin=f"{other[0]}/actions", name=f"clean ep {other[1]}: actions",
+                                            plot_legend=rrb.PlotLegend(visible=False)))
+            if other[2]:
+                top_row.append(rrb.Spatial2DView(origin=f"{other[0]}/video", name=f"clean ep {other[1]}"))
+        tabs.append(rrb.Vertical(rrb.Horizontal(*top_row, column_shares=[4] + [3] * (len(top_row) - 1)),
+                                 rrb.Horizontal(*plots), row_shares=[3, 2],
+                                 name=f"#{row['rank']} ep{row['episode_index']}{' FLAGGED' if row['is_anomaly'] else ''}"))
     # Only the list itself: each suspect's "about" document lives under it too.
     left = [rrb.TextDocumentView(origin="suspects", contents="$origin", name="ranked suspects")]
     bottom = []
     if len(embedded_rows):
-        bottom.append(rrb.Spatial2DView(origin="map", name="task embedding (t-SNE of mu): colour = suspicion "
-                                        "(yellow = most suspect), red = flagged; hover a point for its episode"))
+        bottom.append(rrb.Spatial2DView(origin="map", name="map of the task embedding"))
     if hist_views:
         bottom.append(rrb.Tabs(*hist_views, name="score histograms"))
     if bottom:
         left.append(rrb.Horizontal(*bottom))
     body_left = rrb.Vertical(*left, row_shares=[1, 1][:len(left)])
-    body = rrb.Horizontal(body_left, rrb.Tabs(*tabs, name="suspects"), column_shares=[3, 2]) if tabs else body_left
+    body = rrb.Horizontal(body_left, rrb.Tabs(*tabs, name="suspects"), column_shares=[2, 3]) if tabs else body_left
     rec.send_blueprint(rrb.Blueprint(body, rrb.TimePanel(fps=fps, timeline="frame", state="collapsed"),
                                      collapse_panels=True))
     rec.flush()
