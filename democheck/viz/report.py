@@ -116,13 +116,15 @@ def _cell(value) -> str:
 
 
 def suspects_markdown(table: pd.DataFrame, top: int, title: str, fpr: float | None = None,
-                      warnings: list[str] | None = None) -> str:
+                      warnings: list[str] | None = None, tabs: int = 0) -> str:
     """The ranked list: the audit's warnings first, then what a reviewer decides by (rank, episode, the ranking,
-    the flag, why), the task and every other registered score the table has, and how to read the report."""
+    the flag, why), the task and every other registered score the table has, and how to read the report;
+    ``tabs``: how many of the most suspect have a tab of their own."""
     cols = [n for n, s in SCORERS.items() if s.in_audit and n in table and n != "suspicion"]
     n_flagged = int(table["is_anomaly"].sum())
-    lines = [f"# {title}", "", f"**{n_flagged} of {len(table)} demos flagged.** Each flagged demo (and each of "
-             "the top suspects) has a tab on the right: why, its video beside a clean demo of its task, its "
+    every = "every flagged one" if tabs >= n_flagged else f"{n_flagged - tabs} flagged ones have none"
+    lines = [f"# {title}", "", f"**{n_flagged} of {len(table)} demos flagged.** The {tabs} most suspect ({every}) "
+             "have a tab on the right: why, its video beside a clean demo of its task, its "
              "actions and state (hover a curve for the dataset's name of it). The map places demos by the model's "
              "task embedding, colour = suspicion (yellow = most suspect), red = flagged; hover a point for its "
              "episode. In the histograms red is the flagged demos' part of a bar; suspicion is drawn as "
@@ -239,7 +241,7 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: Sequence[Demo], 
     rec.save(str(path))
     top = len(suspects)
     flagged = table["is_anomaly"].to_numpy(bool)
-    text = suspects_markdown(table, max(top, 20), title, fpr, warnings)
+    text = suspects_markdown(table, max(top, 20), title, fpr, warnings, tabs=top)
     rec.log("suspects", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
     if len(embedded_rows):
         sub = table.iloc[embedded_rows]
