@@ -379,7 +379,8 @@ def test_a_normal_tail_keeps_the_rate_on_normal_scores_and_sees_how_far_out_a_de
               "coupling": rng.normal(-1.5, 0.1, 400)}
     values["coupling"][7] = -0.9  # six of its SDs less coupled than its task's others
     ev = Evidence(episodes=pd.DataFrame({"episode_index": np.arange(400), "task": tasks}), scores=values)
-    names, log_p, _ = ev.combination(model_free=True)
+    r = ev.combination(model_free=True)
+    names, log_p = r.config.names, r.log_p
     assert sorted(names) == ["coupling", "idle", "motion"] and SCORERS["coupling"].tail == "normal"
     assert log_p[7, names.index("coupling")] < np.log(1e-6)  # the exponential through its quartiles: about 1e-3
     assert all(SCORERS[n].tail == "exponential" for n in names if n != "coupling")
@@ -738,7 +739,7 @@ def test_the_ray_engine_without_ray_says_how_to_get_it(monkeypatch):
 def test_on_one_task_the_ranking_leaves_the_task_embeddings_scores_out():
     """A dataset of one task: task uncertainty and consistency are scored and reported, not ranked -- a clean
     demo far from its neighbours there is mostly one on an unusual layout; with two tasks they are ranked."""
-    from democheck.audit.ranking import ranked
+    from democheck.audit.scorers import ranked
 
     available = ["task_uncertainty", "consistency", "action_error", "motion", "idle", "view"]
     assert ranked(available, np.array(["push"] * 9)) == ["action_error", "motion", "idle", "view"]
@@ -804,7 +805,8 @@ def test_ksg_mutual_information_matches_the_gaussian_formula():
 
 
 def test_coupling_ranks_the_arm_let_go_of_first_and_is_one_look_with_the_action_error():
-    from democheck.audit.ranking import combine, look_columns, ranked
+    from democheck.audit.ranking import Ranking
+    from democheck.audit.scorers import ranked, ranking_config
 
     demos, bad = _planted("idle")
     d = demos[bad]
@@ -819,50 +821,51 @@ def test_coupling_ranks_the_arm_let_go_of_first_and_is_one_look_with_the_action_
     tasks = np.array(["push"] * len(values))
     names = ranked(available | {"action_error": values}, tasks)
     assert "coupling" in ranked(available, tasks) and {"coupling", "action_error"} <= set(names)
-    looks = look_columns(names)
+    config = ranking_config(names)
+    looks = config.looks()
     assert len(set(looks)) == len(names) - 1 and looks[names.index("coupling")] == looks[names.index("action_error")]
     log_p = np.log(np.array([[0.5, 0.5, 1e-6, 0.5], [0.5, 0.5, 0.5, 0.5]]))  # one row surprising on one of the two
     order = [names.index(n) for n in ("motion", "idle", "action_error", "coupling")]
     log_p = log_p[:, np.argsort(order)]
-    merged = combine(names, log_p)
-    alone = combine([n for n in names if n != "coupling"], np.delete(log_p, names.index("coupling"), axis=1))
-    np.testing.assert_allclose(merged[0], alone[0] - np.log10(2), rtol=1e-3)  # 1 - (1 - p)^2 is about 2p
-    # With enough demos for Brown's correction too: the pair is one column, its Sidak minimum, NaN where neither saw.
     from democheck.audit.scores import combined_log10, sidak_log10
 
+    def combine(cfg, lp):
+        return -combined_log10(lp, np.array([s.alone for s in cfg.specs]), cfg.looks())
+
+    merged = combine(config, log_p)
+    alone = combine(config.without("coupling"), np.delete(log_p, names.index("coupling"), axis=1))
+    np.testing.assert_allclose(merged[0], alone[0] - np.log10(2), rtol=1e-3)  # 1 - (1 - p)^2 is about 2p
+    # With enough demos for Brown's correction too: the pair is one column, its Sidak minimum, NaN where neither saw.
     log_p = np.log(np.random.default_rng(1).uniform(size=(60, len(names))))
     log_p[3, [names.index("action_error"), names.index("coupling")]] = np.nan
     pair = [names.index("action_error"), names.index("coupling")]
     one = np.where(np.isnan(log_p[:, pair]).all(1), np.nan, sidak_log10(log_p[:, pair]) * np.log(10))
     by_hand = np.column_stack([log_p[:, [j for j in range(len(names)) if j not in pair]], one])
-    np.testing.assert_allclose(combine(names, log_p), -combined_log10(by_hand), rtol=1e-9)
+    np.testing.assert_allclose(combine(config, log_p), -combined_log10(by_hand), rtol=1e-9)
     # A reason names the look once, by the score that drove it, at the odds the ranking counted.
-    from democheck.audit.ranking import look_odds
-
-    shown = look_odds(["motion", "action_error", "coupling"], np.log([[0.3, 1e-6, 0.5], [0.3, 0.4, 0.01]]))
+    three = ranking_config(["motion", "action_error", "coupling"])
+    shown = Ranking(three, np.log([[0.3, 1e-6, 0.5], [0.3, 0.4, 0.01]]), np.ones(2, bool), np.zeros(2)).look_odds()
     np.testing.assert_allclose(np.exp(shown[:, 0]), [0.3, 0.3])
     np.testing.assert_allclose(np.exp([shown[0, 1], shown[1, 2]]), [2e-6, 1 - 0.99 ** 2], rtol=1e-5)
     assert np.isnan(shown[0, 2]) and np.isnan(shown[1, 1])
 
 
-def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos(monkeypatch):
+def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos():
     # Smooth scripted demos whose state-action information hardly varies (0.02 nats): one 0.15 nats below the rest
     # stays in the robust core (COUPLING_MIN_SCALE), one that let go (a nat and a half below) is far out.
-    import dataclasses
-
-    from democheck.audit.ranking import ranking_tails
+    from democheck.audit.ranking import rank
+    from democheck.audit.scorers import ranking_config
     from democheck.audit.scores import CORE_P
 
     rng = np.random.default_rng(0)
     values = -3.4 + rng.normal(0, 0.02, 40)
     values[[5, 9]] = -3.4 + 0.15, -3.4 + 1.5  # minus the information: higher is less coupled
-    ev = Evidence(episodes=pd.DataFrame({"episode_index": np.arange(40), "task": "reach"}),
-                  scores={"coupling": values})
-    p = np.exp(ranking_tails(ev, ["coupling"])[0][:, 0])
+    config, tasks = ranking_config(["coupling"]), np.array(["reach"] * 40)
+    p = np.exp(rank({"coupling": values}, tasks, config).log_p[:, 0])
     assert p[5] > CORE_P and p[9] < 1e-6
-    # Without the floor the near-identical demos' spread calls the first one far out.
-    monkeypatch.setitem(SCORERS, "coupling", dataclasses.replace(SCORERS["coupling"], ranking_min_scale=0.0))
-    assert np.exp(ranking_tails(ev, ["coupling"])[0][5, 0]) < 1e-8
+    # Without the floor (a variant of the config, as a sweep makes one) the near-identical demos' spread calls the
+    # first one far out.
+    assert np.exp(rank({"coupling": values}, tasks, config.with_spec("coupling", floor=0.0)).log_p[5, 0]) < 1e-8
 
 
 def test_outcome_compares_an_end_with_the_demos_that_started_on_its_side():

@@ -123,6 +123,13 @@ def test_the_shapes_benchmark_adds_dimensions_that_change_nothing_of_the_ranking
         table = pd.read_parquet(tmp_path / f"r-{ds.name}" / "scores.parquet")
         ranks.append(table.loc[table["label"].fillna("clean") != "clean", "rank"].sort_values().tolist())
     assert len(ranks[0]) == 2 and ranks[0] == ranks[1]
+    # The ranking's sweep re-ranks the saved audit as the audit did (it checks), and under a variant.
+    spec = importlib.util.spec_from_file_location("sweep", path.parent / "ranking" / "sweep.py")
+    sweep = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sweep)
+    got = sweep.main([str(tmp_path / "r-data"), "--variants", "shipped,no-floors,without-outcome"])
+    assert got[("r-data", "shipped")]["idle"] == 1.0 and got[("r-data", "shipped")]["random"] == 1.0
+    assert set(got) == {("r-data", v) for v in ("shipped", "no-floors", "without-outcome")}
 
 
 def test_a_spread_beside_a_pile_is_an_outcome_and_a_few_failures_beside_it_are_not():

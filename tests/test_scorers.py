@@ -10,7 +10,6 @@ import re
 import numpy as np
 import pytest
 
-from democheck.audit import ranking
 from democheck.audit.run import gather_evidence
 from democheck.audit.scorers import NEEDS, SCORERS, Evidence, select
 from democheck.data import open_dataset
@@ -123,7 +122,7 @@ def test_suspicion_reason_names_the_score_that_ranks_each_demo(evidence):
                      r"clean demo)", first), first
     idle = reasons[labels == "idle"][0]
     assert "the arm hardly moves" in idle or "the arm stands still" in idle, idle
-    drivers = set(ranking.drivers(evidence))
+    drivers = set(evidence.explanation()[1])
     assert drivers <= {n for n, s in SCORERS.items() if s.in_suspicion}
-    for r, d in zip(reasons, ranking.drivers(evidence)):  # each reason's first clause ends with its driver
+    for r, d in zip(reasons, evidence.explanation()[1]):  # each reason's first clause ends with its driver
         assert not r or f"({d}, " in r.split("; also ")[0] or r.startswith(f"{d}: "), (d, r)

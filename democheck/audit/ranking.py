@@ -1,154 +1,176 @@
-"""The ranking: how the registry's scores (``democheck.audit.scorers``) become one column, ``suspicion``.
+"""The ranking: how a table of scores becomes one column, ``suspicion`` -- a pure function of the scores and a
+``RankingConfig``, which holds how each score enters (``ScoreSpec``) as data.
 
-Each score of the ranking in robust standard deviations within the group its demo is judged in
-(``ranking_z``), a tail probability fitted on the audited demos' robust core (``ranking_tails``), and those
-combined (``combine``: Fisher-Brown, the recording faults beside the rest, the scores of one look merged --
-``scores`` holds the arithmetic and says how each part was chosen); ``combination`` adds the reason.  What each
-scorer contributes -- its tail's family, whether it stands apart, its look, its floor -- is an attribute of its
-``scorers.Scorer``, read here from the registry at call time (the registry's own ``suspicion`` scorer calls back
-into this module).
+Each score in robust standard deviations within the group its demo is judged in (``ranking_z``), a tail
+probability fitted on the audited demos' robust core, and those combined (Fisher-Brown, the recording faults
+beside the rest, the scores of one look merged -- ``scores`` holds the arithmetic): ``rank``.  ``explain`` turns a
+``Ranking`` and the checks' own words into reasons.  The registry (``democheck.audit.scorers``) builds the config
+from its scorers (``scorers.ranking_config``); this module knows no check by name.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
-import pandas as pd
 
-from democheck.audit import scorers as registry
-from democheck.audit.flagging import is_broken
-from democheck.audit.scores import calibrated, combined_log10, merge_looks, robust_tails
-
-if TYPE_CHECKING:
-    from democheck.audit.scorers import Evidence, Scores
+from democheck.audit.flagging import conformal_p
+from democheck.audit.scores import CORE_P, calibrated, combined_log10, merge_looks, robust_tails
 
 
-def ranking_z(ev: Evidence, names: list[str], core: np.ndarray | None = None) -> np.ndarray:
-    """[N, K]: the ranking's scores ``names`` in robust standard deviations within the group each demo is judged in
-    (its task, ``Evidence.groups``; a score on a log scale first where its scorer says so; one that is a robust z
-    already as it is), each group's centre and the unit from the ``core`` demos (default: every demo;
-    ``scores.calibrated``)."""
-    cols, groups = [], ev.groups
-    for n in names:
-        s, x = registry.SCORERS[n], np.asarray(ev.scores[n], np.float64)
-        x = np.log(np.maximum(x, 1e-12)) if s.log_in_ranking else x
-        cols.append(x if s.in_robust_sd else calibrated(x, groups, min_scale=s.ranking_min_scale, core=core))
-    return np.column_stack(cols) if cols else np.zeros((len(ev.episodes), 0))
+@dataclass(frozen=True)
+class ScoreSpec:
+    """How one score enters the ranking."""
+
+    name: str
+    log: bool = False  # on a log scale first (a squared error's long right tail)
+    in_robust_sd: bool = False  # already a robust z within its task: taken as it is
+    floor: float = 0.0  # the least spread a robust standard deviation stands for, in the score's units
+    tail: str = "exponential"  # the family of its clean right tail: "exponential" or "normal"
+    alone: bool = False  # a recording fault: beside the others' sum, by its Sidak minimum
+    look: str = ""  # scores of one look (one piece of evidence) are merged first; "" = its own look
+    lead: int = 0  # where its words stand in a reason beyond every clean demo: lower leads
 
 
-def ranking_tails(ev: Evidence, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """The tail probabilities (natural logs, [N, K]) of the ranking's scores ``names`` and the robust core they
-    are fitted on (``scores.robust_tails`` of ``ranking_z``), each score's tail of its scorer's family."""
-    return robust_tails(lambda core: ranking_z(ev, names, core), normal=normal_tails(names),
-                        alone=alone_columns(names), outside=broken_rows(ev), looks=look_columns(names))
+@dataclass(frozen=True)
+class RankingConfig:
+    """Every ranked score's ``ScoreSpec`` and the settings of the combination, as data (``summary.json`` records
+    it; ``benchmarks/ranking`` varies it)."""
+
+    specs: tuple[ScoreSpec, ...] = ()
+    core_p: float = CORE_P  # a demo whose combined probability is at most this leaves the robust core
+    reason_p: float = 0.05  # a score this surprising (tail probability) is named in a reason beside the first
+
+    @property
+    def names(self) -> list[str]:
+        return [s.name for s in self.specs]
+
+    def looks(self) -> np.ndarray:
+        """[K] numbers, equal for the scores of one look."""
+        keys = [s.look or s.name for s in self.specs]
+        return np.array([keys.index(k) for k in keys], int)
+
+    def without(self, *names: str) -> RankingConfig:
+        return replace(self, specs=tuple(s for s in self.specs if s.name not in names))
+
+    def with_spec(self, name: str, **changes) -> RankingConfig:
+        return replace(self, specs=tuple(replace(s, **changes) if s.name == name else s for s in self.specs))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> RankingConfig:
+        return cls(**{**d, "specs": tuple(ScoreSpec(**s) for s in d.get("specs", ()))})
 
 
-def broken_rows(ev: Evidence) -> np.ndarray:
-    """Which demos are broken recordings (``flagging.is_broken``; ``flagging.broken_recordings`` on a table): bool
-    [N], all False without that check."""
-    return is_broken(ev.scores["broken"]) if "broken" in ev.scores else np.zeros(len(ev.episodes), bool)
+@dataclass
+class Ranking:
+    """``rank``'s result: the ranked scores' tail probabilities (natural logs [N, K], in ``config.names``' order),
+    the robust core they were fitted on (bool [N]), and ``suspicion`` = -log10 of the combined probability (+inf
+    for a broken recording)."""
+
+    config: RankingConfig
+    log_p: np.ndarray
+    core: np.ndarray
+    suspicion: np.ndarray
+    broken: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    def look_odds(self) -> np.ndarray:
+        """``log_p`` as a reason reads it: in each row, the score of a look of several that drove it carries the
+        look's merged tail probability (what the ranking counted), the look's other scores NaN, so that one look
+        is named once, at its own odds."""
+        looks = self.config.looks()
+        out = np.array(self.log_p, np.float64, copy=True)
+        for look in np.unique(looks):
+            cols = np.flatnonzero(looks == look)
+            if len(cols) < 2:
+                continue
+            merged, _ = merge_looks(self.log_p[:, cols], np.zeros(len(cols), int))
+            first = cols[np.argmin(np.nan_to_num(self.log_p[:, cols], nan=np.inf), axis=1)]
+            out[:, cols] = np.nan
+            out[np.arange(len(out)), first] = merged[:, 0]
+        return out
+
+    def per_check(self, fpr: float) -> dict[str, np.ndarray]:
+        """``p_<name>``: each ranked score's tail probability, comparable across scores; ``is_<name>``: whether
+        that score alone puts the demo among the ``fpr`` most surprising of the core (conformal, as the flag)."""
+        out = {}
+        for k, name in enumerate(self.config.names):
+            lp = self.log_p[:, k]
+            out[f"p_{name}"] = np.exp(lp)
+            surprise = np.where(np.isnan(lp), -np.inf, -lp)
+            out[f"is_{name}"] = ~np.isnan(lp) & (conformal_p(surprise, self.core) <= fpr)
+        return out
 
 
-def normal_tails(names: list[str]) -> np.ndarray:
-    """Which of the ranking's scores ``names`` have a normal tail (``Scorer.tail``): bool [K]."""
-    return np.array([registry.SCORERS[n].tail == "normal" for n in names], bool)
+def ranking_z(values: Mapping[str, np.ndarray], groups: np.ndarray, config: RankingConfig,
+              core: np.ndarray | None = None) -> np.ndarray:
+    """[N, K]: the config's scores in robust standard deviations within the group each demo is judged in (a score
+    on a log scale first where its spec says so; one that is a robust z already as it is), each group's centre and
+    unit from the ``core`` demos (default: every demo; ``scores.calibrated``)."""
+    cols = []
+    for s in config.specs:
+        x = np.asarray(values[s.name], np.float64)
+        x = np.log(np.maximum(x, 1e-12)) if s.log else x
+        cols.append(x if s.in_robust_sd else calibrated(x, groups, min_scale=s.floor, core=core))
+    return np.column_stack(cols) if cols else np.zeros((len(groups), 0))
 
 
-def alone_columns(names: list[str]) -> np.ndarray:
-    """Which of the ranking's scores ``names`` stand apart in the combination (``Scorer.alone``): bool [K]."""
-    return np.array([registry.SCORERS[n].alone for n in names], bool)
+def rank(values: Mapping[str, np.ndarray], groups: np.ndarray, config: RankingConfig,
+         broken: np.ndarray | None = None) -> Ranking:
+    """Rank demos by their scores ``values`` (by name; at least ``config.names``) judged within ``groups``: the
+    tails fitted on the robust core (``scores.robust_tails``) and combined.  ``broken`` demos (bool [N]) are never
+    in the core and rank first."""
+    n = len(groups)
+    broken = np.zeros(n, bool) if broken is None else np.asarray(broken, bool)
+    if not config.specs:
+        return Ranking(config, np.zeros((n, 0)), ~broken, np.full(n, np.nan), broken)
+    normal = np.array([s.tail == "normal" for s in config.specs], bool)
+    alone = np.array([s.alone for s in config.specs], bool)
+    looks = config.looks()
+    log_p, core = robust_tails(lambda c: ranking_z(values, groups, config, c), core_p=config.core_p, normal=normal,
+                               alone=alone, outside=broken, looks=looks)
+    suspicion = -combined_log10(log_p, alone, looks)
+    return Ranking(config, log_p, core, np.where(broken, np.inf, suspicion), broken)
 
 
-def look_columns(names: list[str]) -> np.ndarray:
-    """Which look each of the ranking's scores ``names`` is (``Scorer.look``; a scorer without one, its own): [K]
-    numbers, equal for the columns of one look."""
-    looks = [registry.SCORERS[n].look or n for n in names]
-    return np.array([looks.index(k) for k in looks])
-
-
-def combine(names: list[str], log_p: np.ndarray) -> np.ndarray:
-    """The ranking: -log10 of the combined tail probability of the scores ``names`` (``scores.combined_log10``,
-    the recording faults beside the rest, the scores of one look merged)."""
-    return -combined_log10(log_p, alone_columns(names), look_columns(names))
-
-
-def ranked(available, tasks: np.ndarray, model_free: bool = False, untrusted=()) -> list[str]:
-    """The scores the ranking combines, of those ``available`` (names, or columns by name): every
-    ``in_suspicion`` scorer's, less the task embedding's on a dataset of one task (``in_single_task_ranking``),
-    less the model's with ``model_free`` and those it did not earn (``untrusted``, ``trust.untrusted``), less a
-    column with no score at all (the outcome of a dataset whose tasks are all too small to compare): a look that
-    cannot see anything must not cost the others' correction."""
-    one_task = len(np.unique(tasks)) == 1
-    columns = isinstance(available, (dict, pd.DataFrame))
-
-    def scored(n: str) -> bool:
-        return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
-
-    return [n for n, s in registry.SCORERS.items() if s.in_suspicion and n in available and n not in untrusted
-            and (s.model_free or not model_free) and (s.in_single_task_ranking or not one_task) and scored(n)]
-
-
-REASON_P = 0.05  # a score this surprising (tail probability) is named in the ranking's reason beside the first
-
-
-def combination(ev: Evidence, model_free: bool = False) -> Scores:
-    """-log10 of the combined tail probability of the ranking's scores (``scores.combined_log10``), and the
-    score that drove it."""
-    names, log_p, core = ev.combination(model_free)
-    if not names:
-        return np.full(len(ev.episodes), np.nan), None
-    value = combine(names, log_p)
-    references = int(np.asarray(core, bool).sum())
-    reasons = []
-    for i, row in enumerate(np.nan_to_num(look_odds(names, log_p), nan=0.0)):  # no score: nothing to name
-        order = clauses(names, row, references)
+def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list[str] | None = None
+            ) -> tuple[list[str], list[str]]:
+    """Each demo's reason and the check it names first: what the checks saw in their own ``words`` (by name, one
+    per demo), in the order ``clauses`` gives, each with which check and how rare; a broken recording's
+    ``broken_words``."""
+    names, n = ranking.config.names, len(ranking.suspicion)
+    references = int(np.asarray(ranking.core, bool).sum())
+    reasons, first = [], []
+    for i, row in enumerate(np.nan_to_num(ranking.look_odds(), nan=0.0)):  # no score: nothing to name
+        if ranking.broken.size and ranking.broken[i]:
+            reasons.append(f"broken: {(broken_words or [''] * n)[i]}")
+            first.append("broken")
+            continue
+        order = clauses(ranking.config, row, references)
         parts = []
         for j in order:  # what the check saw in its own words first, then which check and how rare
-            own = (ev.reasons.get(names[j]) or [""] * len(log_p))[i]
+            own = (words.get(names[j]) or [""] * n)[i]
             odds = _odds(float(row[j]), references)
             parts.append(f"{own} ({names[j]}, {odds})" if own else f"{names[j]}: {odds}")
         reasons.append("; also ".join(parts))
-    broken = broken_rows(ev)
-    if broken.any():  # a broken recording is suspect whatever its other scores (``modelfree.broken``)
-        value = np.where(broken, np.inf, value)
-        reasons = [f"broken: {ev.reasons['broken'][i]}" if broken[i] else r for i, r in enumerate(reasons)]
-    return value, reasons
+        first.append(names[order[0]] if order else "")
+    return reasons, first
 
 
-# The checks whose words say what the demo did, in the order a reason prefers them: the arm, then the world it left,
-# then what the camera saw.  The recording faults come after them, then the coupling (a frozen sensor and an
-# operator who let go both loosen it), the model's readings last.
-WHAT_HAPPENED = ("idle", "motion", "jerk", "outcome", "view", "colours")
-
-
-def clauses(names: list[str], row: np.ndarray, references: int) -> list[int]:
+def clauses(config: RankingConfig, row: np.ndarray, references: int) -> list[int]:
     """The looks a demo's reason names (``row``: their log tail probabilities), in the order it names them: up to
-    three, the smallest probability and those under ``REASON_P``.  First, of those beyond every clean demo (or the
-    smallest alone), what the demo did (``WHAT_HAPPENED``) before how it was recorded before the model's reading of
-    it -- a reviewer acts on the behaviour; then by probability."""
-    order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(REASON_P)]
-
-    def kind(j: int) -> int:
-        if names[j] in WHAT_HAPPENED:
-            return WHAT_HAPPENED.index(names[j])
-        s = registry.SCORERS[names[j]]
-        return len(WHAT_HAPPENED) + (0 if s.alone else 1 if s.model_free else 2)
-
+    three, the smallest probability and those under ``reason_p``.  First, of those beyond every clean demo (or the
+    smallest alone), the one whose spec leads (what the demo did before how it was recorded before the model's
+    reading of it -- a reviewer acts on the behaviour); then by probability."""
+    if not len(row):
+        return []
+    order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(config.reason_p)]
     beyond = [j for j in order if np.exp(row[j]) * (references + 1) < 1] or order[:1]
-    lead = min(beyond, key=lambda j: (kind(j), row[j]))
+    lead = min(beyond, key=lambda j: (config.specs[j].lead, row[j]))
     return [lead, *[j for j in order if j != lead]][:3]
-
-
-def drivers(ev: Evidence, model_free: bool = False) -> list[str]:
-    """The check each demo's reason names first (``clauses``; ``broken`` for a broken recording)."""
-    names, log_p, core = ev.combination(model_free)
-    if not names:
-        return [""] * len(ev.episodes)
-    rows = np.nan_to_num(look_odds(names, log_p), nan=0.0)
-    references = int(np.asarray(core, bool).sum())
-    broken = broken_rows(ev)
-    return ["broken" if broken[i] else names[clauses(names, r, references)[0]] for i, r in enumerate(rows)]
 
 
 REASON_CHARS = 160  # a reason keeps the driving check's clause and adds the others' while it stays this short
@@ -163,23 +185,6 @@ def brief(reason: str) -> str:
         if len(out) + len("; also ") + len(part) > REASON_CHARS:
             break
         out += "; also " + part
-    return out
-
-
-def look_odds(names: list[str], log_p: np.ndarray) -> np.ndarray:
-    """``log_p`` as a reason reads it: in each row, the score of a look of several (``Scorer.look``) that drove it
-    carries the look's merged tail probability (``scores.merge_looks``: what the ranking counted), the look's
-    other scores NaN, so that one look is named once, at its own odds."""
-    looks = look_columns(names)
-    out = np.array(log_p, np.float64, copy=True)
-    for look in np.unique(looks):
-        cols = np.flatnonzero(looks == look)
-        if len(cols) < 2:
-            continue
-        merged, _ = merge_looks(log_p[:, cols], np.zeros(len(cols), int))
-        first = cols[np.argmin(np.nan_to_num(log_p[:, cols], nan=np.inf), axis=1)]
-        out[:, cols] = np.nan
-        out[np.arange(len(out)), first] = merged[:, 0]
     return out
 
 

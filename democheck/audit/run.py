@@ -194,10 +194,14 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
     suspicion = table["suspicion"].to_numpy(np.float64)
     table["p_value"] = 10.0 ** -suspicion
     # The reference the flags are calibrated on: the robust core the ranking's tails were fitted on.
-    table["reference"] = ev.combination()[2] if "suspicion" in ev.scores else np.zeros(len(table), bool)
+    ranked = ev.combination() if "suspicion" in ev.scores else None
+    table["reference"] = ranked.core if ranked is not None else np.zeros(len(table), bool)
     table["p_reference"] = conformal_p(suspicion, table["reference"].to_numpy())
     table["details"] = ev.reasons.get("suspicion", [""] * len(table))
-    table["driven_by"] = ranking.drivers(ev) if "suspicion" in ev.scores else [""] * len(table)
+    table["driven_by"] = ev.explanation()[1] if ranked is not None and ranked.config.specs else [""] * len(table)
+    if ranked is not None:  # each ranked check's own tail probability and flag: columns that compare
+        for name, values in ranked.per_check(fpr).items():
+            table[name] = values
     copies = exact_copies(table)
     table["is_anomaly"] = flags(table["p_reference"].to_numpy(), fpr, flagged_regardless(table))
     if copies is not None and copies.any():
@@ -254,7 +258,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     still = functools.cache(lambda: still_cues(ds, ckpt.model, device)) if ckpt is not None and ds.has_camera else None
     ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers,
                          engine=engine, ray_address=ray_address, still=still)
-    broken = ranking.broken_rows(ev)
+    broken = registry.broken_rows(ev)
     if len(broken) and broken.all():  # nothing left to compare a demo with: the dataset, not a demo, is what is broken
         raise DatasetError(f"{ds.root}: every episode is broken, e.g. episode "
                            f"{int(ev.episodes['episode_index'].iloc[0])}: {ev.reasons['broken'][0]}")
@@ -309,6 +313,8 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         summary["labels"] = table["label"].value_counts().to_dict()
     summary["warnings"] = (unreadable_files(ev.episodes["episode_index"].to_numpy(), ev.reasons.get("broken"))
                            + warnings(table, ckpt, ev.untrusted))
+    if "suspicion" in ev.scores:  # how the ranking was made, as data (``ranking.RankingConfig``)
+        summary["ranking"] = ev.combination().config.to_dict()
     return table, summary
 
 
@@ -360,7 +366,7 @@ def flag_summary(table: pd.DataFrame, fpr: float, untrusted=()) -> dict[str, Any
         "reference": f"the audited demos' robust core ({int(reference.sum())} of {len(table)}): the demos whose "
                      f"combined tail probability is above {CORE_P:g} once each score's tail is fitted on them, "
                      "refitted until it no longer changes -- believed clean while the bad demos are a minority",
-        "scores": ranking.ranked(table, table["task"].to_numpy(), untrusted=untrusted),
+        "scores": registry.ranked(table, table["task"].to_numpy(), untrusted=untrusted),
     }
     left_out = [n for n, s in registry.SCORERS.items() if s.in_suspicion and not s.in_single_task_ranking
                 and n in table] if table["task"].nunique() == 1 else []

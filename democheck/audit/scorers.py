@@ -26,6 +26,7 @@ import pandas as pd
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, sensors, trust
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
+from democheck.audit.flagging import is_broken
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.scores import CONSISTENCY_K, consistency_parts
 from democheck.data.demo import Demo
@@ -84,7 +85,8 @@ class Evidence:
     # Task uncertainty of cut cues and of the same demos' real ones (``trust``), or how to measure it when needed.
     still: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
     _z: np.ndarray | None = field(default=None, repr=False)
-    _combinations: dict[tuple, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
+    _combinations: dict[tuple, ranking.Ranking] = field(default_factory=dict, repr=False)
+    _explained: dict[bool, tuple[list[str], list[str]]] = field(default_factory=dict, repr=False)
 
     def task_variables(self) -> np.ndarray:
         """``controller_z`` of every demo (what its actions are judged under), computed once."""
@@ -92,15 +94,23 @@ class Evidence:
             self._z = controller_z(self.posterior, self.tasks)
         return self._z
 
-    def combination(self, model_free: bool = False) -> tuple[list[str], np.ndarray, np.ndarray]:
-        """The ranking's scores (``ranked``), their tail probabilities (natural logs, [N, K]) fitted on the audited
-        demos' robust core (``scores.robust_tails``), and that core [N]: the reference the flags are calibrated
-        on.  Computed once for each set of scores (the ranking and the audit's flags both read it)."""
-        names = ranking.ranked(self.scores, self.tasks, model_free, self.untrusted)
+    def combination(self, model_free: bool = False) -> ranking.Ranking:
+        """The ranking of the scores ``ranked`` picks (``ranking.rank`` under ``ranking_config``): their tail
+        probabilities, the robust core they were fitted on (the reference the flags are calibrated on) and the
+        suspicion.  Computed once for each set of scores (the ranking and the audit's flags both read it)."""
+        names = ranked(self.scores, self.tasks, model_free, self.untrusted)
         key = tuple(names)
         if key not in self._combinations:
-            self._combinations[key] = ranking.ranking_tails(self, names)
-        return (names, *self._combinations[key])
+            self._combinations[key] = ranking.rank(self.scores, self.groups, ranking_config(names),
+                                                   broken_rows(self))
+        return self._combinations[key]
+
+    def explanation(self, model_free: bool = False) -> tuple[list[str], list[str]]:
+        """Each demo's reason (every clause) and the check it names first (``ranking.explain``), once."""
+        if model_free not in self._explained:
+            self._explained[model_free] = ranking.explain(self.combination(model_free), self.reasons,
+                                                          self.reasons.get("broken"))
+        return self._explained[model_free]
 
     @property
     def untrusted(self) -> dict[str, str]:
@@ -256,12 +266,13 @@ ACTIONS_EXPLAINED = "actions explained"  # the look of the action error and the 
 FAULT_MIN_SCALE = 0.02
 
 
-def _suspicion(ev: Evidence) -> Scores:
-    return ranking.combination(ev)
+def _suspicion(ev: Evidence, model_free: bool = False) -> Scores:
+    r = ev.combination(model_free)
+    return (r.suspicion, ev.explanation(model_free)[0]) if r.config.specs else (r.suspicion, None)
 
 
 def _model_free(ev: Evidence) -> Scores:
-    return ranking.combination(ev, model_free=True)
+    return _suspicion(ev, model_free=True)
 
 
 def _motion(ev: Evidence) -> Scores:
@@ -443,6 +454,47 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
 
 # Column names before the registry, readable for one release: the audit also writes ``score``.
 RENAMED = {"score": "task_uncertainty"}
+
+
+# The checks whose words say what the demo did, in the order a reason prefers them: the arm, then the world it left,
+# then what the camera saw.  The recording faults come after them, then the other model-free checks (the coupling:
+# a frozen sensor and an operator who let go both loosen it), the model's readings last (``ScoreSpec.lead``).
+WHAT_HAPPENED = ("idle", "motion", "jerk", "outcome", "view", "colours")
+
+
+def ranked(available, tasks: np.ndarray, model_free: bool = False, untrusted=()) -> list[str]:
+    """The scores the ranking combines, of those ``available`` (names, or columns by name): every
+    ``in_suspicion`` scorer's, less the task embedding's on a dataset of one task (``in_single_task_ranking``),
+    less the model's with ``model_free`` and those it did not earn (``untrusted``, ``trust.untrusted``), less a
+    column with no score at all (the outcome of a dataset whose tasks are all too small to compare): a look that
+    cannot see anything must not cost the others' correction."""
+    one_task = len(np.unique(tasks)) == 1
+    columns = isinstance(available, (dict, pd.DataFrame))
+
+    def scored(n: str) -> bool:
+        return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
+
+    return [n for n, s in SCORERS.items() if s.in_suspicion and n in available and n not in untrusted
+            and (s.model_free or not model_free) and (s.in_single_task_ranking or not one_task) and scored(n)]
+
+
+def ranking_config(names: list[str]) -> ranking.RankingConfig:
+    """How the scores ``names`` enter the ranking, from their scorers: ``ranking.ScoreSpec`` each."""
+    def lead(s: Scorer) -> int:
+        if s.name in WHAT_HAPPENED:
+            return WHAT_HAPPENED.index(s.name)
+        return len(WHAT_HAPPENED) + (0 if s.alone else 1 if s.model_free else 2)
+
+    return ranking.RankingConfig(tuple(
+        ranking.ScoreSpec(n, log=s.log_in_ranking, in_robust_sd=s.in_robust_sd, floor=s.ranking_min_scale,
+                          tail=s.tail, alone=s.alone, look=s.look, lead=lead(s))
+        for n, s in ((n, SCORERS[n]) for n in names)))
+
+
+def broken_rows(ev: Evidence) -> np.ndarray:
+    """Which demos are broken recordings (``flagging.is_broken``; ``flagging.broken_recordings`` on a table): bool
+    [N], all False without that check."""
+    return is_broken(ev.scores["broken"]) if "broken" in ev.scores else np.zeros(len(ev.episodes), bool)
 
 
 def select(names: list[str] | None = None, audit: bool = True) -> list[Scorer]:

@@ -1,0 +1,92 @@
+"""Vary the ranking over saved audits: one ``RankingConfig`` per variant, the audit's own ``ranking.rank``.
+
+    python benchmarks/ranking/sweep.py AUDIT [AUDIT ...] [--labels A.labels.csv ...] [--variants shipped,no-looks]
+
+Each AUDIT is a ``democheck audit`` folder (its ``scores.parquet``; labels from a ``label`` column there or from
+``--labels``, one csv of ``episode_index,label`` per audit in order).  Each variant is a change to the config the
+audit recorded in ``summary.json`` (``ranking``): the table is ranked again with it and scored per planted kind
+(AUROC of the suspicion against the clean demos) and by the clean demos it flags at the audit's ``--fpr``.  The
+``shipped`` variant reproduces the audit's own suspicion (checked).  ``VARIANTS`` lists the others; add one there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from democheck.audit.flagging import conformal_p, is_broken
+from democheck.audit.metrics import detection
+from democheck.audit.ranking import RankingConfig, rank
+from democheck.audit.scorers import comparison_groups
+
+RECORDING_FAULTS = ("jerk", "lag", "timing", "frozen_video", "frame_jump", "frozen_state")
+
+# Each: a config -> a config.  The questions the ranking's choices answered (see README.md here).
+VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
+    "shipped": lambda c: c,
+    "no-looks": lambda c: replace(c, specs=tuple(replace(s, look="") for s in c.specs)),
+    "no-faults-apart": lambda c: replace(c, specs=tuple(replace(s, alone=False) for s in c.specs)),
+    "exponential-tails": lambda c: replace(c, specs=tuple(replace(s, tail="exponential") for s in c.specs)),
+    "no-floors": lambda c: replace(c, specs=tuple(replace(s, floor=0.0) for s in c.specs)),
+    "core-1e-3": lambda c: replace(c, core_p=1e-3),
+    "core-1e-6": lambda c: replace(c, core_p=1e-6),
+    "without-outcome": lambda c: c.without("outcome"),
+    "without-faults": lambda c: c.without(*RECORDING_FAULTS),
+}
+
+
+def rerank(table: pd.DataFrame, config: RankingConfig, fpr: float) -> tuple[np.ndarray, np.ndarray]:
+    """The suspicion and the flags of ``table``'s demos under ``config``."""
+    values = {n: table[n].to_numpy(np.float64) for n in config.names}
+    broken = is_broken(table["broken"]) if "broken" in table else None
+    r = rank(values, comparison_groups(table["task"].to_numpy()), config, broken)
+    flags = conformal_p(r.suspicion, r.core) <= fpr
+    return r.suspicion, flags | (np.zeros(len(table), bool) if broken is None else broken)
+
+
+def evaluate(table: pd.DataFrame, suspicion: np.ndarray, flags: np.ndarray) -> dict:
+    labels = table["label"].fillna("clean").astype(str).to_numpy()  # a synthetic set labels only its defects
+    clean = labels == "clean"
+    out = {}
+    for kind in sorted(set(labels) - {"clean"}):
+        bad = labels == kind
+        y = np.r_[np.ones(bad.sum(), bool), np.zeros(clean.sum(), bool)]
+        out[kind] = round(detection(y, np.r_[suspicion[bad], suspicion[clean]])["auroc"], 4)
+    out["clean flagged"] = f"{int(flags[clean].sum())} of {int(clean.sum())}"
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("audits", nargs="+", type=Path)
+    ap.add_argument("--labels", nargs="*", type=Path, default=[])
+    ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated names from VARIANTS")
+    args = ap.parse_args(argv)
+    results = {}
+    for i, audit in enumerate(args.audits):
+        table = pd.read_parquet(audit / "scores.parquet")
+        if i < len(args.labels):
+            table = table.drop(columns="label", errors="ignore").merge(pd.read_csv(args.labels[i]), on="episode_index")
+        if "label" not in table:
+            sys.exit(f"{audit}: no labels (a label column, or --labels)")
+        summary = json.loads((audit / "summary.json").read_text())
+        config = RankingConfig.from_dict(summary["ranking"])
+        fpr = summary["flag"]["fpr"]
+        for name in args.variants.split(","):
+            suspicion, flags = rerank(table, VARIANTS[name](config), fpr)
+            if name == "shipped":  # the sweep ranks as the audit did
+                np.testing.assert_allclose(suspicion, table["suspicion"].to_numpy(np.float64), rtol=1e-6)
+            results[(audit.name, name)] = evaluate(table, suspicion, flags)
+            print(f"{audit.name:24s} {name:18s} {results[(audit.name, name)]}", flush=True)
+    return results
+
+
+if __name__ == "__main__":
+    main()
