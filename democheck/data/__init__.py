@@ -30,8 +30,26 @@ def open_dataset(path: str | Path, camera: str | None = None, state_key: str | N
     if root.is_dir() and (root / "meta").is_dir() and not (root / "meta" / "info.json").exists():
         raise DatasetError(f"{root / 'meta' / 'info.json'}: missing; a LeRobot dataset describes itself there")
     if root.is_dir() and (root / "meta" / "info.json").exists():
-        from democheck.data.lerobot import open_lerobot
-
         return DemoSet(open_lerobot(root, camera=camera, state_key=state_key, action_key=action_key), image_size)
     raise DatasetError(f"{root}: not a dataset democheck knows (a LeRobot folder with meta/info.json, "
                        "or a robomimic .hdf5 file)")
+
+
+def open_lerobot(root: Path, camera: str | None = None, state_key: str | None = None,
+                 action_key: str | None = None):
+    """The reader of a LeRobot folder's codebase version: v3.x (``lerobot.LeRobotV3``) or v2.x
+    (``lerobot_v21.LeRobotV21``)."""
+    from democheck.data.lerobot import LeRobotV3, read_json
+
+    info = read_json(root / "meta" / "info.json")
+    if not isinstance(info, dict):
+        raise DatasetError(f"{root / 'meta/info.json'}: not a JSON object")
+    version = str(info.get("codebase_version", ""))
+    keys = dict(camera=camera, state_key=state_key, action_key=action_key)
+    if version.startswith("v3"):
+        return LeRobotV3(root, info, **keys)
+    if version.startswith("v2"):
+        from democheck.data.lerobot_v21 import LeRobotV21
+
+        return LeRobotV21(root, info, **keys)
+    raise DatasetError(f"{root / 'meta/info.json'}: unsupported LeRobot codebase_version {version!r} (v2.x, v3.x)")

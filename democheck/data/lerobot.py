@@ -29,7 +29,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from democheck.data import video
+import democheck.data.video as video
 from democheck.data.demo import (NO_CAMERA, Demo, check_arrays, check_episodes, no_frames, readable_frames,
                                  repair_non_finite)
 from democheck.errors import DatasetError
@@ -443,18 +443,3 @@ class LeRobotV3(LeRobotBase):
             return self._readable(lambda: video.read_frames(vpath, [start, stop - 1], self.fps), 2)[0]
         return self._image_cues(episode_index)
 
-
-def open_lerobot(root: Path, camera: str | None = None, state_key: str | None = None,
-                 action_key: str | None = None) -> LeRobotBase:
-    info = read_json(root / "meta" / "info.json")
-    if not isinstance(info, dict):
-        raise DatasetError(f"{root / 'meta/info.json'}: not a JSON object")
-    version = str(info.get("codebase_version", ""))
-    keys = dict(camera=camera, state_key=state_key, action_key=action_key)
-    if version.startswith("v3"):
-        return LeRobotV3(root, info, **keys)
-    if version.startswith("v2"):
-        from democheck.data.lerobot_v21 import LeRobotV21
-
-        return LeRobotV21(root, info, **keys)
-    raise DatasetError(f"{root / 'meta/info.json'}: unsupported LeRobot codebase_version {version!r} (v2.x, v3.x)")
