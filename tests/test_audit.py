@@ -552,3 +552,17 @@ def test_a_model_score_that_failed_its_test_is_reported_not_ranked(tiny_dataset,
     assert np.isfinite(table["action_error"]).all()
     said = [w for w in summary["warnings"] if "error is reported, not ranked" in w]
     assert len(said) == 1 and "normalised error 1.1" in said[0], summary["warnings"]
+
+
+def test_a_reference_too_small_for_the_rate_asked_for_is_said():
+    """With n reference demos a conformal share is never under 1 / (n + 1): at --fpr 0.01 a reference of 40
+    cannot calibrate the flag, and the audit says so; one of 200 can."""
+    from democheck.audit.run import warnings
+
+    def table(n_ref):
+        return pd.DataFrame({"task": ["push"] * 250, "reference": np.arange(250) < n_ref})
+
+    said = [w for w in warnings(table(40), None, fpr=0.01) if "the reference holds 40 demos" in w]
+    assert len(said) == 1 and "1 in 41" in said[0]
+    assert not [w for w in warnings(table(200), None, fpr=0.01) if "reference holds" in w]
+    assert not [w for w in warnings(table(40), None, fpr=0.05) if "reference holds" in w]

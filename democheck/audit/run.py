@@ -312,7 +312,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     if "label" in table:
         summary["labels"] = table["label"].value_counts().to_dict()
     summary["warnings"] = (unreadable_files(ev.episodes["episode_index"].to_numpy(), ev.reasons.get("broken"))
-                           + warnings(table, ckpt, ev.untrusted))
+                           + warnings(table, ckpt, ev.untrusted, fpr))
     if "suspicion" in ev.scores:  # how the ranking was made, as data (``ranking.RankingConfig``)
         summary["ranking"] = ev.combination().config.to_dict()
     return table, summary
@@ -385,12 +385,19 @@ def flag_summary(table: pd.DataFrame, fpr: float, untrusted=()) -> dict[str, Any
     return out
 
 
-def warnings(table: pd.DataFrame, ckpt: Checkpoint | None, untrusted: dict[str, str] | None = None
-             ) -> list[str]:
-    """What makes this audit's scores less trustworthy, in a sentence each: tasks too small to judge a demo by,
-    the model's scores left out of the ranking (``untrusted``, default: by its training record alone), tasks the
-    model never learnt, and images unlike any it was trained on."""
+def warnings(table: pd.DataFrame, ckpt: Checkpoint | None, untrusted: dict[str, str] | None = None,
+             fpr: float = DEFAULT_FPR) -> list[str]:
+    """What makes this audit's scores less trustworthy, in a sentence each: a reference too small to calibrate
+    ``fpr`` on, tasks too small to judge a demo by, the model's scores left out of the ranking (``untrusted``,
+    default: by its training record alone), tasks the model never learnt, and images unlike any it was trained
+    on."""
     out = []
+    reference = int(table["reference"].sum()) if "reference" in table else 0
+    if reference and 1 / (reference + 1) > fpr:
+        out.append(f"the reference holds {reference} demos: a share of them cannot be as small as --fpr {fpr:g} "
+                   f"(the least is 1 in {reference + 1}), so every flag lies beyond all of them, where the fitted "
+                   f"tails, not the reference, set how many clean demos are flagged; expect more false flags than "
+                   f"the {fpr * reference:.2g} the summary counts")
     small, tasks = registry.small_tasks(table["task"]), table["task"].nunique()
     if len(small):
         n = int(small.sum())
