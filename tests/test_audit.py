@@ -132,10 +132,10 @@ def test_audit_cli_lerobot_writes_report_and_recording(tiny_dataset, tiny_model,
     assert res.exit_code == 0, res.output
     table = pd.read_parquet(tmp_path / "r" / "scores.parquet")
     for col in ("episode_index", "task", "task_uncertainty", "consistency", "suspicion", "reason", "rank", "is_anomaly",
-                "sigma", "mu", "label", "score"):
+                "sigma", "mu", "label"):
         assert col in table
     assert len(table) == 12 and list(table["rank"]) == list(range(1, 13))
-    assert table["score"].equals(table["task_uncertainty"])  # the old name, kept for one release
+    assert "score" not in table  # the name before the registry is gone
     assert table["action_error"].notna().all()  # on by default
     assert (np.diff(table["suspicion"].to_numpy()) <= 1e-12).all()  # ranked by suspicion
     assert len(table["sigma"][0]) == 10 and (np.stack(table["sigma"]) > 0).all()

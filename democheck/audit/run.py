@@ -239,10 +239,9 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
           why_no_model: str | None = None, workers: int = 1, engine: str = "local",
           ray_address: str | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Score every demo of ``ds`` with ``ckpt`` -- or, with ``ckpt`` None, with the model-free checks alone --
-    and flag those whose combined tail probability is at most ``fpr``: the ScoreTable (with the old column
-    ``score`` kept for one release) and the summary.  ``actions`` adds the scores that decode every demo (the
-    action error and the model-free checks: slower).  ``why_no_model``: the sentence the summary gives for
-    auditing without a model."""
+    and flag those whose combined tail probability is at most ``fpr``: the ScoreTable and the summary.
+    ``actions`` adds the scores that decode every demo (the action error and the model-free checks: slower).
+    ``why_no_model``: the sentence the summary gives for auditing without a model."""
     if not 0 < fpr < 1:
         raise DemocheckError(f"--fpr {fpr:g}: the share of clean demos to flag must lie between 0 and 1")
     if ckpt is not None:
@@ -263,9 +262,6 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         raise DatasetError(f"{ds.root}: every episode is broken, e.g. episode "
                            f"{int(ev.episodes['episode_index'].iloc[0])}: {ev.reasons['broken'][0]}")
     table = score_table(ev, fpr)
-    for old, new in registry.RENAMED.items():
-        if new in table:
-            table[old] = table[new]
     fingerprint = dataset_fingerprint(ds) if (ds.root / "meta").is_dir() else None
     meta = ckpt.meta if ckpt is not None else {}
     trained_on = meta.get("data", {}).get("fingerprint")
@@ -293,8 +289,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
             "p_reference": "the share of the reference demos at least as suspect (conformal; beyond the most "
                            "suspect of them, the combined tail probability's own decay)",
             "is_anomaly": f"p_reference at most the false-positive rate asked for ({fpr:g}), an exact copy of "
-                          "another demo, or a broken recording",
-            "score": "the old name of task_uncertainty, kept for one release"},
+                          "another demo, or a broken recording"},
         "top_suspects": table.head(top)[["rank", "episode_index", "task",
                                          *[n for n in shown if n != "novelty"], "p_value",
                                          "is_anomaly", "driven_by", "reason"]].to_dict(orient="records"),
@@ -305,8 +300,6 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         summary["ocsvm"] = {k: ref.get("ocsvm", {}).get(k) for k in ("nu", "offset", "n_fit", "flagged_fraction_on_fit")}
         summary["scores"]["ocsvm_margin"] = ("the paper's linear one-class SVM on 1/sigma^2, fitted on the model's "
                                              "training demos (negative = its anomaly side)")
-        for r in summary["top_suspects"]:
-            r["score"] = r.get("task_uncertainty")
     else:
         summary["no_model"] = why_no_model or "audited with the model-free checks alone (--no-model)"
     if "label" in table:

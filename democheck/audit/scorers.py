@@ -452,10 +452,6 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            family="baseline", in_audit=False, short="random"),
 )}
 
-# Column names before the registry, readable for one release: the audit also writes ``score``.
-RENAMED = {"score": "task_uncertainty"}
-
-
 # The checks whose words say what the demo did, in the order a reason prefers them: the arm, then the world it left,
 # then what the camera saw.  The recording faults come after them, then the other model-free checks (the coupling:
 # a frozen sensor and an operator who let go both loosen it), the model's readings last (``ScoreSpec.lead``).
