@@ -125,9 +125,10 @@ def suspects_markdown(table: pd.DataFrame, top: int, title: str, fpr: float | No
     every = "every flagged one" if tabs >= n_flagged else f"{n_flagged - tabs} flagged ones have none"
     lines = [f"# {title}", "", f"**{n_flagged} of {len(table)} demos flagged.** The {tabs} most suspect ({every}) "
              "have a tab on the right: why, its video beside a clean demo of its task, its "
-             "actions and state (hover a curve for the dataset's name of it). The map places demos by the model's "
-             "task embedding, colour = suspicion (yellow = most suspect), red = flagged; hover a point for its "
-             "episode. In the histograms red is the flagged demos' part of a bar; suspicion is drawn as "
+             "actions and state (hover a curve for the dataset's name of it). "
+             + ("The map places demos by the model's task embedding, colour = suspicion (yellow = most suspect), "
+                "red = flagged; hover a point for its episode. " if "mu" in table else "")
+             + "In the histograms red is the flagged demos' part of a bar; suspicion is drawn as "
              "log10(1 + suspicion), with a grey bar where the flags start.", ""]
     if warnings:
         lines += ["## Warnings", "", *[f"- {w}" for w in warnings], ""]
