@@ -48,23 +48,12 @@ class ColourStats(PerDemo):
 # Colours in 4 ranges per channel (64 bins); per bin the log of the share of the pixels (plus one pixel's share,
 # so that an absent colour is a finite number), its robust z within the task (a robust SD at least
 # COLOUR_FLOOR log units: a factor of 1.28), root-mean-square over the bins the task or the demo shows (the task's
-# median share or the demo's over one pixel a frame).  Chosen on the development sets
-# (``benchmarks/colour_choices.py``: push-v1-dev + its probes and push-v1-dev alone with the shipped model,
-# Meta-World mw2-dev and mw2-one-dev with their your-data models) among 4 and 8 ranges, floors of 0.25, 0.5
-# and 1 log units, the RMS or the largest z, the check added to the ranking or folded into ``view`` (its
-# largest, or in its place).  Added, at 4 ranges, floor 0.25, RMS: no-objects probes flagged 0.34 -> 0.88 at
-# --fpr 0.01 with the probes pooled in, the other kinds as before or better; in view's place Meta-World's
-# occluded demos lost flags (1.00 -> 0.86): a covered corner moves colours little but the picture much.
-# Measured since and not kept: each pixel shared between the nearest bins (trilinear weights), against a set of
-# smooth scripted demos (the peers' harness's generator, seed 5) whose background's blue lies at 60-100 from demo
-# to demo, so that the three under 64 -- a fifth of the view in another bin -- read 27-35 robust SD out and were
-# flagged.  The development sets moved little (push-v1-dev + probes without a model occluded 0.986 -> 0.996, mw4-dev
-# wrong-task 0.964 -> 0.971, 7 -> 6 clean flagged), and the seed-5 set's colour flags went, but a fresh draw of the
-# generator (seed 8) had 0 -> 3 of 34 clean demos flagged: the shared weights leave a few tenths of a percent of the
-# view in a bin whose median is none, which the log share reads as 15 robust SD.  Hard edges and small shares each
-# make a step of a small change; the check still reads a whole camera's colour shift across an edge as a change.
-COLOUR_LEVELS = 4
-COLOUR_FLOOR = 0.25
+# median share or the demo's over one pixel a frame).  Each pixel counts in one bin (weights shared between
+# neighbouring bins left specks of colour in bins the task never shows, which read as many robust SD); a whole
+# camera's colour shift across a bin's edge still reads as a change (chosen on the development sets:
+# docs/decisions.md, "Colours: in the ranking").
+COLOUR_LEVELS = 4  # equal ranges per channel
+COLOUR_FLOOR = 0.25  # log units: the least a robust SD of a bin's log share stands for
 COLOUR_MIN_SCALE = 0.5  # a robust SD of the score within its task stands for at least half a robust SD of a bin
 
 

@@ -16,15 +16,8 @@ shift.  An action stream recorded late or early against the states and frames (a
 recorders) is what a policy trained on it learns to be late by; the mean error above barely sees it where
 actions change slowly, since a shifted action is still close to the right one.
 
-Measured on the same fit and not kept: a demo's action gain -- the factor its actions' part of the prediction must
-be scaled by to explain its changes of state best (over all its steps, its busier half, or the median over the
-state dimensions the actions move), as a robust |z| of its log within the task -- for actions recorded at another
-scale or in other units than the rest.  On Meta-World mw3-dev and mw4-dev with 5-6 demos' actions planted x3
-(``benchmarks/foreign/plant_faults.py``), clean demos' gains spread 0.44-1.76 within their tasks (contacts, the
-gripper, a fit shared by ten tasks), so a x3 demo read about 10 robust SD: in Fisher's sum its flags went 0.00 ->
-0.17-0.40, as a recording fault 0.00-0.40, and without a model push-v1-dev with its probes lost 0.03 of its
-gave-up flags and 0.05 of its occluded ones; the busier half as a recording fault flagged every x3 demo of mw3-dev
-(0.40 of mw4-dev's) but cost push-v1-dev3's ranking 0.0007-0.0014 on three of its four kinds.
+A demo's action gain, read off the same fit, was measured and not kept (docs/decisions.md, "A demo's action gain:
+measured, not kept").
 """
 
 from __future__ import annotations

@@ -2,41 +2,20 @@
 
 ``is_anomaly`` is the demo's conformal p-value against the robust core of ``scores.robust_tails``
 (``conformal_p``: the share of the core at least as suspect) at most the false-positive rate asked for
-(``audit --fpr``, default ``DEFAULT_FPR``):
-if the core's demos are clean and a clean demo is like them, about that share of clean demos is flagged,
-whatever the shape of the scores' tails.  The combined probability's own level is a model: the clean demos'
-scores have heavier right tails than the exponential fit and move together more in the far tail than Brown's
-two moments say, so on push-v1-dev with the shipped model it flagged 2.1% of the clean demos at 0.01, the
-conformal level 0.81% (0.65% before, when contamination widened every tail by chance), recall both-objects,
-gave-up, occluded, wrong-object 1.00, 0.97, 1.00, 1.00; with the probes pooled in (37% bad) 0.16% and 1.00,
-0.92, 1.00 (hidden), 1.00 (no-action), 0.26 (no-objects), 0.97, 1.00 (random), 0.95 where the flags before
-caught 0.90, 0.66, 1.00, 1.00, 0.08, 0.92, 1.00, 0.95; Meta-World mw2-dev 2.5% of the clean demos (exact
-copies and demos that end where their task's others do not), every bad demo.  Bad demos left in the core
-(a kind only weakly seen) take its top ranks: the flags are then fewer than asked for, never more -- without
-a model, push-v1-dev's gave-up demos are flagged 0.66 (0.92 by the combined probability's level, which
-there flags 0.98% of the clean demos).  How much that varies from draw to draw (``benchmarks/flag_choices.py``
-on benches of push-v1-dev's recipe at seeds 2, 3 and 4 with their probes pooled in, and on audits of each set
-alone): gave-up flagged 1.00, 0.97, 1.00 pooled (the core holding 4, 8, 3 bad demos) and 1.00, 0.97, 1.00
-alone; no-objects 1.00, 0.96, 1.00; 5, 5, 8 clean demos flagged pooled and 11, 7, 8 alone (6.1-6.2
-expected); the fresh draw no choice was made on (seed 29, its core holding 15 bad demos) 0.84 and 2.  Measured
-there and not kept: the flag level extrapolated from the core's bulk instead of read off its top (log10 of
-its survival function fitted as a line between two of its quantiles -- bad demos left in the core sit at its
-top, the bulk is clean): between the 90th and 98th percentiles every bad demo of every push draw flagged, but
-7-10 clean demos pooled and 9 alone (up to 1.6%), and Meta-World mw2-dev's clean demos 3.5% against 2.5%
-(the clean tail beyond the bulk is heavier than the line); lower quantile pairs flagged more.  And each
-score's tail above its core's 80th, 90th or 95th percentile refitted by peaks over threshold (an exponential
-whose scale is the core's mean excess, so that a score with a light clean tail -- the idle share of a
-scripted expert, where a gave-up demo sits 4.6-6.6 robust SD out and the clean demos at most 3.8 -- is not
-valued by the heavy tail its quartiles imply): the lighter tails put a third of the demos under ``scores.CORE_P``,
-the core fell back to every demo, and the flags collapsed (90th: push-v1-dev pooled gave-up 0.24,
-no-objects 0.00; 95th: 0.97 and 0.98 there, but 0.84 and 0.72 on seed 3).  Nor, the core found as now, each
-score's tail probability taken again as its rank among the core's values (an exponential beyond the core's
-largest): with a model the flags moved by one demo either way (seed 3 alone gave-up 0.97 -> 1.00; seed 2
-pooled wrong-object 1.00 -> 0.95, 7 clean against 5), without one the ranking lost no-objects (0.96 ->
-0.87 pooled): ranks among a core that holds the bad demos a kind is not seen by value them as the core does.
-Exact copies of another demo are flagged too.  The paper's linear
-one-class SVM stays a column (``democheck.audit.ocsvm``) and a bench scorer (``ocsvm_flag``): fitted on the training
-demos' precisions 1/sigma^2, it sees sigma only, which barely moves for an idle or flailing arm.
+(``audit --fpr``, default ``DEFAULT_FPR``): if the core's demos are clean and a clean demo is like them, about
+that share of clean demos is flagged, whatever the shape of the scores' tails.  The combined probability's own
+level is a model, and clean demos' scores have heavier right tails than the exponential fit and move together
+more in the far tail than Brown's two moments say: by it, about twice the share asked for was flagged.  Bad demos
+left in the core (a kind only weakly seen) take its top ranks: the flags are then fewer than asked for, never
+more.
+
+Exact copies of another demo and broken recordings are flagged whatever their p-value (``flagged_regardless``).
+The paper's linear one-class SVM stays a column (``democheck.audit.ocsvm``) and a bench scorer (``ocsvm_flag``):
+fitted on the training demos' precisions 1/sigma^2, it sees sigma only, which barely moves for an idle or
+flailing arm.
+
+(Chosen on the development sets, with the alternatives measured there: docs/decisions.md, "The reference: a
+robust core, and flags conformal on it".)
 """
 
 from __future__ import annotations
@@ -44,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-DEFAULT_FPR = 0.01  # see the module docstring
+DEFAULT_FPR = 0.01  # the share of clean demos the audit flags unless ``--fpr`` says otherwise
 
 
 def conformal_p(suspicion: np.ndarray, core: np.ndarray) -> np.ndarray:

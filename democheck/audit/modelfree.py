@@ -1,44 +1,29 @@
 """Model-free checks: what a demo's actions, state and frames say without any model.
 
-Each check is a consumer of the audit's decoding pass (``add`` one decoded demo at a time, ``finish`` once)
-and returns one number per demo -- higher is more suspect -- and a reason located in time.  They need no
-training, so ``democheck audit --no-model`` runs them on any robot.
+Each check consumes the audit's decoding pass (``add`` one decoded demo at a time, ``finish`` once) and returns one
+number per demo -- higher is more suspect -- and a reason located in time.  They need no training, so ``democheck
+audit --no-model`` runs them on any robot.  Every scale is the audited demos' own: a step's change of action is
+measured per action dimension in units of that dimension's median change over all the demos (at least 1% of the
+busiest dimension's, so that a gripper held shut cannot make a tiny twitch look huge).
 
-Every scale is the audited demos' own: a step's change of action is measured per action dimension in units of
-that dimension's median change over all the demos (a dimension that hardly moves in a typical demo, a gripper
-held shut, counts in units of 1% of the busiest dimension's, so it cannot make a tiny twitch look huge).
-
-- ``motion``: how unusually much or little the actions move for the task -- per dimension the mean |action|
-  and the mean |change of action| in units of the demos' median, on a log scale, the larger robust |z|.
-- ``view``: how much of what the camera saw, on average over the demo, is unlike what its task's other demos
-  saw there (a covered, moved or blinded camera, another scene).
-- ``colours`` (``democheck.audit.colours``): how differently from its task's other demos the demo's frames are
-  coloured, wherever the colours are in the picture: an object missing (its colour gone), another object.
-- ``idle``: the share of a demo's steps at which its actions hardly change (every dimension's change under
-  ``STILL`` of its median change, on average over the dimensions): an arm that never moves, or stops half-way.
-  Scripted and teleoperated demos often rest after the task is done; that rest is what the task's other demos
-  also show, so the audit compares each demo's share with its task's.
-- ``jerk``: the log of the mean absolute third difference of the actions, in the same units: shaking,
-  chattering or random commands.  In the ranking beside the recording faults (``JERK_MIN_SCALE``).
-- ``frozen_video`` and ``frame_jump`` (``democheck.audit.frames``): a camera that stopped delivering, frames
-  dropped or spliced.
-- ``saturation``: the share of steps at which some action dimension sits at its smallest or largest value over
-  all the demos (a command clipped at its limit).
-- ``dynamics`` (``democheck.audit.dynamics``): how badly the demo's state follows its actions.
-- ``timing``: how far a demo's worst time step (the ``timestamp`` column, where the format has one) is off the
-  dataset's frame period (1 / fps), log(1 + |step - period| / period) over the steps off by more than
-  ``TIMING_TOLERANCE`` of it (a step that stands still or goes back is off by at least a period), 0 where none
-  is: dropped, repeated or reordered frames -- one dropped frame reads log 2, ten log 11, where the share of steps
-  off would call ten dropped frames one step in a hundred.  NaN where the dataset records no timestamps.  A
-  recording fault (``scorers.Scorer.alone``).
-- ``outcome`` (``democheck.audit.outcome``): how differently from its task's other demos the demo left the
-  world (where the objects ended up).
-- ``broken``: the share of a demo's frames that could not be decoded (read as black) or whose state or actions
-  held NaN or infinite values (the most damaged of these), which the reader repaired so that the other checks
-  can read the demo (``data.demo.repair_non_finite``); any makes the demo suspect whatever its other scores.
-- ``duplicate``: how close the demo's actions come to another demo's: the log of the median nearest-neighbour
-  distance over this demo's, the actions resampled to ``DUPLICATE_STEPS`` steps and put in each dimension's
-  standard deviation; an exact copy (the same actions, state and frames, bit for bit) is named as such.
+- ``motion``: how unusually much or little the actions move for the task (mean |action| and mean |change of
+  action| against the demos' median, on a log scale; the larger robust |z|).
+- ``idle``: the share of steps at which the actions hardly change (under ``STILL`` of the median change), against
+  its task's share, since demos often rest once the task is done: an arm that never moves, or stops half-way.
+- ``jerk``: the log mean absolute third difference of the actions: shaking, chattering or random commands.
+- ``view``: how much of the demo's average picture is unlike its task's other demos' there (a covered, moved or
+  blinded camera, another scene); ``colours`` (``democheck.audit.colours``): its colours, wherever they are.
+- ``frozen_video``, ``frame_jump`` (``democheck.audit.frames``) and ``timing``: recording faults -- a camera that
+  stopped, frames dropped or spliced, and the worst time step of the ``timestamp`` column against the frame
+  period, log(1 + |step - period| / period) over the steps off by more than ``TIMING_TOLERANCE`` of it (NaN
+  without timestamps).
+- ``saturation``: the share of steps at which some action sits at its smallest or largest value (clipped).
+- ``dynamics`` (``democheck.audit.dynamics``): how badly the state follows the actions; ``outcome``
+  (``democheck.audit.outcome``): how differently from its task's other demos the demo left the world.
+- ``broken``: the share of frames that could not be decoded, or of state and actions that were NaN or infinite
+  (repaired so that the other checks can read the demo); any makes the demo suspect.
+- ``duplicate``: how close the demo's actions come to another demo's (the log median nearest-neighbour distance,
+  resampled to ``DUPLICATE_STEPS`` steps); an exact copy is named as such.
 """
 
 from __future__ import annotations
@@ -57,14 +42,10 @@ STILL = 0.05  # a step is still when its change of action is under 5% of the med
 DUPLICATE_STEPS = 32
 TIMING_TOLERANCE = 0.5  # a time step off the usual one by more than half of it is irregular
 IDLE_MIN_SCALE = 0.05  # a robust standard deviation of the idle share stands for at least 5% of the steps
-# The jerk is in the ranking beside the recording faults (``scorers.Scorer.alone``: a shaking operator or a noisy
-# command stream is one extreme look, which Fisher's sum would dilute), a robust standard deviation of it standing
-# for at least 0.25 (log units: a mean jerk 28% off its task's): a scripted policy's jerk barely varies within a
-# task, and a MAD near zero called clean Meta-World demos that switch phase at other times 10-20 SD out.  Chosen
-# on the development sets (mw3-dev with its your-data model: jittery AUROC 0.9967 -> 1.0000, 1 -> 2 of 150 clean
-# flagged at --fpr 0.01; with no floor 6 clean, with 0.1 3, with 0.5 the jittery demos 0.9989; in Fisher's sum
-# with 0.25, 2 clean and mw2-dev's gave-up 0.9943 -> 0.9986 where beside the faults it reads 1.0000; the push-v1
-# draws alone and pooled with their probes unchanged; without a model no kind moved by more than one pair).
+# The jerk stands beside the recording faults in the ranking (``scorers.Scorer.alone``: a shaking operator is one
+# extreme look, which Fisher's sum would dilute), a robust SD of it standing for at least 0.25 log units (a mean
+# jerk 28% off its task's): a scripted policy's jerk barely varies within a task (docs/decisions.md, "The jerk
+# beside the faults").
 JERK_MIN_SCALE = 0.25
 
 
@@ -159,7 +140,7 @@ def broken(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
     state or actions held NaN or infinite values (repaired by ``data.demo.repair_non_finite``), the most damaged
     of these, and where: the readers make every demo readable so that every check can run.  A recording that is
     broken so ranks first whatever its other scores, is flagged, and is no reference for the others
-    (``ranking.broken_rows``, ``flagging.flagged_regardless``)."""
+    (``scorers.broken_rows``, ``flagging.flagged_regardless``)."""
     return np.array([share for share, _ in traces.damaged], np.float64), [what for _, what in traces.damaged]
 
 
@@ -342,13 +323,8 @@ class ViewStats(PerDemo):
 VIEW_EVERY = 10
 VIEW_THUMB = 16
 # A thumbnail pixel is unlike its task's when it is VIEW_K robust standard deviations (over the task's demos,
-# at least VIEW_FLOOR grey levels) from the task's median there.  Chosen on the development sets (push-v1-dev +
-# probes with the shipped model; Meta-World mw2-dev with its your-data model; ``benchmarks/view_choices.py``)
-# among 16 and 32 pixels, K 3 and 5, floors 2 and 4 grey levels, the share raw, as its square root or logit.
-# With view in the ranking: occluded demos flagged 0.89 and 1.00 (without it: 0.79 and 0.29), occluded AUROC
-# 0.997 and 1.000 (0.997, 0.970), clean demos flagged 0.3% and 1.5% (the same); its cost, one more look for the
-# Sidak correction, is push-v1-dev's both-objects 0.865 -> 0.853, wrong-object 0.956 -> 0.939 and no-objects
-# 0.963 -> 0.951.  32 pixels did no better; the square root and logit lost the occluded flags.
+# at least VIEW_FLOOR grey levels) from the task's median there (chosen on the development sets: docs/decisions.md,
+# "View").
 VIEW_K = 5.0
 VIEW_FLOOR = 2.0
 # A robust standard deviation of the share stands for at least 2% of the view: a fixed camera on a static scene

@@ -385,12 +385,6 @@ def warnings(table: pd.DataFrame, ckpt: Checkpoint | None, untrusted: dict[str, 
     default: by its training record alone), tasks the model never learnt, and images unlike any it was trained
     on."""
     out = []
-    reference = int(table["reference"].sum()) if "reference" in table else 0
-    if reference and 1 / (reference + 1) > fpr:
-        out.append(f"the reference holds {reference} demos: a share of them cannot be as small as --fpr {fpr:g} "
-                   f"(the least is 1 in {reference + 1}), so every flag lies beyond all of them, where the fitted "
-                   f"tails, not the reference, set how many clean demos are flagged; expect more false flags than "
-                   f"the {fpr * reference:.2g} the summary counts")
     small, tasks = registry.small_tasks(table["task"]), table["task"].nunique()
     if len(small):
         n = int(small.sum())
@@ -400,6 +394,12 @@ def warnings(table: pd.DataFrame, ckpt: Checkpoint | None, untrusted: dict[str, 
                       if len(small) == tasks else "their demos are compared with each other, not with their "
                       "own task's") + "; if they hold several tasks, expect clean demos of the rarer ones among the "
                    "suspects, and a demo of the wrong task cannot be told apart")
+    reference = int(table["reference"].sum()) if "reference" in table else 0
+    if reference and 1 / (reference + 1) > fpr:
+        out.append(f"the reference holds {reference} demos: a share of them cannot be as small as --fpr {fpr:g} "
+                   f"(the least is 1 in {reference + 1}), so every flag lies beyond all of them, where the fitted "
+                   f"tails, not the reference, set how many clean demos are flagged; expect more false flags than "
+                   f"the {fpr * reference:.2g} the summary counts")
     if ckpt is None:
         return out
     left_out = trust.untrusted(ckpt.meta) if untrusted is None else untrusted

@@ -262,7 +262,8 @@ ACTIONS_EXPLAINED = "actions explained"  # the look of the action error and the 
 # The least spread a robust standard deviation of a recording fault's score stands for in the ranking (a share of
 # the steps for the frozen video, a log ratio for the frame jump, the lag and the timing): a camera whose frames
 # never repeat, actions that no shift explains better or a clock that never slips leave a MAD of zero, which
-# would call a single repeated frame many standard deviations.  Chosen on the development sets (``benchmarks/fault_choices.py``).
+# would call a single repeated frame many standard deviations (chosen on the development sets: docs/decisions.md,
+# "Recording faults beside the sum, not in it").
 FAULT_MIN_SCALE = 0.02
 
 

@@ -1,102 +1,35 @@
 """The arithmetic of democheck's scores (the registry of scorers, ``democheck.audit.scorers``, calls it).
 
-Every score is one number per demo, higher = more suspect:
+Every score is one number per demo, higher = more suspect.  The model's scores:
 
-- ``task_uncertainty`` (the paper's score): the mean over embedding dimensions
-  of the task standard deviation sqrt(var) of the demo's cue.
-- ``consistency``: how far the demo's ``mu`` lies from those of its ``CONSISTENCY_K`` nearest *other* demos of
-  the same task -- never more than half of them, so that a bad minority of a small task is not among every
-  clean demo's neighbours -- as the mean Euclidean distance to them, each dimension in units of its median
-  task standard deviation over the audited demos (``consistency_units``): a cue's own variance does not shrink
-  its distance, as the units sqrt(v + var) of the form before did (a wide cue then looked consistent).  The
-  neighbours rather than all the others: the task's own bad demos and tasks done in more than one way blur the
-  whole task (``benchmarks/score_choices.py``: all others 0.67, k = 5 0.80 mean AUROC over push-v1-dev +
-  probes' 8 kinds, the form before).  Chosen with the robust core below (``benchmarks/calibration_choices.py``
-  on push-v1-dev + probes with the shipped model): ranking AUROC no-objects 0.952 -> 0.982 (the form before,
-  with the tails fitted on every demo -> this form on the core), every other kind 0.999-1.000 either way;
-  without the core, this form was diluted in the ranking (0.949).  Variance catches cues that say nothing;
-  consistency catches cues that clearly say the wrong thing.  NaN for a task with a single demo.
-- ``action_error`` (on by default; ``audit --no-actions`` skips it): how badly the model's
-  own controller, told the task by the other demos of the same task (their
-  product-of-Gaussians mean; the demo's own mu for a task's only demo),
-  explains what the demo did: the mean squared error, in normalised action
-  units, between the demo's actions and the controller's at
-  ``action_error.ACTION_STEPS`` evenly spaced timesteps (computed by
-  ``action_error.ActionErrors`` in the audit's decoding pass).  The cue sees two frames; this sees the
-  behaviour, so it catches an arm that never moved or flailed, or stopped
-  half-way, whatever its first and last frames look like.
-- ``suspicion`` (the ranking): how surprising the demo is, all evidence together, as -log10 of a
-  probability (``p_value``): 2 means "as unusual as one clean demo in a hundred".  Each score of the
-  ranking is first put in robust standard deviations within its task (``calibrated``: a task whose demos
-  all score high does not fill the top ranks; the task uncertainty and the action error on a log scale: their
-  clean demos' right tails are long), then turned into a tail probability by ``tail_probabilities``: an
-  exponential right tail through the 25th and 75th percentiles of the audited demos' *robust core*
-  (``robust_tails``; a normal tail for a score its scorer says is a mean over many steps, ``Scorer.tail``: the
-  coupling, whose choice ``democheck.audit.coupling`` gives): fitted on every demo, then again on those whose
-  combined probability is above ``CORE_P``, until the core stops changing; at every round each task's centre and the robust unit are taken
-  again from the core's demos alone (``calibrated`` with ``core``; motion, view and colours, robust z within
-  their task already, keep the centre of all the task's demos), so that a task's bad demos shift neither
-  the centre its clean demos are judged from nor the unit: with the probes pooled in, a task of 15 demos holds
-  5 bad ones, and the MAD over all the demos had the clean demos' largest action error at 1.4 robust SD and a
-  no-objects probe's at 1.9.  Chosen with the ``colours`` check (``benchmarks/colour_choices.py``): on
-  push-v1-dev + probes at --fpr 0.01 no-objects flagged 0.74 -> 0.88, gave-up 0.82 -> 0.95, 1 -> 4 of 614
-  clean demos (6.2 expected); Meta-World mw2-dev and mw2-one-dev unchanged.  push-v1-dev audited alone
-  (``democheck audit data/push-v1-dev``; the sweep's ``--only`` rows keep the scores the pooled bench computed
-  with the probes among each task's demos, which an audit of the set alone does not see): 10 of 614 clean
-  demos flagged before, 11 with both (the audit expected 6.1), every bad demo either way -- mostly clean demos
-  whose object ended 10-18 robust SD past their task's other demos.  Fitted on every demo, as before, a share of bad demos widened
-  every tail they sat in: with 37% of the demos bad (push-v1-dev + its probes) no clean demo and few bad ones
-  were flagged (gave-up 0.66, no-objects 0.08), and a score that alone saw a kind was diluted by the others
-  in the ranking.  The tail probabilities are combined by Fisher's method with Brown's correction
-  (``combined_log10``; the scores of one look, the action error and the coupling, first merged into their Sidak
-  minimum, ``merge_looks``): -2 sum log p against a scaled chi-square whose variance counts the scores'
-  dependence, measured on the audited demos (``brown_scale``).  Several moderate surprises add up -- a demo
-  that gave up half-way is a little still, a little slow, and ends a little short -- where the smallest alone
-  (the Sidak minimum; still used below ``BROWN_MIN_DEMOS`` demos) waits for one of them to be extreme
-  (``benchmarks/suspicion_choices.py``; Fisher's sum without Brown's correction flags several times the rate
-  asked for on scores that move together, ``tests/test_modelfree.py``).  Earlier choices: the tails against the
-  largest robust z, other percentile pairs, ranks among the audited demos (they cannot tell how far beyond
-  every clean demo a bad one lies), a reference of held-out training demos, a Weibull tail and refits on a
-  looser core were measured and not kept (the model card and README say how); so were, with the core, tails through
-  the core's upper percentiles (50-90, 75-95, 50-95: gave-up unchanged, no-objects 0.989 -> 0.968-0.984 on
-  push-v1-dev + probes, occluded 0.999 -> 0.982-0.990 on mw2-dev; ``benchmarks/calibration_choices.py``).
-  Also measured with the core and not kept (the same script; push-v1-dev + probes, push-v1-dev alone, mw2-dev):
-  the Cauchy combination test instead of Fisher-Brown (gave-up AUROC 0.999 -> 0.996, flagged 0.92 -> 0.42: a
-  demo that gave up half-way is moderately unusual on several scores, which a test ruled by its smallest p does
-  not add up); a normal tail for the idle share (gave-up 1.000, flagged 0.97, and 0.97 against 0.68 without a
-  model, but mw2-dev's clean demos flagged 3.5% against 2.5%, 4.0% without a model: Meta-World's resting demos
-  give the idle share a long tail); each score's tail family, normal or exponential, chosen by likelihood on the
-  core (7 clean demos of push-v1-dev flagged against 5, no-objects 0.988 -> 0.979); each score's rank among the
-  core, the exponential beyond its largest (no-objects 0.988 -> 0.967, flagged 0.34 -> 0.18); each task's centre
-  from its core demos alone, without the ``colours`` check (push-v1-dev alone: 9 clean flagged, 1.47%, against
-  5, by the combined probability's own level; kept since, with the conformal flags of
-  ``democheck.audit.flagging``).  The recording faults (``Scorer.alone``: timing, frozen video, frame jump, lag;
-  since, the jerk and the frozen state) are not added into Fisher's sum: their own Sidak minimum (is the
-  recording faulty?) stands beside the sum's combined probability (is the behaviour unusual?), the ranking the
-  Sidak minimum of the two (``combined_log10``'s ``alone``).  Chosen with ``benchmarks/fault_choices.py`` on a
-  Meta-World set with the faults planted (mw3-dev: 150 clean, 6 each of jittery, frozen-camera, lagged, dropped; trained on itself), the push-v1 development draws and Meta-World
-  mw2-dev and mw2-one-dev.  On mw3-dev, AUROC/flagged at --fpr 0.01, dropped, frozen-camera, jittery, lagged:
-  the faults out of the ranking 0.756/0.00, 0.903/0.00, 0.997/1.00, 0.840/0.00; in Fisher's sum 0.988/0.33,
-  1.000/1.00, 0.996/0.83, 0.992/0.67; beside it 0.999/1.00, 1.000/1.00, 0.997/1.00, 0.999/1.00 (1 of 150 clean
-  flagged either way, 1.5 expected); without a model, out 0.910/0.00, 0.879/0.17, 1.000/1.00, 0.924/0.00,
-  beside 0.979/0.50, 1.000/1.00, 1.000/1.00, 0.997/1.00, and 0.994/1.00 for dropped (2 clean flagged) once the
-  frame checks read every camera at 64 px (``frames.FRAME_CHECK_SIZE``; a model's decoding already did).  The push-v1 draws audited alone: clean flagged
-  8 / 10 / 9 -> 8 / 9 / 7 of 614, every bad demo either way (in Fisher's sum 7 / 7 / 6); seed 2 with its probes
-  pooled 7 -> 7, every bad demo (in Fisher's sum 4, gave-up and wrong-object 0.97); mw2-dev and mw2-one-dev
-  unchanged, with a model and without.  Each fault a look of its own in one Sidak minimum with the others'
-  probability (four looks) cost the rest more: without a model occluded push demos flagged 0.55 / 0.58 / 0.39
-  before, 0.47 / 0.47 / 0.29 with two looks, 0.34 / 0.42 / 0.21 with four, and the pooled no-objects probes
-  ranked 0.942, 0.943, 0.914; with a model mw3-dev's jittery demos flagged 0.83.  Each fault's robust SD stands
-  for at least ``scorers.FAULT_MIN_SCALE``: without that floor mw3-dev's clean flags were 9 of 150 and mw2-dev's
-  11 of 200 against 7 (clean Meta-World demos never freeze two frames in a row: a MAD of zero); with 0.05,
-  lagged 0.989/0.50.  Normal tails for the faults flagged 7 of 150 and 14 of 200.  Timing (every development
-  set's timestamps are regular: a constant 0 there, which changed none of the numbers above) measured on a copy
-  of mw3-dev whose parquet puts 6 clean demos' frames from a step on 1-5 frame periods later, without a model:
-  AUROC 0.42 -> 1.00, flagged 0.00 -> 1.00, 1 clean demo flagged either way.  The jerk and the frozen state joined
-  the faults since (``modelfree.JERK_MIN_SCALE`` and ``democheck.audit.sensors`` say what each did on the
-  development sets).
-- ``is_anomaly``: the flags, conformal on the robust core the ranking's tails were fitted on
-  (``democheck.audit.flagging``, which says how they were chosen).
+- ``task_uncertainty`` (the paper's score): the mean over embedding dimensions of the task standard deviation
+  sqrt(var) of the demo's cue.  It catches cues that say nothing.
+- ``consistency``: the mean Euclidean distance from the demo's ``mu`` to those of its ``CONSISTENCY_K`` nearest
+  *other* demos of the task (at most half of them, so that a small task's bad minority is not every clean demo's
+  neighbours), each dimension in units of its median task standard deviation (``consistency_units``).  It
+  catches cues that clearly say the wrong thing.  NaN for a task's only demo.
+- ``action_error`` (``action_error.ActionErrors``; ``audit --no-actions`` skips it): the mean squared error, in
+  normalised action units at ``action_error.ACTION_STEPS`` evenly spaced steps, between the demo's actions and the
+  model's controller's, told the task by the task's other demos (``action_error.controller_z``).  It sees the
+  behaviour: an arm that never moved, flailed or stopped half-way, whatever its first and last frames look like.
+
+The ranking, ``suspicion`` (-log10 of ``p_value``: 2 = as unusual as one clean demo in a hundred):
+
+- ``calibrated``: each score in robust standard deviations within its task (the task uncertainty and the action
+  error on a log scale first: long right tails), so that a task whose demos all score high does not fill the top
+  ranks; with ``core``, each task's centre and the unit come from the core's demos alone.
+- ``tail_probabilities``: an exponential right tail through the core's ``TAIL_QUANTILES`` (a normal one for a
+  score that is a mean over many steps, ``Scorer.tail``).
+- ``robust_tails``: the robust core -- every demo, then those whose combined probability is above ``CORE_P``,
+  refitted until it stops changing -- so that bad demos widen neither the tails nor the units they are judged by.
+- ``combined_log10``: Fisher's method with Brown's correction (``brown_scale``), so that several moderate
+  surprises add up (a demo that gave up half-way is a little still, a little slow and ends a little short); the
+  Sidak minimum (``sidak_log10``) under ``BROWN_MIN_DEMOS`` demos.  The scores of one look are merged first
+  (``merge_looks``); the recording faults (``Scorer.alone``) stand beside the sum by their own Sidak minimum.
+- ``is_anomaly``: the flags, conformal on the same core (``democheck.audit.flagging``).
+
+Each choice, the alternatives and the sets they were measured on: docs/decisions.md ("How scores become a ranking
+and a flag"; "Consistency: the nearest task-mates").
 """
 
 from __future__ import annotations
@@ -110,17 +43,16 @@ import pandas as pd
 from democheck.petnet.posterior import TaskPosterior
 
 
-CONSISTENCY_K = 5
-TAIL_QUANTILES = (0.25, 0.75)  # see ``suspicion`` above
+CONSISTENCY_K = 5  # the nearest other demos of its task a demo's ``consistency`` is measured against
+TAIL_QUANTILES = (0.25, 0.75)  # the core's percentiles an exponential tail passes through (probability 0.75, 0.25)
 TAIL_MIN_SCALE = 0.5  # robust SD: no tail falls faster than by e per half a robust standard deviation
-BROWN_CORE = 0.1  # see ``brown_scale``
-BROWN_MIN_DEMOS = 30
+BROWN_CORE = 0.1  # Brown's dependence is measured on the demos whose Sidak-combined probability is above this
+BROWN_MIN_DEMOS = 30  # with fewer such demos, the Sidak minimum instead of Fisher-Brown
 # The robust core the tails are fitted on and the flags calibrated on (``robust_tails``): the demos whose combined
-# tail probability is above this.  On the development sets (``benchmarks/calibration_choices.py``) 1e-3 left
-# clean demos out of the core, where they are all flagged (push-v1-dev: 1.6% of the clean demos at --fpr 0.01),
-# 1e-5 kept weakly seen bad demos in, where they take the flags' budget (gave-up 0.68 with the probes pooled).
+# tail probability is above this.  Higher leaves clean demos out of the core (and so flagged); lower keeps weakly
+# seen bad demos in, where they take the flags' budget (docs/decisions.md, "The robust core's level").
 CORE_P = 1e-4
-CORE_ROUNDS = 10
+CORE_ROUNDS = 10  # at most this many refits of the core
 
 
 def task_neighbours(x: np.ndarray, tasks: np.ndarray, k: int, at_most_half: bool = False, chunk: int = 256

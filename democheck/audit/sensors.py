@@ -12,23 +12,8 @@ A recording fault: in the ranking beside the other scores (``scorers.Scorer.alon
 deviation of it standing for at least ``FROZEN_STATE_MIN_SCALE``.  A consumer of the audit's decoding pass like
 the other model-free checks (``democheck.audit.modelfree``).
 
-Chosen on the development sets, with copies of mw3-dev and mw4-dev whose parquet froze some clean demos' whole
-state from 30-60% of the demo on, held one moving state dimension of as many others at its first value, and
-recorded others' actions x3 (``benchmarks/foreign/plant_faults.py``, seeds 41 and 61).  On mw3-dev with its
-your-data model: the frozen joint 0.86 -> 1.00 AUROC and 0.17 -> 1.00 flagged at --fpr 0.01, the frozen stream
-0.895 -> 0.999 and 0.67 -> 1.00, the actions x3 0.989 -> 0.981 and 0.17 -> 0.00, 1 of 132 clean demos flagged
-either way; without a model the joint 0.82 -> 1.00 (flagged 0.17 -> 1.00), the others within two pairs, 2 clean
-either way.  mw3-dev, mw2-dev, mw2-one-dev and the push-v1 draws (alone and with their probes) ranked and flagged
-the same, with a model and without.  The quantile: with the median (the first form), a fresh development set
-(mw4-dev, Meta-World's recipe at seed 23, 200 clean demos) flagged 2 clean demos whose object rested bit for bit
-for 24% and 37% of the demo in a task whose other demos' objects jitter (5 of 200 clean flagged without a model,
-every bad demo); with the 75th percentile 4 of 200, the planted copy 4 -> 3 of 180 clean, every frozen joint and
-stream still flagged, every other development set the same; the 90th lost frozen joints (mw4-dev 0.82, flagged
-0.60).  Not kept either: every dimension counted, as a robust z above its task's median (70-87 of 614 clean push
-demos flagged: their objects rest bit-identical for stretches that vary); the ranking's usual floor of 0.02 for a
-fault's robust SD (5 of 132 clean flagged), 0.1 (the frozen stream flagged 0.67); the stretch from a dimension's
-last change to the demo's end in place of the longest (5 of 132, 6 of 150 and 12 of 200 clean Meta-World demos
-flagged: their objects settle bit-identical once left).
+(Chosen on the development sets, with planted faults: docs/decisions.md, "Frozen state: added, and its 75th
+percentile".)
 """
 
 from __future__ import annotations
@@ -41,8 +26,8 @@ from democheck.data.demo import Demo
 FROZEN_STATE_MIN_DEMOS = 4  # a task with fewer demos is compared with every demo
 FROZEN_STATE_LIVE = 0.05  # a dimension is live in a task where its share's FROZEN_STATE_QUANTILE is at most this
 FROZEN_STATE_QUANTILE = 0.75  # over the task's demos: live means still in hardly any of them
-FROZEN_STATE_MIN_SCALE = 0.05
-DRIVEN_SHARE = 0.01  # a step is driven when its action changes by this share of the demo's 90th-percentile change  # in the ranking, a robust SD of the score stands for at least 5% of the steps
+FROZEN_STATE_MIN_SCALE = 0.05  # in the ranking, a robust SD of the score stands for at least 5% of the steps
+DRIVEN_SHARE = 0.01  # a step is driven when its action changes by this share of the demo's 90th-percentile change
 
 
 class StateRepeats(PerDemo):

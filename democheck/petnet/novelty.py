@@ -1,79 +1,28 @@
 """The epistemic part of PETNet's task variance: how far a cue lies from the cues the model was trained on.
 
-The paper's variance head is trained on real cues only, so what it says about
-a cue unlike any of them is an accident of its weights (on the shipped model
-a black image got a *smaller* task variance than any demo).  Deep
-deterministic uncertainty (Mukhoti et al. 2021) separates the two: the head
-keeps the data's ambiguity, and a density over the network's features, fitted
-on the training inputs, says how much the network can be trusted at all.
+The paper's variance head is trained on real cues only, so what it says about a cue unlike any of them is an
+accident of its weights (on the shipped model a black image got a *smaller* task variance than any demo).  As in
+deep deterministic uncertainty (Mukhoti et al. 2021), the head keeps the data's ambiguity, and a density over
+features of the training inputs says how far the network can be trusted at all.  The density is one Gaussian
+(Ledoit-Wolf shrinkage covariance) over:
 
-Here the density is one Gaussian over the flattened features of a *cue
-autoencoder*'s encoder (``train_cue_autoencoder``: the task encoder's conv
-shape, trained after the model to reconstruct its training cues; Ledoit-Wolf
-shrinkage covariance: 256 dimensions, a few thousand cues; with the demo's
-state at its last step after them, below), and
-the cue's squared Mahalanobis distance d2 from it becomes variance in task
-space (``TaskEncoder``): var_novel = prior_var * d2 / d2_ref, with prior_var
-the variance of z over the training cues (the spread of their means plus
-their mean variance: what z is known to be before a cue is read) and d2_ref
-the ``QUANTILE`` of d2 over held-out real cues (the ``val`` split; where the
-model learnt every demo, ``train.finish_rows``, over the fitted cues
-themselves): nine in ten real cues of new tasks get less than one prior's
-worth of variance, and an image of nothing gets tens to hundreds.
+- a *cue autoencoder*'s features (``train_cue_autoencoder``: a conv stack shaped like the task encoder's, trained
+  after the model to reconstruct its training cues as they are) of the cue's *last frame*, shown in both places
+  (``NOVELTY_VIEW``, the model's ``novelty_view``): how familiar the demo's end looks.  The task encoder's own
+  features drop what the task does not need, so an empty scene falls inside them; a reconstruction keeps what
+  is in the picture.  The first frame, an ordinary start, would dilute an unusual end.
+- the demo's state at its last step (``fit_novelty``'s end states, the model's ``novelty_state``), each dimension
+  standardised over the training demos' ends (``end_state_units``): a frame cannot show an arm that left the
+  view, and one Gaussian over both reads the state's surprise given what the frame shows.  A dataset without
+  state dimensions keeps the frame alone.
 
-Why an autoencoder's features and not the task encoder's own: the task loss
-makes the encoder's features keep what tells tasks apart and drop the rest,
-and an empty scene, or a scene where the arm flailed and no object moved,
-falls inside what they span -- on the development set (``push-v1-dev`` +
-probes) the density over the shipped encoder's conv features ranked
-no-objects and random probes at AUROC 0.42 and 0.64 (below chance for the
-empty scenes), and neither other densities over them, an ensemble of
-encoders, nor an encoder trained to read out the objects' positions did
-better (the model card).  Features trained to reconstruct the cue keep what
-is in it: the same Gaussian over them ranked no-objects 0.996, random 0.990,
-no-action 0.998, hidden 1.000, occluded 0.997 (each kind's mean 10 to 1,000
-clean standard deviations above the clean demos') after 3,000 steps; 6,000
-steps, twice the time, gave 0.995, 0.993, 0.999, 1.000, 0.999.  The
-reconstruction error itself does not (no-objects 0.54, random 0.43: an
-emptier scene is easier to draw).  ``benchmarks/novelty_features.py``.  Over the
-autoencoder's features, other densities (per task, nearest neighbours, per
-position), an ensemble of three autoencoders, a frame autoencoder trained on
-every step of the demos and one trained on partial cues too read random
-probes no higher (0.95-0.99 on three development draws; the model card): a
-flung arm's cue is about as unusual to them as the most unusual clean cues of
-new tasks.
-What the density reads of a cue (``NOVELTY_VIEW``, the model's ``novelty_view``): its *last frame*, shown to
-the autoencoder in both places -- how familiar the demo's end looks.  Every demo's first frame is an ordinary
-start (objects at rest, the arm at home), and in the whole cue that familiar half dilutes an unusual end, while
-a held-out object makes the start as unfamiliar as the end: that is how the clean demos of new tasks reached as
-far as a flung arm.  The same autoencoder and Gaussian over the last frame, on three development draws pooled
-(push-v1-dev, -dev3, -dev4 with their probes; ``benchmarks/feature_density_choices.py``), d2 alone random /
-no-objects: the whole cue 0.981 / 0.991, the last frame 0.988 / 0.993, the first frame 0.680 / 0.212 (an empty
-start is *more* familiar), the last frame's given the first's (a likelihood ratio against the start) 0.987 /
-0.993; the whole task uncertainty of the shipped model refitted so, benched on each draw: random 0.970, 0.956,
-0.964 -> 0.986, 0.974, 0.986, no-objects and no-action the same or higher, occluded 1.000 -> 0.999 at worst
-(the model card).  The autoencoder learns from the cues as they are.
-And where the demo ended (``fit_novelty``'s end states, the model's ``novelty_state``): the density is one Gaussian
-over the last frame's features and the demo's state at its last step, each state dimension standardised over the
-training demos' ends (``end_state_units``).  A frame cannot show an arm that left the view -- the least unusual
-random probes end in a frame with less in it than a real one, the objects where they started -- and the state
-says where it is; one Gaussian over both reads the state's surprise *given* what the frame shows.  On the three
-development draws (``benchmarks/end_state_choices.py``, this model's autoencoder, draw 2; then each draw benched
-with the model refitted so), the whole task uncertainty random 0.986, 0.974, 0.986 -> 1.000 on all three,
-no-action 0.998, 0.998, 1.000 -> 1.000, no-objects 0.994, 0.985, 0.995 -> 0.997, 0.989, 0.996, gave-up 0.990,
-0.982, 0.989 -> 0.997, 0.990, 0.994, occluded 0.999, 0.999, 1.000 -> 0.999, 0.996, 0.998, hidden 1.000; the
-ranking the same or higher.  Two separate Gaussians summed instead (the state's d2 and the frame's, each over its
-reference) lost occluded (0.979 against 0.998 on draw 2: a clean demo's ordinary frame no longer excuses its
-unusual state); the state alone reads hidden and occluded at 0.44 and 0.95.  What it costs: the end states are
-read from the data files, no frame decoded -- 0.20 s of a 0.99 s cue pass over push-v1-fresh's 768 demos
-(``end_state_choices.py --time``), nothing in training.
-Meta-World mw2-dev and the one-task mw2-one-dev (their your-data models refitted both ways as their training
-fits the density, on every demo, ``train.finish_rows``): the whole task uncertainty over all kinds 0.806 -> 0.841
-and 0.840 -> 0.868, random 0.849 -> 0.919 and 0.85 -> 0.90, gave-up 0.754 -> 0.821 and 0.81 -> 0.87, occluded
-1.000 either way and 0.96 -> 0.88; the ranking the same.  A dataset without state dimensions keeps the frame alone.
-Before, the conv features had been chosen over the fully connected layers'
-(their d2 ranked idle and covered cues above real ones, AUROC 0.99, 1.00,
-where the last hidden layer's did not, 0.53, 1.00).
+The cue's squared Mahalanobis distance d2 becomes variance in task space (``TaskEncoder``): var_novel = prior_var *
+d2 / d2_ref, prior_var the variance of z over the training cues (the spread of their means plus their mean
+variance), d2_ref the ``QUANTILE`` of d2 over held-out real cues (the ``val`` split; where the model learnt every
+demo, ``train.finish_rows``, the fitted cues): nine in ten real cues of new tasks get less than one prior's worth
+of variance, an image of nothing tens to hundreds.
+
+How each part was chosen: docs/decisions.md ("The model's task uncertainty"); what else was tried: the model card.
 """
 
 from __future__ import annotations
@@ -89,14 +38,12 @@ from torch import nn
 from democheck.errors import DemocheckError
 from democheck.petnet.model import NOVELTY_VIEWS, conv_out_dim, conv_stack, cue_input, novelty_input
 
-# Of the held-out cues' d2: the reference distance.  On the development set (push-v1-dev + probes, shipped
-# model), quantiles 0.5 / 0.9 / 0.99 gave sigma AUROC over all kinds 0.741 / 0.738 / 0.720 (no-action 0.987 /
-# 0.985 / 0.835) and suspicion 0.965 / 0.970 / 0.971.
+# The reference distance d2_ref: this quantile of the held-out cues' d2 (docs/decisions.md, "The novelty part's
+# reference distance").
 QUANTILE = 0.9
+NOVELTY_VIEW = "last"  # what the density reads of a cue: its last frame, in both places (see the module docstring)
 # The cue autoencoder: Adam at AUTOENCODER_LR on batches of AUTOENCODER_BATCH cues for AUTOENCODER_EPOCHS passes
-# over the training cues, at most AUTOENCODER_STEPS steps (push-v1's 4,800 training cues: 3,000 steps, 2.5 min
-# on 2 cores; a dataset of 100 cues: 63 steps).
-NOVELTY_VIEW = "last"  # see the module docstring
+# over the training cues, at most AUTOENCODER_STEPS steps (a dataset of 100 cues: 63 steps).
 AUTOENCODER_STEPS = 3000
 AUTOENCODER_EPOCHS = 40
 AUTOENCODER_BATCH = 64
