@@ -238,8 +238,13 @@ def test_frozen_state_ranks_a_stopped_sensor_first_and_says_where():
     for d in demos:
         d.state[:, -1] = 0.5
     ev = _evidence(demos, ["frozen_state"])
-    assert ev.scores["frozen_state"][4] == 1.0 and "state[1]" in ev.reasons["frozen_state"][4]
+    assert ev.scores["frozen_state"][4] == 1.0 and "state dimension 1 holds" in ev.reasons["frozen_state"][4]
     assert (np.delete(ev.scores["frozen_state"], 4) == 0).all()
+    # Named as the dataset names it, where it does.
+    for d in demos:
+        d.extra["state_names"] = [f"joint{k}.pos" for k in range(d.state.shape[1])]
+    ev = _evidence(demos, ["frozen_state"])
+    assert ev.reasons["frozen_state"][4].startswith("joint1.pos holds one value while the arm is driven")
 
 
 def test_lag_ranks_actions_recorded_late_first_and_says_by_how_much():

@@ -130,6 +130,13 @@ def test_the_shapes_benchmark_adds_dimensions_that_change_nothing_of_the_ranking
     got = sweep.main([str(tmp_path / "r-data"), "--variants", "shipped,no-floors,without-outcome"])
     assert got[("r-data", "shipped")]["idle"] == 1.0 and got[("r-data", "shipped")]["random"] == 1.0
     assert set(got) == {("r-data", v) for v in ("shipped", "no-floors", "without-outcome")}
+    # ... and the reasons benchmark reads it: the planted idle and random demos' reasons name their cause first.
+    spec = importlib.util.spec_from_file_location("reasons", path.parent / "reasons.py")
+    reasons = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(reasons)
+    said = reasons.main([str(tmp_path / "r-data")])
+    assert said["idle"]["first clause names the cause"] == 1.0 and said["random"]["first clause names the cause"] == 1.0
+    assert said["reasons"]["latent dimension"] == 0 and said["reasons"]["probability under 1e-12"] == 0
 
 
 def test_a_spread_beside_a_pile_is_an_outcome_and_a_few_failures_beside_it_are_not():

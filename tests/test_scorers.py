@@ -126,3 +126,18 @@ def test_suspicion_reason_names_the_score_that_ranks_each_demo(evidence):
     assert drivers <= {n for n, s in SCORERS.items() if s.in_suspicion}
     for r, d in zip(reasons, evidence.explanation()[1]):  # each reason's first clause ends with its driver
         assert not r or f"({d}, " in r.split("; also ")[0] or r.startswith(f"{d}: "), (d, r)
+
+
+def test_a_reason_leads_with_what_the_demo_did_over_a_reading_of_it():
+    """The coupling (a reading of how actions go with the state) beyond every clean demo, and the arm standing still
+    clearly unusual: the reason leads with the arm.  A recording fault beyond every clean demo keeps the lead, and
+    the reading leads where nothing the demo did is unusual."""
+    from democheck.audit.ranking import clauses
+    from democheck.audit.scorers import ranking_config
+
+    config = ranking_config(["idle", "frozen_video", "coupling"])
+    names = config.names
+    row = np.log([0.01, 0.5, 1e-6])  # idle 1 in 100, the coupling far beyond 100 clean demos
+    assert names[clauses(config, row, 100)[0]] == "idle"
+    assert names[clauses(config, np.log([0.2, 0.5, 1e-6]), 100)[0]] == "coupling"
+    assert names[clauses(config, np.log([0.01, 1e-6, 1e-6]), 100)[0]] == "frozen_video"

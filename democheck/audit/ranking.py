@@ -31,6 +31,7 @@ class ScoreSpec:
     alone: bool = False  # a recording fault: beside the others' sum, by its Sidak minimum
     look: str = ""  # scores of one look (one piece of evidence) are merged first; "" = its own look
     lead: int = 0  # where its words stand in a reason beyond every clean demo: lower leads
+    behaviour: bool = False  # its words say what the demo did (the arm, the world it left, what the camera saw)
 
 
 @dataclass(frozen=True)
@@ -164,12 +165,17 @@ def clauses(config: RankingConfig, row: np.ndarray, references: int) -> list[int
     """The looks a demo's reason names (``row``: their log tail probabilities), in the order it names them: up to
     three, the smallest probability and those under ``reason_p``.  First, of those beyond every clean demo (or the
     smallest alone), the one whose spec leads (what the demo did before how it was recorded before the model's
-    reading of it -- a reviewer acts on the behaviour); then by probability."""
+    reading of it -- a reviewer acts on the behaviour); where that is a reading (neither behaviour nor a recording
+    fault), a behaviour under ``reason_p`` leads instead; then by probability."""
     if not len(row):
         return []
     order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(config.reason_p)]
     beyond = [j for j in order if np.exp(row[j]) * (references + 1) < 1] or order[:1]
     lead = min(beyond, key=lambda j: (config.specs[j].lead, row[j]))
+    spec = config.specs[lead]
+    if not (spec.behaviour or spec.alone):  # a reading (the coupling, the model): what the demo did, if unusual
+        plain = [j for j in order if config.specs[j].behaviour]
+        lead = min(plain, key=lambda j: (config.specs[j].lead, row[j])) if plain else lead
     return [lead, *[j for j in order if j != lead]][:3]
 
 

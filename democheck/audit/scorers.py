@@ -484,7 +484,7 @@ def ranking_config(names: list[str]) -> ranking.RankingConfig:
 
     return ranking.RankingConfig(tuple(
         ranking.ScoreSpec(n, log=s.log_in_ranking, in_robust_sd=s.in_robust_sd, floor=s.ranking_min_scale,
-                          tail=s.tail, alone=s.alone, look=s.look, lead=lead(s))
+                          tail=s.tail, alone=s.alone, look=s.look, lead=lead(s), behaviour=n in WHAT_HAPPENED)
         for n, s in ((n, SCORERS[n]) for n in names)))
 
 

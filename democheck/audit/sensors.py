@@ -34,11 +34,12 @@ class StateRepeats(PerDemo):
     """Consumer of decoded demos: per state dimension, the longest stretch of steps at which the value repeats
     while the actions change (by more than ``DRIVEN_SHARE`` of the demo's large changes) (its share of the demo's steps, where it starts, how many steps it lasts)."""
 
-    fields = ("shares", "starts", "lengths", "steps")
+    fields = ("shares", "starts", "lengths", "steps", "names")
     shares: list[np.ndarray]  # [S]
     starts: list[np.ndarray]  # [S]
     lengths: list[np.ndarray]  # [S]
     steps: list[int]  # the demo's steps (frames - 1)
+    names: list[list[str] | None]  # the dataset's names of the state dimensions, where it names them
 
     def add(self, demo: Demo) -> None:
         x, a = np.asarray(demo.state), np.asarray(demo.actions)
@@ -55,6 +56,7 @@ class StateRepeats(PerDemo):
         self.starts.append(starts)
         self.lengths.append(lengths)
         self.steps.append(n)
+        self.names.append(demo.extra.get("state_names"))
 
 
 def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = None) -> tuple[np.ndarray, list[str]]:
@@ -80,7 +82,9 @@ def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = No
         j = int(np.argmax(seen[i]))
         out[i] = float(seen[i, j])
         start, length = int(stats.starts[i][j]), int(stats.lengths[i][j])
-        reasons.append(f"state[{j}] holds one value while the arm is driven over "
+        names = stats.names[i] if i < len(stats.names) else None
+        what = names[j] if names and j < len(names) else f"state dimension {j}"
+        reasons.append(f"{what} holds one value while the arm is driven over "
                        f"{steps_text(start, start + length, stats.steps[i] + 1)}, where its task's demos rarely "
                        "do" if out[i] > 0 else "every state dimension that moves in its task's demos moves")
     return out, reasons
