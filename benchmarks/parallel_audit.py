@@ -50,6 +50,12 @@ def measure(dataset, model=None, ray: bool = False, verbose: bool = False) -> di
 
 
 if __name__ == "__main__":  # spawned workers import this file again
-    args = [a for a in sys.argv[1:] if a != "--ray"]
-    print(f"{args[0]}:")
-    measure(args[0], args[1] if len(args) > 1 else None, ray="--ray" in sys.argv, verbose=True)
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("dataset")
+    ap.add_argument("model", nargs="?", help="a model folder or a shipped model's name (default: the shipped one)")
+    ap.add_argument("--ray", action="store_true", help="also on a local 2-CPU Ray instance")
+    args = ap.parse_args()
+    print(f"{args.dataset}:")
+    measure(args.dataset, args.model, ray=args.ray, verbose=True)

@@ -96,8 +96,12 @@ def compare(old: Path, new: Path) -> tuple[list[str], list[str]]:
 
 
 def main() -> None:
-    args = sys.argv[1:]
-    if not args or len(args) % 2:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("folders", nargs="+", help="OLD NEW [OLD2 NEW2 ...]")
+    args = ap.parse_args().folders
+    if len(args) % 2:
         sys.exit(__doc__)
     bad = 0
     for old, new in zip(args[::2], args[1::2]):
