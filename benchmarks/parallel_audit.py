@@ -9,7 +9,6 @@ audit's wall time for each and their ratios to one worker (both passes run in th
 """
 
 import os
-import sys
 import time
 
 import numpy as np

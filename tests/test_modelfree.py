@@ -9,7 +9,8 @@ import pandas as pd
 from scipy import stats
 
 from democheck.audit import dynamics, modelfree, sensors
-from democheck.audit.scorers import SCORERS, Evidence, compute, select
+from democheck.audit.evidence import Evidence
+from democheck.audit.scorers import SCORERS, compute, select
 from democheck.audit.flagging import conformal_p, flags
 from democheck.audit.scores import combined_log10, robust_tails, sidak_log10, tail_probabilities
 from democheck.data.demo import Demo
@@ -384,7 +385,9 @@ def test_a_normal_tail_keeps_the_rate_on_normal_scores_and_sees_how_far_out_a_de
               "coupling": rng.normal(-1.5, 0.1, 400)}
     values["coupling"][7] = -0.9  # six of its SDs less coupled than its task's others
     ev = Evidence(episodes=pd.DataFrame({"episode_index": np.arange(400), "task": tasks}), scores=values)
-    r = ev.combination(model_free=True)
+    from democheck.audit.scorers import combination
+
+    r = combination(ev, model_free=True)
     names, log_p = r.config.names, r.log_p
     assert sorted(names) == ["coupling", "idle", "motion"] and SCORERS["coupling"].tail == "normal"
     assert log_p[7, names.index("coupling")] < np.log(1e-6)  # the exponential through its quartiles: about 1e-3

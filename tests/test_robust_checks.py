@@ -10,7 +10,8 @@ import pytest
 from scipy import stats
 
 from democheck.audit.run import score_table
-from democheck.audit.scorers import SCORERS, Evidence, compute, select
+from democheck.audit.evidence import Evidence
+from democheck.audit.scorers import SCORERS, compute, select
 from democheck.data.demo import Demo, no_frames
 
 NAMES = ["cube.x", "cube.y", "lid.qw", "lid.qx", "lid.qy", "lid.qz", "knob.angle", "switch", "drawer", "fixture.z",

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from democheck.audit.run import gather_evidence
-from democheck.audit.scorers import NEEDS, SCORERS, Evidence, select
+from democheck.audit.evidence import NEEDS, Evidence
+from democheck.audit.scorers import SCORERS, explanation, select
 from democheck.data import open_dataset
 from democheck.petnet.checkpoint import load_checkpoint
 from democheck.sim.suite import generate, load_recipe
@@ -122,9 +123,9 @@ def test_suspicion_reason_names_the_score_that_ranks_each_demo(evidence):
                      r"clean demo)", first), first
     idle = reasons[labels == "idle"][0]
     assert "the arm hardly moves" in idle or "the arm stands still" in idle, idle
-    drivers = set(evidence.explanation()[1])
+    drivers = set(explanation(evidence)[1])
     assert drivers <= {n for n, s in SCORERS.items() if s.in_suspicion}
-    for r, d in zip(reasons, evidence.explanation()[1]):  # each reason's first clause ends with its driver
+    for r, d in zip(reasons, explanation(evidence)[1]):  # each reason's first clause ends with its driver
         assert not r or f"({d}, " in r.split("; also ")[0] or r.startswith(f"{d}: "), (d, r)
 
 

@@ -24,7 +24,7 @@ import pandas as pd
 from democheck.audit.flagging import conformal_p, is_broken
 from democheck.audit.metrics import detection
 from democheck.audit.ranking import RankingConfig, rank
-from democheck.audit.scorers import comparison_groups
+from democheck.audit.evidence import comparison_groups
 
 RECORDING_FAULTS = ("jerk", "lag", "timing", "frozen_video", "frame_jump", "frozen_state")
 

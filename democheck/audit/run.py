@@ -21,7 +21,7 @@ import pandas as pd
 
 from democheck import pool
 from democheck.audit import ranking, scorers as registry, shards, trust
-from democheck.audit.scorers import GROUP_MIN_DEMOS, Evidence, Scorer
+from democheck.audit.evidence import GROUP_MIN_DEMOS, Evidence, Scorer, small_tasks
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.flagging import (DEFAULT_FPR, broken_recordings, conformal_p, exact_copies, expected_false_flags,
                                       flag_level, flagged_regardless, flags)
@@ -194,11 +194,12 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
     suspicion = table["suspicion"].to_numpy(np.float64)
     table["p_value"] = 10.0 ** -suspicion
     # The reference the flags are calibrated on: the robust core the ranking's tails were fitted on.
-    ranked = ev.combination() if "suspicion" in ev.scores else None
+    ranked = registry.combination(ev) if "suspicion" in ev.scores else None
     table["reference"] = ranked.core if ranked is not None else np.zeros(len(table), bool)
     table["p_reference"] = conformal_p(suspicion, table["reference"].to_numpy())
     table["details"] = ev.reasons.get("suspicion", [""] * len(table))
-    table["driven_by"] = ev.explanation()[1] if ranked is not None and ranked.config.specs else [""] * len(table)
+    table["driven_by"] = (registry.explanation(ev)[1] if ranked is not None and ranked.config.specs
+                          else [""] * len(table))
     if ranked is not None:  # each ranked check's own tail probability and flag: columns that compare
         for name, values in ranked.per_check(fpr).items():
             table[name] = values
@@ -307,7 +308,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     summary["warnings"] = (unreadable_files(ev.episodes["episode_index"].to_numpy(), ev.reasons.get("broken"))
                            + warnings(table, ckpt, ev.untrusted, fpr))
     if "suspicion" in ev.scores:  # how the ranking was made, as data (``ranking.RankingConfig``)
-        summary["ranking"] = ev.combination().config.to_dict()
+        summary["ranking"] = registry.combination(ev).config.to_dict()
     return table, summary
 
 
@@ -385,7 +386,7 @@ def warnings(table: pd.DataFrame, ckpt: Checkpoint | None, untrusted: dict[str, 
     default: by its training record alone), tasks the model never learnt, and images unlike any it was trained
     on."""
     out = []
-    small, tasks = registry.small_tasks(table["task"]), table["task"].nunique()
+    small, tasks = small_tasks(table["task"]), table["task"].nunique()
     if len(small):
         n = int(small.sum())
         out.append(f"{len(small)} of {tasks} tasks have fewer than {GROUP_MIN_DEMOS} demos ({n} demos, e.g. "

@@ -17,204 +17,18 @@ what the consumers return lands in ``Evidence.behaviour``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, sensors
+from democheck.audit.action_error import ACTION_STEPS, ActionErrors
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
-from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, sensors, trust
-from democheck.audit.action_error import ACTION_STEPS, ActionErrors, controller_z
+from democheck.audit.evidence import Evidence, Scorer, Scores
 from democheck.audit.flagging import is_broken
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.scores import CONSISTENCY_K, consistency_parts
-from democheck.data.demo import Demo
-from democheck.petnet.checkpoint import Checkpoint
-from democheck.petnet.posterior import TaskPosterior
-
-NEEDS = {
-    "cues": "the task posterior of each demo's cue, its first and last frame (the fast pass of a PETNet model)",
-    "demos": "every frame, state and action of each demo (one decoding pass)",
-    "model": "a PETNet model",
-    "novelty": "a PETNet model with a novelty density (democheck train fits one)",
-    "reference": "the model's reference of its training demos (the one-class SVM)",
-    "tecnet": "a TecNets model trained on the same data (democheck bench --tecnet)",
-    "scores": "other scorers' scores",
-    "many": "more than one demo",
-    "frames": "camera frames (a dataset that records no camera has none: ``NO_CAMERA``)",
-}
-
-
-# A task of fewer demos than this is no reference for its demos: the checks that compare a demo with its task's
-# others compare those of such tasks with each other instead (``comparison_groups``).  Where every demo names a
-# task of its own -- a free-text instruction per episode -- a robust median and MAD within each task leave every
-# demo at 0: the Meta-World set LeRobot's writer made, each episode's task string made its own, ranked every kind
-# at 0.50 and flagged nothing.  Every development set's tasks hold 12 or more demos, so none is changed.
-GROUP_MIN_DEMOS = 5
-SMALL_TASKS = "\0tasks of fewer demos"  # the group of the small tasks' demos (never shown)
-
-
-def small_tasks(tasks: np.ndarray) -> pd.Series:
-    """The tasks of fewer than ``GROUP_MIN_DEMOS`` demos, and how many each has (most first)."""
-    counts = pd.Series(np.asarray(tasks, dtype=object)).value_counts()
-    return counts[counts < GROUP_MIN_DEMOS]
-
-
-def comparison_groups(tasks: np.ndarray) -> np.ndarray:
-    """Each demo's task where the task has at least ``GROUP_MIN_DEMOS`` demos, else one group of every demo of the
-    smaller tasks (the whole set where all its tasks are small: ``small_tasks``)."""
-    tasks = np.asarray(tasks, dtype=object)
-    small = np.isin(tasks, small_tasks(tasks).index.to_numpy())
-    return np.where(small, SMALL_TASKS, tasks) if small.any() else tasks
-
-
-@dataclass
-class Evidence:
-    """What scorers read about the demos being scored, one row of ``episodes`` per demo, in one order."""
-
-    episodes: pd.DataFrame  # episode_index, task (+ label, split, ...)
-    posterior: TaskPosterior | None = None  # each demo's cue under the PETNet model
-    model: Checkpoint | None = None
-    embedding: np.ndarray | None = None  # each demo's cue under the TecNets model
-    behaviour: dict[str, Any] = field(default_factory=dict)  # results of the decoding pass, by scorer name
-    scores: dict[str, np.ndarray] = field(default_factory=dict)  # computed so far, by scorer name
-    reasons: dict[str, list[str]] = field(default_factory=dict)
-    seed: int = 0
-    frames: bool = True  # the demos have camera frames (False: a dataset that records no camera, ``NO_CAMERA``)
-    # Task uncertainty of cut cues and of the same demos' real ones (``trust``), or how to measure it when needed.
-    still: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
-    _z: np.ndarray | None = field(default=None, repr=False)
-    _combinations: dict[tuple, ranking.Ranking] = field(default_factory=dict, repr=False)
-    _explained: dict[bool, tuple[list[str], list[str]]] = field(default_factory=dict, repr=False)
-
-    def task_variables(self) -> np.ndarray:
-        """``controller_z`` of every demo (what its actions are judged under), computed once."""
-        if self._z is None:
-            self._z = controller_z(self.posterior, self.tasks)
-        return self._z
-
-    def combination(self, model_free: bool = False) -> ranking.Ranking:
-        """The ranking of the scores ``ranked`` picks (``ranking.rank`` under ``ranking_config``): their tail
-        probabilities, the robust core they were fitted on (the reference the flags are calibrated on) and the
-        suspicion.  Computed once for each set of scores (the ranking and the audit's flags both read it)."""
-        names = ranked(self.scores, self.tasks, model_free, self.untrusted)
-        key = tuple(names)
-        if key not in self._combinations:
-            self._combinations[key] = ranking.rank(self.scores, self.groups, ranking_config(names),
-                                                   broken_rows(self))
-        return self._combinations[key]
-
-    def explanation(self, model_free: bool = False) -> tuple[list[str], list[str]]:
-        """Each demo's reason (every clause) and the check it names first (``ranking.explain``), once."""
-        if model_free not in self._explained:
-            self._explained[model_free] = ranking.explain(self.combination(model_free), self.reasons,
-                                                          self.reasons.get("broken"))
-        return self._explained[model_free]
-
-    @property
-    def untrusted(self) -> dict[str, str]:
-        """The model's scores that stay out of the ranking, and why (``trust.untrusted``: on the demos whose arm
-        the motion check finds hardly moving, else on the cut cues where the audit encoded them)."""
-        if self.model is None:
-            return {}
-        idle = None
-        if self.posterior is not None and "motion" in self.behaviour:
-            still = np.asarray(self.behaviour["motion"])[:, 0] < modelfree.HARDLY_MOVES  # mean |action|
-            sigma = self.posterior.task_uncertainty()
-            idle = (sigma[still], sigma[~still])
-        return trust.untrusted(self.model.meta, self.still, idle)
-
-    @property
-    def tasks(self) -> np.ndarray:
-        return self.episodes["task"].to_numpy()
-
-    @property
-    def groups(self) -> np.ndarray:
-        """What each demo is compared with by the checks that judge a demo against its task's others
-        (``comparison_groups``)."""
-        return comparison_groups(self.tasks)
-
-    def has(self, need: str) -> bool:
-        """Whether this evidence can feed a scorer that needs ``need``."""
-        return {"cues": self.posterior is not None, "model": self.model is not None,
-                "novelty": self.model is not None and bool(self.model.config.novelty),
-                "reference": self.model is not None and bool((self.model.meta.get("reference") or {}).get("ocsvm")),
-                "tecnet": self.embedding is not None, "demos": True, "scores": True,
-                "many": len(self.episodes) > 1, "frames": self.frames}[need]
-
-
-Scores = tuple[np.ndarray, list[str] | None]  # one number per demo, and a reason per demo (or None)
-
-
-class DemoConsumer(Protocol):
-    def add(self, demo: Demo) -> None: ...
-
-    def finish(self) -> Any: ...
-
-
-@dataclass(frozen=True)
-class Scorer:
-    name: str
-    description: str
-    needs: tuple[str, ...]
-    score: Callable[[Evidence], Scores]
-    family: str = "democheck"  # "democheck" or "baseline" (what users would pick instead)
-    in_audit: bool = True  # computed by ``democheck audit`` (False: ``bench`` only)
-    in_suspicion: bool = False  # one of the scores the ranking combines
-    # In the ranking of a dataset with a single task too.  The task embedding's scores are not: with no other
-    # task to tell apart, a demo far from its neighbours is mostly one on an unusual layout.  On two one-task
-    # development sets (Meta-World drawer-open seed 1 and push seed 2, 40 clean + 15 bad each, their your-data
-    # models) task uncertainty and consistency put 1 and 2 of 40 clean demos over the --fpr 0.01 flag; without
-    # them none, recall 0.93 and 0.93 (with them 0.93 and 1.00), AUROC >= 0.99 on every kind either way.
-    in_single_task_ranking: bool = True
-    # In the ranking on a log scale: a score whose clean demos' right tail is long (a squared error) would
-    # otherwise put clean demos many robust standard deviations up.
-    log_in_ranking: bool = False
-    in_robust_sd: bool = False  # its score is already a robust z within the task: the ranking takes it as it is
-    # Scorers of one look ask one question of a demo (whether its actions are explained: by the model's controller,
-    # or by its state): where the ranking has more than one of them they are one piece of evidence, the Sidak
-    # minimum of their tail probabilities (``scores.merge_looks``); see ``democheck.audit.coupling``.
-    look: str = ""
-    # The least spread a robust standard deviation of this score stands for in the ranking, in its units.
-    ranking_min_scale: float = 0.0
-    # The family of its clean right tail in the ranking (``scores.tail_probabilities``): "exponential", or
-    # "normal" for a score that is a mean over many steps (the central limit theorem makes its clean spread normal,
-    # and an exponential through its quartiles would call a demo six robust SD out one clean demo in a few hundred).
-    tail: str = "exponential"
-    # A recording fault (a frozen camera, dropped frames, actions recorded out of step, a shaking command stream,
-    # a frozen sensor): the faults' tail probabilities stand apart, beside the combination of the others
-    # (``scores.combined_log10``), instead of adding up with them in Fisher's sum, where one small probability is
-    # diluted by every ordinary one beside it.
-    alone: bool = False
-    # Where its decoding pass's result lands in ``Evidence.behaviour`` (default: its name); scorers that give
-    # the same key share one consumer.
-    behaviour: str = ""
-    # For "demos": (evidence, its rows of one dataset, device) -> a consumer of that dataset's decoded demos.
-    decode: Callable[[Evidence, slice, Any], DemoConsumer] | None = None
-    short: str = ""  # header in narrow terminal tables
-    higher_is_more_suspect: bool = True  # the contract: every scorer's direction
-
-    @property
-    def source(self) -> str:
-        """Its key in ``Evidence.behaviour``."""
-        return self.behaviour or self.name
-
-    @property
-    def model_free(self) -> bool:
-        return not {"cues", "model", "novelty", "reference", "tecnet"} & set(self.needs)
-
-    def can_run(self, ev: Evidence) -> bool:
-        """Whether ``ev`` has what this scorer needs: for one that needs every frame, its decoding pass's result
-        (``ev.behaviour``); for the others, every need."""
-        if "demos" in self.needs:  # what it needs besides the decoded demos was needed by the decoding pass
-            return self.source in ev.behaviour and all(ev.has(n) for n in self.needs if n in ("many", "frames"))
-        return all(ev.has(n) for n in self.needs)
-
-    def can_decode(self, ev: Evidence) -> bool:
-        """Whether this scorer's decoding pass can run on ``ev`` (it needs every frame, and has the rest)."""
-        return self.decode is not None and all(ev.has(n) for n in self.needs if n != "demos")
-
 
 # ---------------------------------------------------------------------------
 # PETNet's scores
@@ -268,8 +82,8 @@ FAULT_MIN_SCALE = 0.02
 
 
 def _suspicion(ev: Evidence, model_free: bool = False) -> Scores:
-    r = ev.combination(model_free)
-    return (r.suspicion, ev.explanation(model_free)[0]) if r.config.specs else (r.suspicion, None)
+    r = combination(ev, model_free)
+    return (r.suspicion, explanation(ev, model_free)[0]) if r.config.specs else (r.suspicion, None)
 
 
 def _model_free(ev: Evidence) -> Scores:
@@ -486,6 +300,24 @@ def ranking_config(names: list[str]) -> ranking.RankingConfig:
         ranking.ScoreSpec(n, log=s.log_in_ranking, in_robust_sd=s.in_robust_sd, floor=s.ranking_min_scale,
                           tail=s.tail, alone=s.alone, look=s.look, lead=lead(s), behaviour=n in WHAT_HAPPENED)
         for n, s in ((n, SCORERS[n]) for n in names)))
+
+
+def combination(ev: Evidence, model_free: bool = False) -> ranking.Ranking:
+    """The ranking of the scores ``ranked`` picks (``ranking.rank`` under ``ranking_config``): their tail
+    probabilities, the robust core they were fitted on (the reference the flags are calibrated on) and the
+    suspicion.  Computed once for each set of scores (the ranking and the audit's flags both read it)."""
+    names = ranked(ev.scores, ev.tasks, model_free, ev.untrusted)
+    key = tuple(names)
+    if key not in ev.rankings:
+        ev.rankings[key] = ranking.rank(ev.scores, ev.groups, ranking_config(names), broken_rows(ev))
+    return ev.rankings[key]
+
+
+def explanation(ev: Evidence, model_free: bool = False) -> tuple[list[str], list[str]]:
+    """Each demo's reason (every clause) and the check it names first (``ranking.explain``), once."""
+    if model_free not in ev.explained:
+        ev.explained[model_free] = ranking.explain(combination(ev, model_free), ev.reasons, ev.reasons.get("broken"))
+    return ev.explained[model_free]
 
 
 def broken_rows(ev: Evidence) -> np.ndarray:

@@ -21,7 +21,7 @@ import pandas as pd
 from democheck import pool
 from democheck.audit import dynamics, modelfree, scorers as registry
 from democheck.audit.action_error import ACTION_BATCH
-from democheck.audit.scorers import Evidence, Scorer
+from democheck.audit.evidence import Evidence, Scorer
 from democheck.data.demo import DemoSet
 from democheck.petnet.encode import encode_demos
 from democheck.petnet.posterior import TaskPosterior

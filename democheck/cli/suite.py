@@ -101,7 +101,7 @@ def info(
     with user_errors():
         from rich.markup import escape
 
-        from democheck.audit.scorers import GROUP_MIN_DEMOS
+        from democheck.audit.evidence import GROUP_MIN_DEMOS
         from democheck.data import open_dataset
 
         ds = open_dataset(dataset, camera=camera, state_key=state_key, action_key=action_key)

@@ -20,7 +20,7 @@ from democheck.errors import DatasetError
 
 # The frame shape of a dataset that records no camera (robomimic's low-dimensional files, a state-only LeRobot
 # dataset): its demos' frames are [T, 0, 0, 3].  The model-free checks of states and actions read it; those of
-# the frames need frames and are left out (``scorers.NEEDS``); the model, which reads a demo by its frames, cannot.
+# the frames need frames and are left out (``evidence.NEEDS``); the model, which reads a demo by its frames, cannot.
 NO_CAMERA = (0, 0, 3)
 
 
