@@ -111,8 +111,11 @@ def test_the_readme_walkthrough_runs_as_written_on_a_foreign_dataset(tmp_path):
     assert summary["demos"] == len(open(root / "benchmarks/foreign/data/mw-tiny.labels.csv").readlines()) - 1
     assert summary["frames"]["model"] == [64, 64, 3] and (tmp_path / "report" / "suspects.txt").exists()
     # The model learnt every task of the data it audits, and its frames; a model trained this briefly on 21 demos
-    # may fail its own tests (its scores then reported, not ranked), which the audit says.
-    assert all("reported, not ranked" in w for w in summary["warnings"]), summary["warnings"]
+    # may fail its own tests (its scores then reported, not ranked), which the audit says, as it says that a
+    # reference of about 20 demos cannot calibrate --fpr 0.01.
+    assert all("reported, not ranked" in w or w.startswith("the reference holds") for w in summary["warnings"]), \
+        summary["warnings"]
+    assert any(w.startswith("the reference holds") for w in summary["warnings"])
     cleaned = json.loads((tmp_path / "mine-clean" / "meta" / "info.json").read_text())
     assert cleaned["total_episodes"] == summary["demos"] - summary["flagged"]
 

@@ -33,7 +33,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from record import episode, options, parser, plan, planted_action, record  # noqa: E402
+import record  # noqa: E402
+from record import episode, planted_action  # noqa: E402
 
 TASKS = {  # name -> (the task as the dataset names it, Gymnasium-Robotics env, steps)
     "reach": ("reach the goal with the gripper", "FetchReach-like", 50),
@@ -171,25 +172,17 @@ def _episode(job: tuple) -> dict:
 
 
 def features(size: tuple[int, int]) -> dict:
-    return {
-        f"observation.images.{CAMERA}": {"dtype": "video", "shape": (size[0], size[1], 3),
-                                         "names": ["height", "width", "channels"]},
-        "observation.state": {"dtype": "float32", "shape": (28,), "names": STATE_NAMES},
-        "observation.environment_state": {"dtype": "float32", "shape": (10,), "names": ENV_NAMES},
-        "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "gripper"]},
-    }
+    return record.features(CAMERA, size, STATE_NAMES, ENV_NAMES, ["dx", "dy", "dz", "gripper"])
 
 
-def main() -> None:
-    ap = parser(__doc__, demos=40, size="96")
+def parser():
+    ap = record.parser(__doc__, demos=40, size="96")
     ap.add_argument("--length-scale", type=float, default=1.0,
                     help="episode lengths times this (the oracle done, the arm holds): 3 gives 150-330 steps")
-    args = ap.parse_args()
-    kinds, size = options(args)
-    record(args.out, plan(list(TASKS), args.demos, args.plant, args.seed, kinds), _episode, args.workers,
-           _init, (size, args.length_scale), features(size), FPS, "fetch")
+    return ap
 
 
 if __name__ == "__main__":
     os.environ.setdefault("MUJOCO_GL", "egl")
-    main()
+    record.main(parser(), list(TASKS), _episode, _init, features, FPS, "fetch",
+                init_args=lambda args: (args.length_scale,))

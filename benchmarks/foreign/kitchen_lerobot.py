@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from record import episode, options, parser, plan, planted_action, record  # noqa: E402
+import record  # noqa: E402
+from record import episode, planted_action  # noqa: E402
 
 TASKS = {  # name -> (the task as the dataset names it, steps)
     "slide": ("open the slide cabinet", 60),
@@ -171,22 +172,9 @@ def _episode(job: tuple) -> dict:
 
 
 def features(size: tuple[int, int]) -> dict:
-    return {
-        f"observation.images.{CAMERA}": {"dtype": "video", "shape": (size[0], size[1], 3),
-                                         "names": ["height", "width", "channels"]},
-        "observation.state": {"dtype": "float32", "shape": (18,), "names": STATE_NAMES},
-        "observation.environment_state": {"dtype": "float32", "shape": (21,), "names": ENV_NAMES},
-        "action": {"dtype": "float32", "shape": (9,), "names": ACTION_NAMES},
-    }
-
-
-def main() -> None:
-    args = parser(__doc__, demos=40, size="96").parse_args()
-    kinds, size = options(args)
-    record(args.out, plan(list(TASKS), args.demos, args.plant, args.seed, kinds), _episode, args.workers,
-           _init, (size,), features(size), FPS, "franka")
+    return record.features(CAMERA, size, STATE_NAMES, ENV_NAMES, ACTION_NAMES)
 
 
 if __name__ == "__main__":
     os.environ.setdefault("MUJOCO_GL", "egl")
-    main()
+    record.main(record.parser(__doc__, demos=40, size="96"), list(TASKS), _episode, _init, features, FPS, "franka")

@@ -117,6 +117,29 @@ def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min
             **{k: rec[k] for k in ("frames", "state", "env_state", "actions")}}
 
 
+def features(camera: str, size: tuple[int, int], state: list[str], env: list[str], action: list[str]) -> dict:
+    """LeRobot's feature table of a generator's dataset: the camera, and the state, environment state and actions
+    with the dataset's names of their dimensions."""
+    return {
+        f"observation.images.{camera}": {"dtype": "video", "shape": (size[0], size[1], 3),
+                                         "names": ["height", "width", "channels"]},
+        "observation.state": {"dtype": "float32", "shape": (len(state),), "names": state},
+        "observation.environment_state": {"dtype": "float32", "shape": (len(env),), "names": env},
+        "action": {"dtype": "float32", "shape": (len(action),), "names": action},
+    }
+
+
+def main(ap: argparse.ArgumentParser, tasks: list[str], episode: Callable[[tuple], dict], init: Callable,
+         features_of: Callable[[tuple[int, int]], dict], fps: int, robot_type: str,
+         init_args: Callable[[argparse.Namespace], tuple] = lambda args: ()) -> None:
+    """A generator's command line: parse ``ap``, plan, simulate in workers (``init(size, *init_args(args))`` in
+    each) and write."""
+    args = ap.parse_args()
+    kinds, size = options(args)
+    record(args.out, plan(tasks, args.demos, args.plant, args.seed, kinds), episode, args.workers, init,
+           (size, *init_args(args)), features_of(size), fps, robot_type)
+
+
 def record(out: Path, jobs: list[tuple], episode: Callable[[tuple], dict], workers: int,
            init: Callable, initargs: tuple, features: dict, fps: int, robot_type: str) -> None:
     """Simulate ``jobs`` with ``episode`` in ``workers`` spawned processes (``init(*initargs)`` in each) and write

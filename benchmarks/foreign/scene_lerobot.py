@@ -1,8 +1,10 @@
 """A third simulator democheck did not make: OGBench's manipulation scene (a 6-DoF arm with a gripper, a cube, two
 buttons that lock a drawer and a window), seven tasks done by OGBench's own Markovian oracles, written by LeRobot's
-own writer, with planted bad demos.  Runs in LeRobot's virtual environment, with OGBench and the MuJoCo it needs:
+own writer, with planted bad demos.  Runs in LeRobot's virtual environment with OGBench and the MuJoCo 4 it needs
+(Fetch and the kitchen want MuJoCo 3.3.7: give each its own environment, or reinstall between them):
 
-    /tmp/lerobot-venv/bin/pip install ogbench==1.2.2 mujoco==4.0.1 mujoco-core==4.0.1
+    /tmp/lerobot-venv/bin/pip install ogbench==1.2.2
+    /tmp/lerobot-venv/bin/pip install --force-reinstall --no-deps mujoco==4.0.1 mujoco-core==4.0.1 mujoco-studio==4.0.1
     MUJOCO_GL=egl /tmp/lerobot-venv/bin/python benchmarks/foreign/scene_lerobot.py OUT --demos 24 --plant 6 --seed 0
 
 OUT is a LeRobot v3.0 dataset: camera ``observation.images.front``, a 19-d state (joint positions and velocities,
@@ -26,7 +28,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from record import episode, options, parser, plan, planted_action, record  # noqa: E402
+import record  # noqa: E402
+from record import episode, planted_action  # noqa: E402
 
 TASKS = {  # name -> (the task as the dataset names it, OGBench's target task, the steps a planted demo lasts)
     "cube": ("move the cube to its target", "cube", 90),
@@ -171,23 +174,10 @@ def _episode(job: tuple) -> dict:
 
 
 def features(size: tuple[int, int]) -> dict:
-    return {
-        f"observation.images.{CAMERA}": {"dtype": "video", "shape": (size[0], size[1], 3),
-                                         "names": ["height", "width", "channels"]},
-        "observation.state": {"dtype": "float32", "shape": (19,), "names": STATE_NAMES},
-        "observation.environment_state": {"dtype": "float32", "shape": (13,), "names": ENV_NAMES},
-        "action": {"dtype": "float32", "shape": (5,), "names": ["dx", "dy", "dz", "dyaw", "gripper"]},
-    }
-
-
-def main() -> None:
-    ap = parser(__doc__, demos=24, size="128")
-    args = ap.parse_args()
-    kinds, size = options(args)
-    record(args.out, plan(list(TASKS), args.demos, args.plant, args.seed, kinds), _episode, args.workers,
-           _init, (size,), features(size), FPS, "ogbench-scene")
+    return record.features(CAMERA, size, STATE_NAMES, ENV_NAMES, ["dx", "dy", "dz", "dyaw", "gripper"])
 
 
 if __name__ == "__main__":
     os.environ.setdefault("MUJOCO_GL", "egl")
-    main()
+    record.main(record.parser(__doc__, demos=24, size="128"), list(TASKS), _episode, _init, features, FPS,
+                "ogbench-scene")
