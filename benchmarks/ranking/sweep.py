@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from democheck.audit.flagging import conformal_p, is_broken
+from democheck.audit.flagging import broken_recordings, conformal_p, flagged_regardless, flags
 from democheck.audit.metrics import detection
 from democheck.audit.ranking import RankingConfig, rank
 from democheck.audit.evidence import comparison_groups
@@ -45,10 +45,8 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
 def rerank(table: pd.DataFrame, config: RankingConfig, fpr: float) -> tuple[np.ndarray, np.ndarray]:
     """The suspicion and the flags of ``table``'s demos under ``config``."""
     values = {n: table[n].to_numpy(np.float64) for n in config.names}
-    broken = is_broken(table["broken"]) if "broken" in table else None
-    r = rank(values, comparison_groups(table["task"].to_numpy()), config, broken)
-    flags = conformal_p(r.suspicion, r.core) <= fpr
-    return r.suspicion, flags | (np.zeros(len(table), bool) if broken is None else broken)
+    r = rank(values, comparison_groups(table["task"].to_numpy()), config, broken_recordings(table))
+    return r.suspicion, flags(conformal_p(r.suspicion, r.core), fpr, flagged_regardless(table))
 
 
 def evaluate(table: pd.DataFrame, suspicion: np.ndarray, flags: np.ndarray) -> dict:
@@ -80,10 +78,11 @@ def main(argv: list[str] | None = None) -> dict:
         config = RankingConfig.from_dict(summary["ranking"])
         fpr = summary["flag"]["fpr"]
         for name in args.variants.split(","):
-            suspicion, flags = rerank(table, VARIANTS[name](config), fpr)
-            if name == "shipped":  # the sweep ranks as the audit did
+            suspicion, flagged = rerank(table, VARIANTS[name](config), fpr)
+            if name == "shipped":  # the sweep ranks and flags as the audit did
                 np.testing.assert_allclose(suspicion, table["suspicion"].to_numpy(np.float64), rtol=1e-6)
-            results[(audit.name, name)] = evaluate(table, suspicion, flags)
+                np.testing.assert_array_equal(flagged, table["is_anomaly"].to_numpy(bool))
+            results[(audit.name, name)] = evaluate(table, suspicion, flagged)
             print(f"{audit.name:24s} {name:18s} {results[(audit.name, name)]}", flush=True)
     return results
 
