@@ -49,7 +49,7 @@ def rerank(table: pd.DataFrame, config: RankingConfig, fpr: float) -> tuple[np.n
     return r.suspicion, flags(conformal_p(r.suspicion, r.core), fpr, flagged_regardless(table))
 
 
-def evaluate(table: pd.DataFrame, suspicion: np.ndarray, flags: np.ndarray) -> dict:
+def evaluate(table: pd.DataFrame, suspicion: np.ndarray, flagged: np.ndarray) -> dict:
     labels = table["label"].fillna("clean").astype(str).to_numpy()  # a synthetic set labels only its defects
     clean = labels == "clean"
     out = {}
@@ -57,7 +57,7 @@ def evaluate(table: pd.DataFrame, suspicion: np.ndarray, flags: np.ndarray) -> d
         bad = labels == kind
         y = np.r_[np.ones(bad.sum(), bool), np.zeros(clean.sum(), bool)]
         out[kind] = round(detection(y, np.r_[suspicion[bad], suspicion[clean]])["auroc"], 4)
-    out["clean flagged"] = f"{int(flags[clean].sum())} of {int(clean.sum())}"
+    out["clean flagged"] = f"{int(flagged[clean].sum())} of {int(clean.sum())}"
     return out
 
 
