@@ -696,7 +696,7 @@ def test_colours_rank_the_demo_whose_object_is_missing_first_wherever_the_object
     ev = _evidence(demos, ["colours", "view"])
     z = ev.scores["colours"]
     assert z[17] > 5 and np.abs(np.delete(z, 17)).max() < 2, np.sort(z)[-3:]
-    assert ev.reasons["colours"][17].startswith("the view's colours changed: less of #20e0e0 than its task's other "
+    assert ev.reasons["colours"][17].startswith("the view's colours changed: less cyan (#20e0e0) than its task's other "
                                                 "demos: 0% of")
     # The block moves from demo to demo, so where the picture differs says little: view does not see it.
     assert ev.scores["view"][17] < 3
@@ -1018,4 +1018,34 @@ def test_coupling_says_nothing_of_actions_that_never_change_and_never_prints_a_n
     ev = _evidence(demos, ["coupling"])
     assert np.isnan(ev.scores["coupling"][bad]) and "actions that never change" in ev.reasons["coupling"][bad]
     assert np.isfinite(np.delete(ev.scores["coupling"], bad)).all()
-    assert coupling._nats(-0.33) == "about 0 nats" and coupling._nats(1.234) == "1.2 nats"
+    assert coupling._nats(-0.33, 1.234) == "about 0 nats (its task's median 1.2 nats)"
+    assert coupling._nats(1.891, 1.912) == "1.89 nats (its task's median 1.91 nats)"
+
+
+def test_a_motion_dimension_one_task_uses_weighs_as_much_as_the_others():
+    """A gripper one task closes and the other never touches: each action dimension is measured in units of its
+    typical motion over the demos, so a demo of the first task that leaves its gripper alone moves about a quarter
+    less than its task's demos, not hundreds of times less."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(0)
+    stats_, tasks = modelfree.MotionStats(), []
+    for i in range(30):
+        grip = 1.0 if i < 10 and i != 3 else 0.0  # task 0 closes the gripper; its demo 3 does not
+        a = np.column_stack([rng.uniform(0.4, 0.6, (50, 3)), np.full(50, grip)])
+        stats_.add(SimpleNamespace(actions=a, task="closes" if i < 10 else "opens"))
+        tasks.append(0 if i < 10 else 1)
+    ratio = modelfree.motion_ratio(stats_.finish(), np.array(tasks))
+    assert 0.5 < ratio[3] < 0.9, ratio[3]
+    assert np.all(np.abs(np.delete(ratio, 3) - 1) < 0.15)
+
+
+def test_numbers_compared_in_a_reason_never_read_the_same():
+    from democheck.audit.colours import colour_name
+    from democheck.audit.words import pair
+
+    assert pair(0.9999998, 0.99999994) == ("0.9999998", "0.9999999")
+    assert pair(1.891, 1.912) == ("1.89", "1.91")
+    assert pair(0.25, 0.5) == ("0.25", "0.5")
+    assert pair(2.0, 2.0) == ("2", "2")
+    assert colour_name(0) == "black (#202020)" and colour_name(21).startswith("grey")

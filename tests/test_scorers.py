@@ -142,3 +142,27 @@ def test_a_reason_leads_with_what_the_demo_did_over_a_reading_of_it():
     assert names[clauses(config, row, 100)[0]] == "idle"
     assert names[clauses(config, np.log([0.2, 0.5, 1e-6]), 100)[0]] == "coupling"
     assert names[clauses(config, np.log([0.01, 1e-6, 1e-6]), 100)[0]] == "frozen_video"
+
+
+def test_a_reason_leads_with_the_cause_the_other_clauses_follow_from():
+    """A frozen state explains the end state read from it and the coupling; evidence 'beyond every clean demo' of a
+    small reference (1 in 15) does not lead over evidence of another order (a dead encoder at 1e-17 against an
+    ordinary stillness at 6e-3); an arm moving somewhat less than its task's (demoted) does not lead over the world
+    left unlike its task's."""
+    from democheck.audit.ranking import clauses
+    from democheck.audit.scorers import ranking_config
+
+    config = ranking_config(["idle", "motion", "outcome", "frozen_state", "coupling"])
+    names = config.names
+    lead = lambda p, refs=14, demoted=None: names[clauses(config, np.log(p), refs, demoted)[0]]  # noqa: E731
+    # The state froze half-way: its end reads unlike the task's, the coupling is lost.
+    assert lead([0.75, 1.0, 1.4e-3, 1.2e-6, 3.5e-20]) == "frozen_state"
+    assert lead([0.75, 1.0, 1e-9, 1.2e-6, 0.5]) == "frozen_state"
+    # A dead encoder beside an ordinary end-of-demo stillness that a small reference calls beyond every demo.
+    assert lead([5.9e-3, 0.06, 0.8, 3.6e-17, 0.3]) == "frozen_state"
+    # Both far out: what the arm did leads (the stillness explains the world left as it was).
+    assert lead([1e-30, 1.0, 1e-40, 0.5, 0.5]) == "idle"
+    # Another task's demo: its arm moves a third less, the world ends elsewhere.
+    demoted = np.array([False, True, False, False, False])
+    assert lead([1.0, 2e-15, 1e-300, 0.5, 2e-110], demoted=demoted) == "outcome"
+    assert lead([1.0, 2e-15, 1e-300, 0.5, 2e-110]) == "motion"

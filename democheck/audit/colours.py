@@ -6,6 +6,7 @@ that lies somewhere else in every demo.  A consumer of the audit's decoding pass
 
 from __future__ import annotations
 
+import colorsys
 import warnings
 
 import numpy as np
@@ -73,12 +74,31 @@ def _percent(share: float) -> str:
     return "0%" if p == 0 else f"{p:.0f}%" if p >= 10 else f"{p:.2g}%"
 
 
-def colour_hex(bin_index: int) -> str:
-    """'#20e0e0': the middle of a colour bin of ``ColourStats``."""
+def colour_rgb(bin_index: int) -> tuple[int, int, int]:
+    """The middle of a colour bin of ``ColourStats``, 0-255 each."""
     step = 256 // COLOUR_LEVELS
     r, g, b = (bin_index // COLOUR_LEVELS ** 2, (bin_index // COLOUR_LEVELS) % COLOUR_LEVELS,
                bin_index % COLOUR_LEVELS)
-    return "#" + "".join(f"{c * step + step // 2:02x}" for c in (r, g, b))
+    return tuple(c * step + step // 2 for c in (r, g, b))
+
+
+HUES = ((15, "red"), (45, "orange"), (70, "yellow"), (160, "green"), (200, "cyan"), (260, "blue"),
+        (320, "purple"), (345, "pink"), (360, "red"))  # the hue (degrees) each name reaches up to
+
+
+def colour_name(bin_index: int) -> str:
+    """A colour bin as a person names it, with its code: 'grey (#a0a0a0)', 'dark purple (#602060)'."""
+    rgb = colour_rgb(bin_index)
+    code = "#" + "".join(f"{c:02x}" for c in rgb)
+    hue, saturation, value = colorsys.rgb_to_hsv(*(c / 255 for c in rgb))
+    if value < 0.2:
+        name = "black"
+    elif saturation < 0.2:
+        name = "white" if value > 0.85 else "light grey" if value > 0.6 else "grey" if value > 0.35 else "dark grey"
+    else:
+        name = next(n for top, n in HUES if hue * 360 < top)
+        name = ("dark " if value < 0.5 else "pale " if saturation < 0.45 else "") + name
+    return f"{name} ({code})"
 
 
 def colours(stats: ColourStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
@@ -103,7 +123,7 @@ def colours(stats: ColourStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str
             reasons.append("coloured like its task's other demos")
             continue
         more = shares[i, j] > median[i, j]
-        reasons.append(f"the view's colours changed: {'more' if more else 'less'} of {colour_hex(j)} than its "
+        reasons.append(f"the view's colours changed: {'more' if more else 'less'} {colour_name(j)} than its "
                        "task's other demos: "
                        f"{_percent(shares[i, j])} of the view against their median {_percent(median[i, j])} "
                        f"({z[i, j]:.0f} robust SD)")

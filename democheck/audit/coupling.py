@@ -29,6 +29,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 from scipy.special import digamma
 
+from democheck.audit import words
 from democheck.audit.modelfree import PerDemo
 from democheck.data.demo import Demo
 
@@ -82,9 +83,11 @@ class CouplingStats(PerDemo):
         self.information.append(ksg_mutual_information(x, y) if ok and not still else float("nan"))
 
 
-def _nats(value: float) -> str:
-    """An estimate of mutual information as a reader takes it: never below 0 (the estimator's bias can be)."""
-    return f"{value:.2g} nats" if value > 0.005 else "about 0 nats"
+def _nats(value: float, median: float) -> str:
+    """An estimate of mutual information and its task's median as a reader takes them: never below 0 (the
+    estimator's bias can be), and never rounded to the same number."""
+    shown = [f"{t} nats" if v > 0.005 else "about 0 nats" for v, t in zip((value, median), words.pair(value, median))]
+    return f"{shown[0]} (its task's median {shown[1]})"
 
 
 def coupling(stats: CouplingStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
@@ -92,8 +95,8 @@ def coupling(stats: CouplingStats, tasks: np.ndarray) -> tuple[np.ndarray, list[
     with its task's median."""
     info = np.asarray(stats.information, np.float64)
     medians = pd.Series(info).groupby(np.asarray(tasks)).transform("median").to_numpy()
-    reasons = [f"its actions go with its state less than its task's others': state-action mutual information "
-               f"{_nats(value)} (its task's median {_nats(median)})" if np.isfinite(value)
+    reasons = [f"its actions go with its state {'less than' if value < median else 'as much as'} its task's "
+               f"others': state-action mutual information {_nats(value, median)}" if np.isfinite(value)
                else "too short, no state, or actions that never change: nothing to relate"
                for value, median in zip(info, medians)]
     return -info, reasons

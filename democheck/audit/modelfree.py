@@ -242,27 +242,37 @@ def timing(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
     return np.array([v for v, _ in traces.timing], np.float64), [r for _, r in traces.timing]
 
 
+MOTION_TASK_MIN = 5  # demos a task needs for its median to set a dimension's unit of motion
+
+
 class MotionStats(PerDemo):
     """Consumer of decoded demos: how much each demo's actions move, model-free -- per action dimension the mean
     |action| and the mean |change of action| between steps."""
 
-    fields = ("level", "change")
+    fields = ("level", "change", "tasks")
     level: list[np.ndarray]
     change: list[np.ndarray]
+    tasks: list[str]
 
     def add(self, demo: Demo) -> None:
         a = np.asarray(demo.actions, np.float64)
         self.level.append(np.abs(a).mean(0))
         self.change.append(np.abs(np.diff(a, axis=0)).mean(0) if len(a) > 1 else np.zeros(a.shape[1]))
+        self.tasks.append(str(demo.task))
 
     def finish(self) -> np.ndarray:
-        """[N, 2]: mean |action| and mean |change|, each dimension in units of its median over these demos --
-        or of 1% of the busiest dimension's, for a dimension that hardly moves in a typical demo (a gripper
-        held shut), so that it cannot make a small motion look a million times too large."""
+        """[N, 2]: mean |action| and mean |change| over the action dimensions, each dimension in units of its
+        typical motion in the task that works it most (the largest of the medians of tasks of at least
+        ``MOTION_TASK_MIN`` demos), at least 1% of the busiest dimension's: a gripper that one task closes and the
+        others never touch weighs as much as any other dimension, and a dimension no task moves cannot make a
+        small motion look a thousand times too large."""
+        tasks = np.asarray(self.tasks)
         out = []
         for rows in (np.stack(self.level), np.stack(self.change)):
-            median = np.median(rows, axis=0)
-            scale = np.maximum(median, max(0.01 * float(median.max()), 1e-9))
+            medians = [np.median(rows[tasks == t], axis=0) for t in np.unique(tasks)
+                       if (tasks == t).sum() >= MOTION_TASK_MIN]
+            typical = np.max(medians, axis=0) if medians else np.median(rows, axis=0)
+            scale = np.maximum(typical, max(0.01 * float(typical.max()), 1e-9))
             out.append((rows / scale).mean(1))
         return np.column_stack(out)
 
@@ -288,6 +298,17 @@ def _moves(ratio: float) -> str:
 
 def motion(features: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """The larger robust |z| within its task of a demo's two ``MotionStats`` features on a log scale, and which."""
+    z, pick, ratio = _motion_parts(features, tasks)
+    reasons = [f"{_moves(r)}: {MOTION_FEATURES[j]} {r:.2g} x its task's median" for j, r in zip(pick, ratio)]
+    return z, reasons
+
+
+def motion_ratio(features: np.ndarray, tasks: np.ndarray) -> np.ndarray:
+    """[N]: the ``MotionStats`` feature ``motion`` names, as a multiple of its task's median."""
+    return _motion_parts(features, tasks)[2]
+
+
+def _motion_parts(features: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     logs = np.log(np.maximum(features, MOTION_FLOOR))
     z = np.column_stack([np.abs(calibrated(logs[:, i], tasks, min_scale=MOTION_MIN_SCALE))
                          for i in range(logs.shape[1])])
@@ -295,9 +316,7 @@ def motion(features: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[st
     # In words, against its own task's median (what the robust z compares it with).
     ratio = features / np.maximum(pd.DataFrame(features).groupby(np.asarray(tasks)).transform("median").to_numpy(),
                                   MOTION_FLOOR)
-    reasons = [f"{_moves(ratio[i, j])}: {MOTION_FEATURES[j]} {ratio[i, j]:.2g} x its task's median"
-               for i, j in enumerate(pick)]
-    return z.max(axis=1), reasons
+    return z.max(axis=1), pick, ratio[np.arange(len(pick)), pick]
 
 
 class ViewStats(PerDemo):

@@ -16,8 +16,8 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
   named so (``yaw``, ``angle``, ...) as its cosine and sine, so that +pi and -pi are one angle.
 - **Units from how the feature moves**: a value's robust SD is at least ``END_FLOOR`` of its spread at the end
   over all the demos and ``MOVE_FLOOR`` of how far the task that works it most moves it within a typical episode
-  (the median over its demos that move it); a rotation's at least ``ROTATION_FLOOR``.  A feature no demo moves (a
-  fixed part, whose values differ by float noise) says nothing.
+  (the median over its demos that move it), and never under ``RESOLUTION`` of its size; a rotation's at least
+  ``ROTATION_FLOOR``.  A feature no demo moves further than float noise (a fixed part) says nothing.
 
 NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.  A consumer of the audit's decoding pass like the other
 model-free checks (``democheck.audit.modelfree``); ``benchmarks/shapes.py`` measures what the shapes cost.
@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from democheck.audit import words
 from democheck.audit.modelfree import PerDemo
 from democheck.data.demo import Demo
 
@@ -46,7 +47,7 @@ ROTATION_FLOOR = 0.05  # a rotation's least robust SD, in units of q q^T or of c
 # A demo moves a dimension when its range over the demo exceeds this many of its jitters (the median size of its
 # second differences: about 0 for smooth motion, and white noise's range is 3-6 of them).
 STILL = 10.0
-RESOLUTION = 1e-6  # ... and more than this share of its size (at least 1): what float noise cannot reach
+RESOLUTION = 1e-5  # ... and more than this share of its size (at least 1): what float noise cannot reach
 
 _QUAT = re.compile(r"^(.*?)[._/\-]?(?:q|quat|quaternion|orientation|rot)?[._/\-]?\[?([wxyz0-3])\]?$", re.I)
 _AXIS = re.compile(r"^(.+?)[._/\-]?(?:pos)?[._/\-]([xyz])$", re.I)
@@ -208,7 +209,7 @@ def unit(feature: Feature, value: np.ndarray, moves: np.ndarray, tasks: np.ndarr
         moved = max(float(np.nanmedian(np.where(moving, rng, np.nan)[tasks == t])) for t in np.unique(tasks)
                     if moving[tasks == t].any())
         spread = float(1.4826 * np.nanmedian(np.abs(value - np.nanmedian(value, 0))))
-    return max(MOVE_FLOOR * moved, END_FLOOR * spread)
+    return max(MOVE_FLOOR * moved, END_FLOOR * spread, RESOLUTION * max(1.0, float(np.nan_to_num(size))))
 
 
 def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
@@ -268,8 +269,9 @@ def _reason(feature: Feature, part: str, value: float, ref: float, z: float) -> 
     what = f"{feature.name} at the end" if part == "at the end" else f"the change of {feature.name}"
     if feature.kind == "angle":
         what += " (cosine and sine)"
-    return (f"left the world unlike its task's other demos: {what} {value:.3g} where its task's demos reach "
-            f"{ref:.3g} ({_robust_sd_text(z)})")
+    value_text, ref_text = words.pair(value, ref, 3)
+    return (f"left the world unlike its task's other demos: {what} {value_text} where its task's demos reach "
+            f"{ref_text} ({_robust_sd_text(z)})")
 
 
 def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor: float

@@ -32,6 +32,8 @@ class ScoreSpec:
     look: str = ""  # scores of one look (one piece of evidence) are merged first; "" = its own look
     lead: int = 0  # where its words stand in a reason beyond every clean demo: lower leads
     behaviour: bool = False  # its words say what the demo did (the arm, the world it left, what the camera saw)
+    fault_of: str = ""  # a recording fault of this stream ("state", "video"): it explains what is read from it
+    reads: tuple[str, ...] = ()  # the streams its words are read from
 
 
 @dataclass(frozen=True)
@@ -63,7 +65,8 @@ class RankingConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping) -> RankingConfig:
-        return cls(**{**d, "specs": tuple(ScoreSpec(**s) for s in d.get("specs", ()))})
+        return cls(**{**d, "specs": tuple(ScoreSpec(**{**s, "reads": tuple(s.get("reads", ()))})
+                                          for s in d.get("specs", ()))})
 
 
 @dataclass
@@ -137,20 +140,23 @@ def rank(values: Mapping[str, np.ndarray], groups: np.ndarray, config: RankingCo
     return Ranking(config, log_p, core, np.where(broken, np.inf, suspicion), broken)
 
 
-def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list[str] | None = None
-            ) -> tuple[list[str], list[str]]:
+def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list[str] | None = None,
+            demoted: Mapping[str, np.ndarray] | None = None) -> tuple[list[str], list[str]]:
     """Each demo's reason and the check it names first: what the checks saw in their own ``words`` (by name, one
     per demo), in the order ``clauses`` gives, each with which check and how rare; a broken recording's
-    ``broken_words``."""
+    ``broken_words``.  ``demoted`` (by name, bool per demo): where a check's words say how the demo differs but
+    not what went wrong, so that they lead a reason only where nothing else can."""
     names, n = ranking.config.names, len(ranking.suspicion)
     references = int(np.asarray(ranking.core, bool).sum())
+    weak = np.column_stack([np.asarray((demoted or {}).get(k, np.zeros(n, bool)), bool) for k in names]
+                           ) if names else np.zeros((n, 0), bool)
     reasons, first = [], []
     for i, row in enumerate(np.nan_to_num(ranking.look_odds(), nan=0.0)):  # no score: nothing to name
         if ranking.broken.size and ranking.broken[i]:
             reasons.append(f"broken: {(broken_words or [''] * n)[i]}")
             first.append("broken")
             continue
-        order = clauses(ranking.config, row, references)
+        order = clauses(ranking.config, row, references, weak[i])
         parts = []
         for j in order:  # what the check saw in its own words first, then which check and how rare
             own = (words.get(names[j]) or [""] * n)[i]
@@ -161,21 +167,38 @@ def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list
     return reasons, first
 
 
-def clauses(config: RankingConfig, row: np.ndarray, references: int) -> list[int]:
+CERTAIN = 1e-12  # evidence past this is certain: fitted tails this far out say nothing about which is stronger
+SAME_ORDER = 10.0  # tail probabilities within this factor of each other are evidence of the same strength
+
+
+def clauses(config: RankingConfig, row: np.ndarray, references: int, demoted: np.ndarray | None = None
+            ) -> list[int]:
     """The looks a demo's reason names (``row``: their log tail probabilities), in the order it names them: up to
-    three, the smallest probability and those under ``reason_p``.  First, of those beyond every clean demo (or the
-    smallest alone), the one whose spec leads (what the demo did before how it was recorded before the model's
-    reading of it -- a reviewer acts on the behaviour); where that is a reading (neither behaviour nor a recording
-    fault), a behaviour under ``reason_p`` leads instead; then by probability."""
+    three, the smallest probability and those under ``reason_p``.  First the strongest evidence beyond every clean
+    demo (or the smallest alone); of evidence of the same strength (``SAME_ORDER``, ``CERTAIN`` at most), what the
+    demo did before how it was recorded before the model's reading of it (a spec's ``lead``; a ``demoted`` one
+    last) -- a reviewer acts on the behaviour.  Where that is a reading (neither behaviour nor a recording fault),
+    the strongest behaviour under ``reason_p`` leads instead; and a recording fault beyond every clean demo leads
+    over what is read from the stream it is a fault of (a frozen state over the end state read from it).  Then by
+    probability."""
     if not len(row):
         return []
+    specs = config.specs
+    demoted = np.zeros(len(row), bool) if demoted is None else np.asarray(demoted, bool)
     order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(config.reason_p)]
     beyond = [j for j in order if np.exp(row[j]) * (references + 1) < 1] or order[:1]
-    lead = min(beyond, key=lambda j: (config.specs[j].lead, row[j]))
-    spec = config.specs[lead]
-    if not (spec.behaviour or spec.alone):  # a reading (the coupling, the model): what the demo did, if unusual
-        plain = [j for j in order if config.specs[j].behaviour]
-        lead = min(plain, key=lambda j: (config.specs[j].lead, row[j])) if plain else lead
+    certain = np.maximum(row, np.log(CERTAIN))
+
+    def strongest(among: list[int]) -> int:
+        top = min(certain[j] for j in among) + np.log(SAME_ORDER)
+        return min((j for j in among if certain[j] <= top), key=lambda j: (bool(demoted[j]), specs[j].lead, row[j]))
+
+    lead = strongest(beyond)
+    if not (specs[lead].behaviour or specs[lead].alone):  # a reading (the coupling, the model): what the demo did
+        plain = [j for j in order if specs[j].behaviour]
+        lead = strongest(plain) if plain else lead
+    faults = [j for j in beyond if specs[j].fault_of and specs[j].fault_of in specs[lead].reads]
+    lead = min(faults, key=lambda j: row[j]) if faults else lead
     return [lead, *[j for j in order if j != lead]][:3]
 
 

@@ -271,6 +271,13 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
 # then what the camera saw.  The recording faults come after them, then the other model-free checks (the coupling:
 # a frozen sensor and an operator who let go both loosen it), the model's readings last (``ScoreSpec.lead``).
 WHAT_HAPPENED = ("idle", "motion", "jerk", "outcome", "view", "colours")
+# The stream each recording fault is a fault of, and the streams each check's words are read from: a fault beyond
+# every clean demo explains what was read from its stream, and leads the reason (``ScoreSpec.fault_of``, ``reads``).
+FAULT_OF = {"frozen_state": "state", "frozen_video": "video", "frame_jump": "video"}
+READS = {"idle": ("actions",), "motion": ("actions",), "jerk": ("actions",), "outcome": ("state",),
+         "view": ("video",), "colours": ("video",), "coupling": ("state", "actions"), "lag": ("state", "actions"),
+         "task_uncertainty": ("video",), "task_uncertainty_head": ("video",), "novelty": ("video",),
+         "consistency": ("video",), "action_error": ("video", "actions")}
 
 
 def ranked(available, tasks: np.ndarray, model_free: bool = False, untrusted=()) -> list[str]:
@@ -298,7 +305,8 @@ def ranking_config(names: list[str]) -> ranking.RankingConfig:
 
     return ranking.RankingConfig(tuple(
         ranking.ScoreSpec(n, log=s.log_in_ranking, in_robust_sd=s.in_robust_sd, floor=s.ranking_min_scale,
-                          tail=s.tail, alone=s.alone, look=s.look, lead=lead(s), behaviour=n in WHAT_HAPPENED)
+                          tail=s.tail, alone=s.alone, look=s.look, lead=lead(s), behaviour=n in WHAT_HAPPENED,
+                          fault_of=FAULT_OF.get(n, ""), reads=READS.get(n, ()))
         for n, s in ((n, SCORERS[n]) for n in names)))
 
 
@@ -316,8 +324,19 @@ def combination(ev: Evidence, model_free: bool = False) -> ranking.Ranking:
 def explanation(ev: Evidence, model_free: bool = False) -> tuple[list[str], list[str]]:
     """Each demo's reason (every clause) and the check it names first (``ranking.explain``), once."""
     if model_free not in ev.explained:
-        ev.explained[model_free] = ranking.explain(combination(ev, model_free), ev.reasons, ev.reasons.get("broken"))
+        ev.explained[model_free] = ranking.explain(combination(ev, model_free), ev.reasons, ev.reasons.get("broken"),
+                                                   demoted(ev))
     return ev.explained[model_free]
+
+
+def demoted(ev: Evidence) -> dict[str, np.ndarray]:
+    """Per check, the demos whose words say how the demo differs but not what went wrong: an arm that moves
+    somewhat less than its task's demos (a wrong task and a careful operator alike; not one that hardly moves),
+    so that the world it left leads its reason."""
+    if "motion" not in ev.behaviour:
+        return {}
+    ratio = modelfree.motion_ratio(np.asarray(ev.behaviour["motion"]), ev.groups)
+    return {"motion": (ratio >= modelfree.HARDLY_MOVES) & (ratio < 1)}
 
 
 def broken_rows(ev: Evidence) -> np.ndarray:

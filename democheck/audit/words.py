@@ -1,0 +1,15 @@
+"""How numbers read in a reason: rounded for a person, never so far that two numbers compared read the same."""
+
+from __future__ import annotations
+
+MAX_DIGITS = 8
+
+
+def pair(value: float, reference: float, digits: int = 2) -> tuple[str, str]:
+    """``value`` and the ``reference`` it is compared with, each to ``digits`` significant figures, or to as many
+    more (at most ``MAX_DIGITS``) as tell them apart: '0.99998' against '0.99999', not '1' against '1'."""
+    for d in range(digits, MAX_DIGITS + 1):
+        a, b = f"{value:.{d}g}", f"{reference:.{d}g}"
+        if a != b or value == reference:
+            return a, b
+    return a, b
