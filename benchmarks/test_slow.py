@@ -49,7 +49,7 @@ def test_the_wheel_installs_whole_and_runs_the_demo_outside_the_checkout(tmp_pat
     wheel = next(wheels.glob("democheck-*.whl"))
     names = zipfile.ZipFile(wheel).namelist()
     for need in ("democheck/models/petnet-push-v1/model.safetensors", "democheck/models/tecnet-push-v1/config.json",
-                 "democheck/recipes/synth/push-mini.toml", "democheck/recipes/train/petnet-push-v1.toml"):
+                 "democheck/synth/push-mini.toml", "democheck/recipes/train/petnet-push-v1.toml"):
         assert need in names, need
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
@@ -77,7 +77,7 @@ def test_the_wheel_installs_whole_and_runs_the_demo_outside_the_checkout(tmp_pat
 @pytest.mark.slow
 def test_the_readme_walkthrough_runs_as_written_on_a_foreign_dataset(tmp_path):
     """README's "Audit your own LeRobot dataset" lines on a small Meta-World dataset LeRobot's own writer made
-    (benchmarks/foreign/data/mw-tiny): the dataset path is the only change, and training is cut to 300 steps."""
+    (tests/data/mw-tiny): the dataset path is the only change, and training is cut to 300 steps."""
     import os
     import re
     import shlex
@@ -89,7 +89,7 @@ def test_the_readme_walkthrough_runs_as_written_on_a_foreign_dataset(tmp_path):
     root = Path(__file__).resolve().parents[1]
     block = re.search(r"<!-- walkthrough.*?```\n(.*?)```", (root / "README.md").read_text(), re.S).group(1)
     data = tmp_path / "mine"
-    shutil.copytree(root / "benchmarks/foreign/data/mw-tiny", data)
+    shutil.copytree(root / "tests/data/mw-tiny", data)
     exe = Path(sys.executable).with_name("democheck")
     env = {**os.environ, "MUJOCO_GL": "egl", "DISPLAY": ""}
     ran = []
@@ -108,7 +108,7 @@ def test_the_readme_walkthrough_runs_as_written_on_a_foreign_dataset(tmp_path):
     first = json.loads((tmp_path / "first-look" / "summary.json").read_text())
     assert first["model"] is None and first["flagged"] >= 1  # the model-free look already sees the still arm
     summary = json.loads((tmp_path / "report" / "summary.json").read_text())
-    assert summary["demos"] == len(open(root / "benchmarks/foreign/data/mw-tiny.labels.csv").readlines()) - 1
+    assert summary["demos"] == len(open(root / "tests/data/mw-tiny.labels.csv").readlines()) - 1
     assert summary["frames"]["model"] == [64, 64, 3] and (tmp_path / "report" / "suspects.txt").exists()
     # The model learnt every task of the data it audits, and its frames; a model trained this briefly on 21 demos
     # may fail its own tests (its scores then reported, not ranked), which the audit says, as it says that a

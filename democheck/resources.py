@@ -1,11 +1,12 @@
 """What ships inside the package: the trained models and the recipes, found with ``importlib.resources``.
 
-    democheck/models/<name>/            config.json, model.safetensors, README.md (the model card)
-    democheck/recipes/synth/<name>.toml suite recipes (``democheck synth NAME``)
+    models/<name>/                      config.json, model.safetensors, README.md (the model card), as
+                                        ``democheck.models``
+    synth/<name>.toml                   suite recipes (``democheck synth NAME``), as ``democheck.synth``
     democheck/recipes/train/<name>.toml training recipes (``democheck train --recipe NAME``)
 
-They are package data, so a wheel installed anywhere finds them; nothing is
-looked up relative to a source checkout.
+They are package data (``pyproject.toml`` maps the two top-level folders into the package), so a wheel installed
+anywhere finds them; nothing is looked up relative to a source checkout.
 """
 
 from __future__ import annotations
@@ -17,30 +18,30 @@ DEFAULT_MODEL = "petnet-push-v1"
 RECIPE_KINDS = ("synth", "train")
 
 
-def _folder(*parts: str) -> Path:
+def _folder(package: str, *parts: str) -> Path:
     # Wheels install unpacked, so the package's files are real paths (a zipped install is not supported).
-    return Path(str(files("democheck").joinpath(*parts)))
+    return Path(str(files(package).joinpath(*parts)))
 
 
 def shipped_model(name: str = DEFAULT_MODEL) -> Path:
     """The folder of a model shipped with democheck."""
-    return _folder("models", name)
+    return _folder("democheck.models", name)
 
 
 def shipped_models() -> list[str]:
-    root = _folder("models")
+    root = _folder("democheck.models")
     return sorted(p.name for p in root.iterdir() if (p / "config.json").is_file()) if root.is_dir() else []
 
 
 def recipe_dir(kind: str) -> Path:
-    """``recipes/<kind>/``: ``synth`` or ``train``."""
+    """Where recipes of a ``kind`` are: ``synth`` (``synth/``) or ``train`` (``democheck/recipes/train/``)."""
     if kind not in RECIPE_KINDS:
         raise ValueError(f"recipe kind {kind!r}; kinds: {', '.join(RECIPE_KINDS)}")
-    return _folder("recipes", kind)
+    return _folder("democheck.synth") if kind == "synth" else _folder("democheck", "recipes", kind)
 
 
 def recipe_file(kind: str, name: str) -> Path:
-    """``recipes/<kind>/<name>.toml`` (it may not exist)."""
+    """``<name>.toml`` among the recipes of a ``kind`` (it may not exist)."""
     return recipe_dir(kind) / f"{name}.toml"
 
 

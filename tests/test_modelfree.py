@@ -537,7 +537,7 @@ def test_audit_without_a_model_on_data_the_shipped_model_cannot_read(tmp_path):
 
     from democheck.cli import app
 
-    data = Path(__file__).resolve().parents[1] / "benchmarks/foreign/data/mw-tiny"
+    data = Path(__file__).resolve().parents[1] / "tests/data/mw-tiny"
     labels = pd.read_csv(data.with_name("mw-tiny.labels.csv")).set_index("episode_index")["label"]
     runner = CliRunner()
     for extra in ([], ["--no-model"]):
@@ -577,7 +577,7 @@ def test_sensor_faults_planted_in_a_dataset_lerobot_wrote_are_found(tmp_path):
     from democheck.cli import app
 
     root = Path(__file__).resolve().parents[1]
-    data = root / "benchmarks/foreign/data/mw-tiny"
+    data = root / "tests/data/mw-tiny"
     out = tmp_path / "planted"
     subprocess.run([sys.executable, str(root / "benchmarks/foreign/plant_faults.py"), str(data),
                     str(data.with_name("mw-tiny.labels.csv")), str(out), "--seed", "3", "--per-kind", "1",
@@ -947,7 +947,7 @@ def test_a_dataset_without_a_camera_is_audited_on_its_states_and_actions(tmp_pat
     from democheck.cli import app
     from democheck.data import open_dataset
 
-    data = Path(__file__).resolve().parents[1] / "benchmarks/foreign/data/mw-tiny"
+    data = Path(__file__).resolve().parents[1] / "tests/data/mw-tiny"
     labels = pd.read_csv(data.with_name("mw-tiny.labels.csv")).set_index("episode_index")["label"]
     runner = CliRunner()
     for source in _camera_less_copies(data, tmp_path):
@@ -970,7 +970,7 @@ def test_a_dataset_without_a_camera_is_audited_on_its_states_and_actions(tmp_pat
             assert res.exit_code == 0, res.output
             kept = open_dataset(tmp_path / "clean")
             assert len(kept) == len(ds) - len(flagged) and not kept.has_camera
-        shipped = Path(__file__).resolve().parents[1] / "democheck/models/petnet-push-v1"
+        shipped = Path(__file__).resolve().parents[1] / "models/petnet-push-v1"
         for command in (["audit", str(source), "--out", str(tmp_path / "m"), "--model", str(shipped)],
                         ["train", str(source), "--out", str(tmp_path / "t")],
                         ["probe", str(source), "--out", str(tmp_path / "p")]):
@@ -990,7 +990,7 @@ def test_a_dataset_whose_every_demo_names_its_own_task_is_compared_as_one(tmp_pa
 
     from democheck.cli import app
 
-    data = Path(__file__).resolve().parents[1] / "benchmarks/foreign/data/mw-tiny"
+    data = Path(__file__).resolve().parents[1] / "tests/data/mw-tiny"
     labels = pd.read_csv(data.with_name("mw-tiny.labels.csv")).set_index("episode_index")["label"]
     copy = tmp_path / "one-task-each"
     shutil.copytree(data, copy)

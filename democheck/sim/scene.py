@@ -5,7 +5,7 @@ spherical fingertip, a *target* and a *distractor* object on planar joints
 (slide x, slide y, hinge z), and one fixed camera.  Each part is added by its
 own function, so probes can build the same scene without the objects.
 
-Physics choices (see democheck/recipes/synth/README.md):
+Physics choices (see synth/README.md):
 - The arm's links carry full gravity compensation (``gravcomp=1``), so the arm
   behaves as in a gravity-free pusher while the world keeps gravity.
 - Objects have no vertical freedom and do not touch the table; table friction

@@ -1,4 +1,4 @@
-"""Suite recipes (``democheck/recipes/synth/*.toml``) and generation of a suite as a LeRobot v3 dataset.
+"""Suite recipes (``synth/*.toml``) and generation of a suite as a LeRobot v3 dataset.
 
 Generation runs in ``spawn`` worker processes (each holds its own GL
 context); each worker writes whole data/video files for a contiguous range of
@@ -163,7 +163,7 @@ def available_recipes() -> list[str]:
 
 
 def load_recipe(name_or_path: str) -> Recipe:
-    """A recipe by name (``democheck/recipes/synth/<name>.toml``) or by path to a TOML file."""
+    """A recipe by name (``synth/<name>.toml``) or by path to a TOML file."""
     path = Path(name_or_path)
     if not (path.suffix == ".toml" and path.exists()):
         path = resources.recipe_file("synth", name_or_path)

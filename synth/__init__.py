@@ -1,0 +1,1 @@
+"""The suite recipes democheck ships (``democheck synth NAME``): package data."""
