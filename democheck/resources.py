@@ -4,6 +4,7 @@
                                         ``democheck.models``
     synth/<name>.toml                   suite recipes (``democheck synth NAME``), as ``democheck.synth``
     democheck/recipes/train/<name>.toml training recipes (``democheck train --recipe NAME``)
+    democheck/recipes/dagger/<name>.toml recovery training recipes (``democheck dagger --recipe NAME``)
 
 They are package data (``pyproject.toml`` maps the two top-level folders into the package), so a wheel installed
 anywhere finds them; nothing is looked up relative to a source checkout.
@@ -15,7 +16,7 @@ from importlib.resources import files
 from pathlib import Path
 
 DEFAULT_MODEL = "petnet-push-v1"
-RECIPE_KINDS = ("synth", "train")
+RECIPE_KINDS = ("synth", "train", "dagger")
 
 
 def _folder(package: str, *parts: str) -> Path:
@@ -34,7 +35,7 @@ def shipped_models() -> list[str]:
 
 
 def recipe_dir(kind: str) -> Path:
-    """Where recipes of a ``kind`` are: ``synth`` (``synth/``) or ``train`` (``democheck/recipes/train/``)."""
+    """Where recipes of a ``kind`` are: ``synth`` (``synth/``), ``train`` or ``dagger`` (``democheck/recipes/``)."""
     if kind not in RECIPE_KINDS:
         raise ValueError(f"recipe kind {kind!r}; kinds: {', '.join(RECIPE_KINDS)}")
     return _folder("democheck.synth") if kind == "synth" else _folder("democheck", "recipes", kind)

@@ -68,13 +68,21 @@ def test_dagger_resume_reaches_the_uninterrupted_weights(tiny_dataset, tiny_mode
 
 def test_dagger_cli_and_its_errors(tiny_dataset, tiny_model, tmp_path):
     root, _ = tiny_dataset
-    args = ["dagger", str(tiny_model), "--data", str(root), "--rounds", "1", "--steps", "2", "--batch-tasks", "2",
-            "--timesteps", "2", "--workers", "1", "--device", "cpu"]
+    args = ["dagger", str(tiny_model), "--data", str(root), "--set", "rounds=1", "--set", "steps=2", "--set",
+            "batch_tasks=2", "--set", "timesteps=2", "--workers", "1", "--device", "cpu"]
     res = CliRunner().invoke(app, args + ["--out", str(tmp_path / "d")])
     assert res.exit_code == 0, res.output
-    assert json.loads((tmp_path / "d" / "config.json").read_text())["recovery"]["config"]["rounds"] == 1
-    res = CliRunner().invoke(app, args + ["--out", str(tmp_path / "e"), "--beta", "1.5"])
+    recovery = json.loads((tmp_path / "d" / "config.json").read_text())["recovery"]
+    assert recovery["config"]["rounds"] == 1 and recovery["config"]["beta"] == 0.3  # the shipped recipe's
+    assert recovery["recipe"]["source"] == "dagger" and "rounds=1" in recovery["recipe"]["set"]
+    res = CliRunner().invoke(app, args + ["--out", str(tmp_path / "e"), "--set", "beta=1.5"])
     assert res.exit_code == 2 and "probability" in res.output
+    for bad, words in (("betta=0.5", "unknown key betta"), ("rounds=two", "rounds must be int"),
+                       ("rounds", "key=value")):
+        res = CliRunner().invoke(app, args + ["--out", str(tmp_path / "e"), "--set", bad])
+        assert res.exit_code == 2 and words in res.output and "Traceback" not in res.output, res.output
+    res = CliRunner().invoke(app, args + ["--out", str(tmp_path / "e"), "--recipe", "nonesuch"])
+    assert res.exit_code == 2 and "no recovery recipe 'nonesuch'; known: dagger" in res.output
     res = CliRunner().invoke(app, args + ["--out", str(tmp_path / "e"), "--data", str(tmp_path / "nowhere")])
     assert res.exit_code == 2 and "nowhere" in res.output and "Traceback" not in res.output
 

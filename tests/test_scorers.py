@@ -145,10 +145,10 @@ def test_a_reason_leads_with_what_the_demo_did_over_a_reading_of_it():
 
 
 def test_a_reason_leads_with_the_cause_the_other_clauses_follow_from():
-    """A frozen state explains the end state read from it and the coupling; evidence 'beyond every clean demo' of a
-    small reference (1 in 15) does not lead over evidence of another order (a dead encoder at 1e-17 against an
-    ordinary stillness at 6e-3); an arm moving somewhat less than its task's (demoted) does not lead over the world
-    left unlike its task's."""
+    """Evidence 'beyond every clean demo' of a small reference (1 in 15) does not lead over evidence of another
+    strength (a dead encoder at 1e-17 against an ordinary stillness at 6e-3; a frozen state at 1e-6 against the
+    world it left at 1e-3); of evidence of one strength, what the arm did leads; an arm moving somewhat less than
+    its task's (demoted) does not lead over the world left unlike its task's."""
     from democheck.audit.ranking import clauses
     from democheck.audit.scorers import ranking_config
 
@@ -157,7 +157,8 @@ def test_a_reason_leads_with_the_cause_the_other_clauses_follow_from():
     lead = lambda p, refs=14, demoted=None: names[clauses(config, np.log(p), refs, demoted)[0]]  # noqa: E731
     # The state froze half-way: its end reads unlike the task's, the coupling is lost.
     assert lead([0.75, 1.0, 1.4e-3, 1.2e-6, 3.5e-20]) == "frozen_state"
-    assert lead([0.75, 1.0, 1e-9, 1.2e-6, 0.5]) == "frozen_state"
+    # A flailing arm leaves the block where it was: what the arm did leads.
+    assert lead([1.0, 4e-9, 5e-54, 6e-15, 1e-139], refs=160) == "motion"
     # A dead encoder beside an ordinary end-of-demo stillness that a small reference calls beyond every demo.
     assert lead([5.9e-3, 0.06, 0.8, 3.6e-17, 0.3]) == "frozen_state"
     # Both far out: what the arm did leads (the stillness explains the world left as it was).

@@ -144,20 +144,37 @@ def broken(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
     return np.array([share for share, _ in traces.damaged], np.float64), [what for _, what in traces.damaged]
 
 
+JUMP_STEPS = 3  # a demo's jerk is one jump when its largest this many steps hold
+JUMP_SHARE = 0.5  # ... this share of it: an arm stopped (or started) at once, not a shaking command
+
+
 def jerk(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
-    """log mean |third difference of actions| in median-change units, and where it is largest."""
+    """log mean |third difference of actions| in median-change units, and where it is largest: the actions shake,
+    or jump once (``jerk_jumps``)."""
+    out, peak, jumps = _jerk_parts(traces)
+    reasons = ["too short" if k < 0 else f"the actions jump at frame {k}" if j else
+               f"the actions shake, most at frame {k}" for k, j in zip(peak, jumps)]
+    return out, reasons
+
+
+def jerk_jumps(traces: ActionTraces) -> np.ndarray:
+    """[N] bool: the demo's jerk is one jump (``JUMP_SHARE`` of it in ``JUMP_STEPS`` steps), not shaking."""
+    return _jerk_parts(traces)[2]
+
+
+def _jerk_parts(traces: ActionTraces) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     changes = [np.diff(a.astype(np.float64), axis=0) for a in traces.actions]
     scale = change_scale([np.abs(c) for c in changes])
-    out, reasons = np.full(len(changes), np.nan), []
+    out, peak, jumps = np.full(len(changes), np.nan), np.full(len(changes), -1), np.zeros(len(changes), bool)
     for i, c in enumerate(changes):
         third = np.abs(np.diff(c, n=2, axis=0)) / scale
         if not len(third):
-            reasons.append("too short")
             continue
         per_step = third.mean(1)
         out[i] = float(np.log(per_step.mean() + 1e-9))
-        reasons.append(f"the actions shake, most at frame {int(np.argmax(per_step)) + 2}")
-    return out, reasons
+        peak[i] = int(np.argmax(per_step)) + 2
+        jumps[i] = np.sort(per_step)[-JUMP_STEPS:].sum() > JUMP_SHARE * per_step.sum()
+    return out, peak, jumps
 
 
 def saturation(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:

@@ -32,8 +32,6 @@ class ScoreSpec:
     look: str = ""  # scores of one look (one piece of evidence) are merged first; "" = its own look
     lead: int = 0  # where its words stand in a reason beyond every clean demo: lower leads
     behaviour: bool = False  # its words say what the demo did (the arm, the world it left, what the camera saw)
-    fault_of: str = ""  # a recording fault of this stream ("state", "video"): it explains what is read from it
-    reads: tuple[str, ...] = ()  # the streams its words are read from
 
 
 @dataclass(frozen=True)
@@ -65,8 +63,7 @@ class RankingConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping) -> RankingConfig:
-        return cls(**{**d, "specs": tuple(ScoreSpec(**{**s, "reads": tuple(s.get("reads", ()))})
-                                          for s in d.get("specs", ()))})
+        return cls(**{**d, "specs": tuple(ScoreSpec(**s) for s in d.get("specs", ()))})
 
 
 @dataclass
@@ -167,7 +164,7 @@ def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list
     return reasons, first
 
 
-CERTAIN = 1e-12  # evidence past this is certain: fitted tails this far out say nothing about which is stronger
+CERTAIN = 1e-6  # evidence past this is certain: fitted tails this far out say nothing about which is stronger
 SAME_ORDER = 10.0  # tail probabilities within this factor of each other are evidence of the same strength
 
 
@@ -176,11 +173,9 @@ def clauses(config: RankingConfig, row: np.ndarray, references: int, demoted: np
     """The looks a demo's reason names (``row``: their log tail probabilities), in the order it names them: up to
     three, the smallest probability and those under ``reason_p``.  First the strongest evidence beyond every clean
     demo (or the smallest alone); of evidence of the same strength (``SAME_ORDER``, ``CERTAIN`` at most), what the
-    demo did before how it was recorded before the model's reading of it (a spec's ``lead``; a ``demoted`` one
-    last) -- a reviewer acts on the behaviour.  Where that is a reading (neither behaviour nor a recording fault),
-    the strongest behaviour under ``reason_p`` leads instead; and a recording fault beyond every clean demo leads
-    over what is read from the stream it is a fault of (a frozen state over the end state read from it).  Then by
-    probability."""
+    demo did before how it was recorded before the model's reading of it (a spec's ``lead``) -- a reviewer acts on
+    the behaviour; a ``demoted`` clause only where nothing else is beyond.  Where that is a reading (neither behaviour nor a recording fault),
+    the strongest behaviour under ``reason_p`` leads instead.  Then by probability."""
     if not len(row):
         return []
     specs = config.specs
@@ -190,15 +185,14 @@ def clauses(config: RankingConfig, row: np.ndarray, references: int, demoted: np
     certain = np.maximum(row, np.log(CERTAIN))
 
     def strongest(among: list[int]) -> int:
+        among = [j for j in among if not demoted[j]] or among
         top = min(certain[j] for j in among) + np.log(SAME_ORDER)
-        return min((j for j in among if certain[j] <= top), key=lambda j: (bool(demoted[j]), specs[j].lead, row[j]))
+        return min((j for j in among if certain[j] <= top), key=lambda j: (specs[j].lead, row[j]))
 
     lead = strongest(beyond)
     if not (specs[lead].behaviour or specs[lead].alone):  # a reading (the coupling, the model): what the demo did
         plain = [j for j in order if specs[j].behaviour]
         lead = strongest(plain) if plain else lead
-    faults = [j for j in beyond if specs[j].fault_of and specs[j].fault_of in specs[lead].reads]
-    lead = min(faults, key=lambda j: row[j]) if faults else lead
     return [lead, *[j for j in order if j != lead]][:3]
 
 

@@ -267,17 +267,13 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            family="baseline", in_audit=False, short="random"),
 )}
 
-# The checks whose words say what the demo did, in the order a reason prefers them: the arm, then the world it left,
-# then what the camera saw.  The recording faults come after them, then the other model-free checks (the coupling:
-# a frozen sensor and an operator who let go both loosen it), the model's readings last (``ScoreSpec.lead``).
+# The checks whose words say what the demo did: the arm, the world it left, what the camera saw.
 WHAT_HAPPENED = ("idle", "motion", "jerk", "outcome", "view", "colours")
-# The stream each recording fault is a fault of, and the streams each check's words are read from: a fault beyond
-# every clean demo explains what was read from its stream, and leads the reason (``ScoreSpec.fault_of``, ``reads``).
-FAULT_OF = {"frozen_state": "state", "frozen_video": "video", "frame_jump": "video"}
-READS = {"idle": ("actions",), "motion": ("actions",), "jerk": ("actions",), "outcome": ("state",),
-         "view": ("video",), "colours": ("video",), "coupling": ("state", "actions"), "lag": ("state", "actions"),
-         "task_uncertainty": ("video",), "task_uncertainty_head": ("video",), "novelty": ("video",),
-         "consistency": ("video",), "action_error": ("video", "actions")}
+# The order in which a reason prefers checks of equally strong evidence (``ScoreSpec.lead``): what the arm did, a
+# state that stopped updating (it explains the end state read from it), the world left, what the camera saw; then
+# the other recording faults, the other model-free checks (the coupling: a frozen sensor and an operator who let go
+# both loosen it), the model's readings last.
+LEAD = ("idle", "motion", "jerk", "frozen_state", "outcome", "view", "colours")
 
 
 def ranked(available, tasks: np.ndarray, model_free: bool = False, untrusted=()) -> list[str]:
@@ -299,14 +295,13 @@ def ranked(available, tasks: np.ndarray, model_free: bool = False, untrusted=())
 def ranking_config(names: list[str]) -> ranking.RankingConfig:
     """How the scores ``names`` enter the ranking, from their scorers: ``ranking.ScoreSpec`` each."""
     def lead(s: Scorer) -> int:
-        if s.name in WHAT_HAPPENED:
-            return WHAT_HAPPENED.index(s.name)
-        return len(WHAT_HAPPENED) + (0 if s.alone else 1 if s.model_free else 2)
+        if s.name in LEAD:
+            return LEAD.index(s.name)
+        return len(LEAD) + (0 if s.alone else 1 if s.model_free else 2)
 
     return ranking.RankingConfig(tuple(
         ranking.ScoreSpec(n, log=s.log_in_ranking, in_robust_sd=s.in_robust_sd, floor=s.ranking_min_scale,
-                          tail=s.tail, alone=s.alone, look=s.look, lead=lead(s), behaviour=n in WHAT_HAPPENED,
-                          fault_of=FAULT_OF.get(n, ""), reads=READS.get(n, ()))
+                          tail=s.tail, alone=s.alone, look=s.look, lead=lead(s), behaviour=n in WHAT_HAPPENED)
         for n, s in ((n, SCORERS[n]) for n in names)))
 
 
@@ -330,13 +325,17 @@ def explanation(ev: Evidence, model_free: bool = False) -> tuple[list[str], list
 
 
 def demoted(ev: Evidence) -> dict[str, np.ndarray]:
-    """Per check, the demos whose words say how the demo differs but not what went wrong: an arm that moves
-    somewhat less than its task's demos (a wrong task and a careful operator alike; not one that hardly moves),
-    so that the world it left leads its reason."""
-    if "motion" not in ev.behaviour:
-        return {}
-    ratio = modelfree.motion_ratio(np.asarray(ev.behaviour["motion"]), ev.groups)
-    return {"motion": (ratio >= modelfree.HARDLY_MOVES) & (ratio < 1)}
+    """Per check, the demos whose words say how the demo differs but not what went wrong, so that what went wrong
+    leads its reason: an arm that moves somewhat less than its task's demos (a wrong task and a careful operator
+    alike; not one that hardly moves), actions that jump once (an arm stopped at once: that it then stands still,
+    or left the world unfinished, is the news)."""
+    out = {}
+    if "motion" in ev.behaviour:
+        ratio = modelfree.motion_ratio(np.asarray(ev.behaviour["motion"]), ev.groups)
+        out["motion"] = (ratio >= modelfree.HARDLY_MOVES) & (ratio < 1)
+    if "actions" in ev.behaviour:
+        out["jerk"] = modelfree.jerk_jumps(ev.behaviour["actions"])
+    return out
 
 
 def broken_rows(ev: Evidence) -> np.ndarray:

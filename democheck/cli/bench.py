@@ -99,14 +99,8 @@ def dagger(
     model: Annotated[Path, typer.Argument(help="Model folder (PETNet or TecNets) trained on --data by democheck train.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write: the same model with the controller trained further.")],
     data: Annotated[Path, typer.Option(help="The model's training suite (made by democheck synth): its training tasks are rolled out.")] = Path("data/push-v1"),
-    rounds: Annotated[int, typer.Option(help="DAgger rounds: each rolls the controller out, has the expert label what it saw, and trains on it.")] = 4,
-    episodes_per_task: Annotated[int, typer.Option(help="Rollouts per training task per round.")] = 1,
-    beta: Annotated[float, typer.Option(help="Probability that the expert takes a step of a rollout (0: the controller alone).")] = 0.3,
-    steps: Annotated[int, typer.Option(help="Controller training steps per round.")] = 2000,
-    batch_tasks: Annotated[int, typer.Option(help="Demo trajectories per step (and as many recovery trajectories).")] = 16,
-    timesteps: Annotated[int, typer.Option(help="Timesteps of each trajectory per step.")] = 8,
-    lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 5e-4,
-    seed: Annotated[int, typer.Option(help="Seed for cue draws, layouts, expert hand-overs and batches.")] = 0,
+    recipe: Annotated[str, typer.Option(help="Recovery recipe: a shipped name (dagger: 4 rounds, the expert acting on 30% of steps, 2,000 controller steps a round) or a path to a .toml file.")] = "dagger",
+    set_: Annotated[Optional[list[str]], typer.Option("--set", help="Override one recipe key, e.g. --set rounds=6 --set beta=0.5 (keys: rounds, episodes_per_task, beta, steps, batch_tasks, timesteps, lr, seed).")] = None,
     workers: Annotated[int, typer.Option(help="Parallel rollout processes.")] = 2,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda (training; rollouts run on CPU).")] = "auto",
     resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last complete round.")] = False,
@@ -120,15 +114,13 @@ def dagger(
     stay as they were (the action error is the new controller's).
     """
     with user_errors():
-        from democheck.evaluate.dagger import DaggerConfig, dagger as run_dagger
+        from democheck.evaluate.dagger import dagger as run_dagger, load_recipe
 
-        cfg = DaggerConfig(rounds=rounds, episodes_per_task=episodes_per_task, beta=beta, steps=steps,
-                           batch_tasks=batch_tasks, timesteps=timesteps, lr=lr, seed=seed, workers=workers,
-                           device=device)
+        cfg, resolved = load_recipe(recipe, set_, workers=workers, device=device)
         with Bar("dagger") as bar:
             s = run_dagger(model, data, out, cfg, resume=resume, force=force, cache_dir=cache_dir,
                            command="democheck " + shlex.join(sys.argv[1:]), on_stage=bar.say,
-                           on_progress=bar.callback())
+                           on_progress=bar.callback(), recipe=resolved)
     table = Table(title=f"recovery training of {model} ({s['wall_s'] / 60:.1f} min)")
     for col in ("round", "rollouts", "mixed success", "demo mse", "recovery mse"):
         table.add_column(col, justify="right")

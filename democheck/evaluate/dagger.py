@@ -23,10 +23,12 @@ Only the controller learns.  The task encoder -- and with it sigma,
 consistency, the stored score scales and the one-class SVM -- stays exactly
 as trained; the audit's action error is then the new controller's.
 
-Needs a democheck suite (sim records): the expert must be able to act in the
-same scenes.  The run's state after each round (weights, recovery episodes,
-RNG) lives in a work folder beside the output; ``resume`` continues from the
-last complete round.
+The rounds, rollouts and optimiser come from a recipe, as ``train``'s do
+(``load_recipe``: ``democheck/recipes/dagger/<name>.toml`` or a path, with
+``--set key=value``).  Needs a democheck suite (sim records): the expert must
+be able to act in the same scenes.  The run's state after each round (weights,
+recovery episodes, RNG) lives in a work folder beside the output; ``resume``
+continues from the last complete round.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+import tomllib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -41,16 +44,17 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from democheck import pool
+from democheck import pool, resources
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache
-from democheck.errors import DemocheckError
+from democheck.errors import DemocheckError, RecipeError
 from democheck.evaluate.rollout import ControllerPolicy, init_worker
 from democheck.fsutil import atomic_output_dir
 from democheck.petnet.batches import Batches, task_rows, uniform_steps
 from democheck.petnet.card import git_commit, model_card
 from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
 from democheck.petnet.encode import encode_rows
+from democheck.petnet.recipe import parse_value
 from democheck.petnet.run_state import load_state, save_state, work_dir
 from democheck.petnet.train import resolve_device
 from democheck.sim.catalog import OBJECTS
@@ -58,8 +62,14 @@ from democheck.sim.expert import MarkovianExpert
 from democheck.sim.variants import record_demo
 
 
+DEFAULT_RECIPE = "dagger"
+RECIPE_KEYS = ("rounds", "episodes_per_task", "beta", "steps", "batch_tasks", "timesteps", "lr", "seed")
+
+
 @dataclass
 class DaggerConfig:
+    """A recovery run: the recipe's keys (``RECIPE_KEYS``) and the machine's (``workers``, ``device``)."""
+
     rounds: int = 4
     episodes_per_task: int = 1  # rollouts per training task per round
     beta: float = 0.3  # probability that the expert acts at a step of a rollout
@@ -70,6 +80,44 @@ class DaggerConfig:
     seed: int = 0
     workers: int = 2
     device: str = "auto"
+
+
+def load_recipe(name_or_path: str | Path = DEFAULT_RECIPE, sets: list[str] | None = None,
+                **machine: Any) -> tuple[DaggerConfig, dict[str, Any]]:
+    """The ``DaggerConfig`` of a recovery recipe (a shipped name or a path to a .toml file) with its ``--set
+    key=value`` overrides and the machine's options that are not None (``workers``, ``device``), and the resolved
+    recipe as a document."""
+    path = Path(name_or_path)
+    if not (path.suffix == ".toml" and path.exists()):
+        path = resources.recipe_file("dagger", str(name_or_path))
+        if not path.exists():
+            raise RecipeError(f"no recovery recipe {str(name_or_path)!r}; known: "
+                              f"{', '.join(resources.recipe_names('dagger'))} (or give a path to a .toml file)")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise RecipeError(f"{path}: not valid TOML ({exc})") from None
+    values = {k: v for k, v in doc.items() if k not in ("name", "description")}
+    for item in sets or []:
+        key, eq, text = item.partition("=")
+        if not eq or not key.strip():
+            raise RecipeError(f"--set takes key=value (e.g. steps=500), not {item!r}")
+        values[key.strip()] = parse_value(text.strip())
+    where = f"{path}" + (" with --set " + " ".join(sets) if sets else "")
+    unknown = sorted(set(values) - set(RECIPE_KEYS))
+    if unknown:
+        raise RecipeError(f"{where}: unknown key {', '.join(unknown)}; keys: {', '.join(RECIPE_KEYS)}")
+    default = DaggerConfig()
+    for key, v in values.items():
+        want = type(getattr(default, key))
+        if isinstance(v, bool) or not isinstance(v, (want, int) if want is float else want):
+            raise RecipeError(f"{where}: {key} must be {want.__name__}, not {v!r}")
+        values[key] = want(v)
+    cfg = DaggerConfig(**values, **{k: v for k, v in machine.items() if v is not None})
+    resolved = {"name": doc.get("name", path.stem), "description": doc.get("description", ""),
+                "source": str(path) if path.parent != resources.recipe_dir("dagger") else path.stem,
+                "set": list(sets or [])}
+    return cfg, resolved
 
 
 class MixedPolicy:
@@ -139,13 +187,15 @@ class RecoverySet:
 def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: DaggerConfig, resume: bool = False,
            force: bool = False, command: str | None = None, cache_dir: Path | None = None,
            on_stage: Callable[[str], None] | None = None,
-           on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
-    """Run ``cfg.rounds`` recovery rounds on ``model_dir`` with the training tasks of ``dataset``; write ``out``."""
+           on_progress: Callable[[int, int], None] | None = None,
+           recipe: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Run ``cfg.rounds`` recovery rounds on ``model_dir`` with the training tasks of ``dataset``; write ``out``
+    (its card records ``recipe``, ``load_recipe``'s document, where given)."""
     if min(cfg.rounds, cfg.episodes_per_task, cfg.steps, cfg.batch_tasks, cfg.timesteps, cfg.workers) < 1:
-        raise DemocheckError("--rounds, --episodes-per-task, --steps, --batch-tasks, --timesteps and --workers "
-                             "must be at least 1")
+        raise DemocheckError("rounds, episodes_per_task, steps, batch_tasks, timesteps and --workers must be at "
+                             "least 1")
     if not 0.0 <= cfg.beta <= 1.0:
-        raise DemocheckError(f"--beta is a probability, not {cfg.beta}")
+        raise DemocheckError(f"beta is a probability, not {cfg.beta}")
     out, model_dir = Path(out), Path(model_dir)
     work = work_dir(out, resume, force)
     device = resolve_device(cfg.device)
@@ -241,7 +291,8 @@ def dagger(model_dir: str | Path, dataset: str | Path, out: str | Path, cfg: Dag
         save_state(work, model, opt, done, rng, {"config": asdict(cfg), "history": history,
                                                  "wall_s": wall_before + time.perf_counter() - t0})
     wall = wall_before + time.perf_counter() - t0
-    summary = {"base_model": str(model_dir), "dataset": str(ds.root), "config": asdict(cfg), "history": history,
+    summary = {"base_model": str(model_dir), "dataset": str(ds.root), "recipe": recipe, "config": asdict(cfg),
+               "history": history,
                "wall_s": round(wall, 1), "command": command, "commit": git_commit(Path(__file__).parent)}
     meta["recovery"] = summary
     meta["extra_sections"] = [recovery_section(summary)] + [

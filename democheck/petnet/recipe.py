@@ -51,7 +51,8 @@ def recipe_path(name_or_path: str | Path) -> Path:
     return found
 
 
-def _parse_value(text: str) -> Any:
+def parse_value(text: str) -> Any:
+    """A ``--set`` value read as TOML (``1e-3``, ``true``, ``"text"``); a bare word is a string."""
     try:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
@@ -118,9 +119,9 @@ def load_recipe(name_or_path: str | Path = DEFAULT_RECIPE, sets: list[str] | Non
             raise RecipeError(f"--set takes key=value (e.g. optim.lr=1e-3), not {item!r}")
         section, name = _field_of(key.strip(), "--set")
         if section == "regularisers":
-            regs[name] = _parse_value(text.strip())
+            regs[name] = parse_value(text.strip())
         else:
-            values[KEYS[section][name]] = _parse_value(text.strip())
+            values[KEYS[section][name]] = parse_value(text.strip())
     values.update({k: v for k, v in everyday.items() if v is not None})
     if values.get("init") == "":
         values["init"] = None
