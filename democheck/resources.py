@@ -5,6 +5,7 @@
     synth/<name>.toml                   suite recipes (``democheck synth NAME``), as ``democheck.synth``
     democheck/recipes/train/<name>.toml training recipes (``democheck train --recipe NAME``)
     democheck/recipes/dagger/<name>.toml recovery training recipes (``democheck dagger --recipe NAME``)
+    democheck/recipes/ranking/<name>.toml how each check's score enters the ranking (``default``)
 
 They are package data (``pyproject.toml`` maps the two top-level folders into the package), so a wheel installed
 anywhere finds them; nothing is looked up relative to a source checkout.
@@ -16,7 +17,7 @@ from importlib.resources import files
 from pathlib import Path
 
 DEFAULT_MODEL = "petnet-push-v1"
-RECIPE_KINDS = ("synth", "train", "dagger")
+RECIPE_KINDS = ("synth", "train", "dagger", "ranking")
 
 
 def _folder(package: str, *parts: str) -> Path:
@@ -35,7 +36,7 @@ def shipped_models() -> list[str]:
 
 
 def recipe_dir(kind: str) -> Path:
-    """Where recipes of a ``kind`` are: ``synth`` (``synth/``), ``train`` or ``dagger`` (``democheck/recipes/``)."""
+    """Where recipes of a ``kind`` are: ``synth`` (``synth/``), ``train``, ``dagger`` or ``ranking`` (``democheck/recipes/``)."""
     if kind not in RECIPE_KINDS:
         raise ValueError(f"recipe kind {kind!r}; kinds: {', '.join(RECIPE_KINDS)}")
     return _folder("democheck.synth") if kind == "synth" else _folder("democheck", "recipes", kind)

@@ -8,7 +8,7 @@ import pytest
 import pandas as pd
 from scipy import stats
 
-from democheck.audit import dynamics, modelfree, sensors
+from democheck.audit import dynamics, modelfree
 from democheck.audit.evidence import Evidence
 from democheck.audit.scorers import SCORERS, compute, select
 from democheck.audit.flagging import conformal_p, flags
@@ -131,8 +131,11 @@ def test_a_broken_recording_is_repaired_to_be_read_ranks_first_and_is_flagged_wh
 def test_jerk_and_saturation_rank_first():
     ev = _ranks_first("jerk")
     # In the ranking, the jerk stands beside the recording faults with its own floor, as the frozen state does.
-    for name, floor in (("jerk", modelfree.JERK_MIN_SCALE), ("frozen_state", sensors.FROZEN_STATE_MIN_SCALE)):
-        assert SCORERS[name].in_suspicion and SCORERS[name].alone and SCORERS[name].ranking_min_scale == floor
+    from democheck.audit.scorers import ranking_config
+
+    specs = {s.name: s for s in ranking_config(["jerk", "frozen_state", "motion"]).specs}
+    assert specs["jerk"].alone and specs["frozen_state"].alone and not specs["motion"].alone
+    assert specs["jerk"].floor == 0.25 and specs["frozen_state"].floor == 0.05
     ev = _evidence(_planted("jerk")[0], ["jerk", "motion", "idle", "suspicion"])
     assert np.argmax(ev.scores["suspicion"]) == 17 and "(jerk, beyond every clean demo)" in ev.reasons["suspicion"][17]
     ev = _ranks_first("saturation")
@@ -362,7 +365,7 @@ def test_model_free_suspicion_without_a_model_ranks_the_still_arm_first():
 
 
 def test_a_normal_tail_keeps_the_rate_on_normal_scores_and_sees_how_far_out_a_demo_is():
-    """A score whose clean spread is normal (a mean over many steps: ``Scorer.tail`` "normal") gets a normal tail
+    """A score whose clean spread is normal (a mean over many steps: ``ScoreSpec.tail`` "normal") gets a normal tail
     through the core's median and interquartile range: the flags at a level flag that share of clean demos, and a
     demo six robust SD out is as rare as a normal says, where the exponential through the quartiles calls it one
     clean demo in a few hundred."""
@@ -389,9 +392,9 @@ def test_a_normal_tail_keeps_the_rate_on_normal_scores_and_sees_how_far_out_a_de
 
     r = combination(ev, model_free=True)
     names, log_p = r.config.names, r.log_p
-    assert sorted(names) == ["coupling", "idle", "motion"] and SCORERS["coupling"].tail == "normal"
+    assert sorted(names) == ["coupling", "idle", "motion"]
+    assert [s.tail for s in r.config.specs] == ["normal" if n == "coupling" else "exponential" for n in names]
     assert log_p[7, names.index("coupling")] < np.log(1e-6)  # the exponential through its quartiles: about 1e-3
-    assert all(SCORERS[n].tail == "exponential" for n in names if n != "coupling")
     assert np.isnan(tail_probabilities(np.array([[np.nan], [0.0]]), normal=normal)[0, 0])  # no score: none
 
 
@@ -473,7 +476,7 @@ def test_the_robust_core_leaves_the_bad_demos_out_and_the_conformal_flags_keep_t
         bad[:, 1] += rng.uniform(10.0, 30.0, n_bad) * clean[:, 1].std()  # unusual on one score, the rest as clean
         z = np.concatenate([clean, bad])
         everything = 10.0 ** combined_log10(tail_probabilities(z))
-        log_p, core = robust_tails(z)
+        log_p, core = robust_tails(z, core_p=1e-4)
         assert core[:n_clean].mean() > 0.99 and core[n_clean:].mean() < 0.25
         p = conformal_p(-combined_log10(log_p), core)
         for fpr in (0.01, 0.05):
@@ -508,7 +511,7 @@ def test_the_core_sets_each_tasks_centre_and_unit_and_the_tails_refit_them_each_
         seen.append(None if c is None else c.copy())
         return calibrated(x, tasks, core=c)[:, None]
 
-    log_p, found = robust_tails(z_of)
+    log_p, found = robust_tails(z_of, core_p=1e-4)
     assert seen[0] is None and len(seen) >= 2 and not found[bad].any() and found[core].mean() > 0.9
     np.testing.assert_array_equal(seen[-1], found)  # the last z were those of the core returned
     assert np.isfinite(log_p).all() and log_p[bad].max() < log_p[found].min()
@@ -860,17 +863,16 @@ def test_coupling_ranks_the_arm_let_go_of_first_and_is_one_look_with_the_action_
 
 def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos():
     # Smooth scripted demos whose state-action information hardly varies (0.02 nats): one 0.15 nats below the rest
-    # stays in the robust core (COUPLING_MIN_SCALE), one that let go (a nat and a half below) is far out.
+    # stays in the robust core (its floor in the ranking recipe), one that let go (a nat and a half below) is far out.
     from democheck.audit.ranking import rank
     from democheck.audit.scorers import ranking_config
-    from democheck.audit.scores import CORE_P
 
     rng = np.random.default_rng(0)
     values = -3.4 + rng.normal(0, 0.02, 40)
     values[[5, 9]] = -3.4 + 0.15, -3.4 + 1.5  # minus the information: higher is less coupled
     config, tasks = ranking_config(["coupling"]), np.array(["reach"] * 40)
     p = np.exp(rank({"coupling": values}, tasks, config).log_p[:, 0])
-    assert p[5] > CORE_P and p[9] < 1e-6
+    assert p[5] > config.core_p and p[9] < 1e-6
     # Without the floor (a variant of the config, as a sweep makes one) the near-identical demos' spread calls the
     # first one far out.
     assert np.exp(rank({"coupling": values}, tasks, config.with_spec("coupling", floor=0.0)).log_p[5, 0]) < 1e-8

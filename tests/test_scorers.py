@@ -12,7 +12,7 @@ import pytest
 
 from democheck.audit.run import gather_evidence
 from democheck.audit.evidence import NEEDS, Evidence
-from democheck.audit.scorers import SCORERS, explanation, select
+from democheck.audit.scorers import SCORERS, explanation, ranking_recipe, select
 from democheck.data import open_dataset
 from democheck.petnet.checkpoint import load_checkpoint
 from democheck.sim.suite import generate, load_recipe
@@ -124,7 +124,7 @@ def test_suspicion_reason_names_the_score_that_ranks_each_demo(evidence):
     idle = reasons[labels == "idle"][0]
     assert "the arm hardly moves" in idle or "the arm stands still" in idle, idle
     drivers = set(explanation(evidence)[1])
-    assert drivers <= {n for n, s in SCORERS.items() if s.in_suspicion}
+    assert drivers <= set(ranking_recipe()["scores"])
     for r, d in zip(reasons, explanation(evidence)[1]):  # each reason's first clause ends with its driver
         assert not r or f"({d}, " in r.split("; also ")[0] or r.startswith(f"{d}: "), (d, r)
 
@@ -145,25 +145,23 @@ def test_a_reason_leads_with_what_the_demo_did_over_a_reading_of_it():
 
 
 def test_a_reason_leads_with_the_cause_the_other_clauses_follow_from():
-    """Evidence 'beyond every clean demo' of a small reference (1 in 15) does not lead over evidence of another
-    strength (a dead encoder at 1e-17 against an ordinary stillness at 6e-3; a frozen state at 1e-6 against the
-    world it left at 1e-3); of evidence of one strength, what the arm did leads; an arm moving somewhat less than
-    its task's (demoted) does not lead over the world left unlike its task's."""
+    """A frozen state leads over the end state read from it; an arm moving somewhat less than its task's, or
+    actions that jump once (demoted), lead only where nothing else is beyond every clean demo."""
     from democheck.audit.ranking import clauses
     from democheck.audit.scorers import ranking_config
 
-    config = ranking_config(["idle", "motion", "outcome", "frozen_state", "coupling"])
+    config = ranking_config(["idle", "motion", "jerk", "outcome", "frozen_state", "coupling"])
     names = config.names
-    lead = lambda p, refs=14, demoted=None: names[clauses(config, np.log(p), refs, demoted)[0]]  # noqa: E731
-    # The state froze half-way: its end reads unlike the task's, the coupling is lost.
-    assert lead([0.75, 1.0, 1.4e-3, 1.2e-6, 3.5e-20]) == "frozen_state"
-    # A flailing arm leaves the block where it was: what the arm did leads.
-    assert lead([1.0, 4e-9, 5e-54, 6e-15, 1e-139], refs=160) == "motion"
-    # A dead encoder beside an ordinary end-of-demo stillness that a small reference calls beyond every demo.
-    assert lead([5.9e-3, 0.06, 0.8, 3.6e-17, 0.3]) == "frozen_state"
-    # Both far out: what the arm did leads (the stillness explains the world left as it was).
-    assert lead([1e-30, 1.0, 1e-40, 0.5, 0.5]) == "idle"
-    # Another task's demo: its arm moves a third less, the world ends elsewhere.
-    demoted = np.array([False, True, False, False, False])
-    assert lead([1.0, 2e-15, 1e-300, 0.5, 2e-110], demoted=demoted) == "outcome"
-    assert lead([1.0, 2e-15, 1e-300, 0.5, 2e-110]) == "motion"
+
+    def lead(p, demoted=(), refs=160):
+        weak = np.isin(names, list(demoted))
+        return names[clauses(config, np.log(p), refs, weak)[0]]
+
+    assert lead([0.75, 1.0, 0.5, 1.4e-7, 1.2e-6, 3.5e-20]) == "frozen_state"
+    assert lead([1e-30, 1.0, 0.5, 1e-40, 0.5, 0.5]) == "idle"  # the stillness explains the world left as it was
+    # Another task's demo: its arm moves a quarter less, the world ends elsewhere.
+    assert lead([1.0, 2e-15, 0.5, 1e-300, 0.5, 2e-110], demoted=["motion"]) == "outcome"
+    assert lead([1.0, 2e-15, 0.5, 1e-300, 0.5, 2e-110]) == "motion"
+    # An arm stopped at once: one jump of the actions, then it stands still.
+    assert lead([6e-4, 0.002, 1e-9, 0.001, 0.5, 0.001], demoted=["jerk"]) == "idle"
+    assert lead([0.5, 0.5, 1e-9, 0.5, 0.5, 0.5], demoted=["jerk"]) == "jerk"  # nothing else beyond

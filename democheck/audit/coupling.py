@@ -11,11 +11,11 @@ evenly spaced steps, so that the estimate's cost stays bounded.  NaN for a demo 
 steps.  What dataset-quality checkers measure as a demo's predictability (democlean's mutual information); a
 consumer of the audit's decoding pass like the other model-free checks (``democheck.audit.modelfree``).
 
-In the ranking it is one look with the model's action error where there is one (``scorers.Scorer.look``): both
+In the ranking it is one look with the model's action error where there is one (``ScoreSpec.look``): both
 ask whether the actions are explained -- by the model's controller, or by the state -- so the two are one piece
 of evidence, the Sidak minimum of their tail probabilities (``scores.merge_looks``); beside the action error in
 Fisher's sum the coupling would count the same resting arm twice.  Without a model it is the look alone.  Its
-tail is normal (``Scorer.tail``), not the exponential through the quartiles the other scores get: an estimate
+tail is normal (``ScoreSpec.tail``), not the exponential through the quartiles the other scores get: an estimate
 averaged over a demo's steps spreads normally over clean demos.
 
 (Chosen on the development sets: docs/decisions.md, "The coupling and the action error: one look" and the two
@@ -35,10 +35,6 @@ from democheck.data.demo import Demo
 
 COUPLING_K = 3  # KSG's neighbour count (the estimator's authors' and most tools' choice)
 COUPLING_MAX_STEPS = 300  # a longer demo is read at this many evenly spaced steps
-# The least spread a robust standard deviation of the coupling stands for in the ranking, in nats: a tenth of a nat
-# is no real change in how the actions go with the state, and smooth scripted demos can spread much less
-# (docs/decisions.md, "The coupling's floor").
-COUPLING_MIN_SCALE = 0.1
 
 
 def ksg_mutual_information(x: np.ndarray, y: np.ndarray, k: int = COUPLING_K) -> float:

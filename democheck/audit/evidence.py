@@ -122,38 +122,15 @@ class DemoConsumer(Protocol):
 
 @dataclass(frozen=True)
 class Scorer:
+    """A check: its column, what it needs, how it scores (higher = more suspect) and decodes.  Whether and how its
+    score enters the ranking is the ranking recipe's (``democheck/recipes/ranking/default.toml``)."""
+
     name: str
     description: str
     needs: tuple[str, ...]
     score: Callable[[Evidence], Scores]
     family: str = "democheck"  # "democheck" or "baseline" (what users would pick instead)
     in_audit: bool = True  # computed by ``democheck audit`` (False: ``bench`` only)
-    in_suspicion: bool = False  # one of the scores the ranking combines
-    # In the ranking of a dataset with a single task too.  The task embedding's scores are not: with no other
-    # task to tell apart, a demo far from its neighbours is mostly one on an unusual layout.  On two one-task
-    # development sets (Meta-World drawer-open seed 1 and push seed 2, 40 clean + 15 bad each, their your-data
-    # models) task uncertainty and consistency put 1 and 2 of 40 clean demos over the --fpr 0.01 flag; without
-    # them none, recall 0.93 and 0.93 (with them 0.93 and 1.00), AUROC >= 0.99 on every kind either way.
-    in_single_task_ranking: bool = True
-    # In the ranking on a log scale: a score whose clean demos' right tail is long (a squared error) would
-    # otherwise put clean demos many robust standard deviations up.
-    log_in_ranking: bool = False
-    in_robust_sd: bool = False  # its score is already a robust z within the task: the ranking takes it as it is
-    # Scorers of one look ask one question of a demo (whether its actions are explained: by the model's controller,
-    # or by its state): where the ranking has more than one of them they are one piece of evidence, the Sidak
-    # minimum of their tail probabilities (``scores.merge_looks``); see ``democheck.audit.coupling``.
-    look: str = ""
-    # The least spread a robust standard deviation of this score stands for in the ranking, in its units.
-    ranking_min_scale: float = 0.0
-    # The family of its clean right tail in the ranking (``scores.tail_probabilities``): "exponential", or
-    # "normal" for a score that is a mean over many steps (the central limit theorem makes its clean spread normal,
-    # and an exponential through its quartiles would call a demo six robust SD out one clean demo in a few hundred).
-    tail: str = "exponential"
-    # A recording fault (a frozen camera, dropped frames, actions recorded out of step, a shaking command stream,
-    # a frozen sensor): the faults' tail probabilities stand apart, beside the combination of the others
-    # (``scores.combined_log10``), instead of adding up with them in Fisher's sum, where one small probability is
-    # diluted by every ordinary one beside it.
-    alone: bool = False
     # Where its decoding pass's result lands in ``Evidence.behaviour`` (default: its name); scorers that give
     # the same key share one consumer.
     behaviour: str = ""

@@ -75,7 +75,7 @@ def is_broken(values) -> np.ndarray:
 def expected_false_flags(core: np.ndarray, fpr: float) -> float:
     """The false flags to expect at ``fpr``: that share of the demos believed clean, the core
     (``scores.robust_tails``); the clean demos left out of it are too few to count (their combined tail probability
-    is under ``scores.CORE_P``)."""
+    is under the ranking's ``core_p``)."""
     return float(fpr * np.asarray(core, bool).sum())
 
 

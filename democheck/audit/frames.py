@@ -10,7 +10,7 @@ side (at least ``JUMP_FLOOR`` grey levels), on a log scale: a stretch of frames 
 the steps re-indexed, so that no timestamp shows it), or two recordings spliced.
 
 Both read one consumer of the audit's decoding pass (``FrameChanges``) and, with ``dynamics.lag`` and
-``modelfree.timing``, are recording faults: in the ranking apart from the other scores (``scorers.Scorer.alone``).
+``modelfree.timing``, are recording faults: in the ranking apart from the other scores (``alone`` in the ranking recipe).
 """
 
 from __future__ import annotations

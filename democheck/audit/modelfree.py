@@ -41,12 +41,6 @@ from democheck.data.demo import Demo
 STILL = 0.05  # a step is still when its change of action is under 5% of the median change
 DUPLICATE_STEPS = 32
 TIMING_TOLERANCE = 0.5  # a time step off the usual one by more than half of it is irregular
-IDLE_MIN_SCALE = 0.05  # a robust standard deviation of the idle share stands for at least 5% of the steps
-# The jerk stands beside the recording faults in the ranking (``scorers.Scorer.alone``: a shaking operator is one
-# extreme look, which Fisher's sum would dilute), a robust SD of it standing for at least 0.25 log units (a mean
-# jerk 28% off its task's): a scripted policy's jerk barely varies within a task (docs/decisions.md, "The jerk
-# beside the faults").
-JERK_MIN_SCALE = 0.25
 
 
 def steps_text(start: int, stop: int, length: int) -> str:

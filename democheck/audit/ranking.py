@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from democheck.audit.flagging import conformal_p
-from democheck.audit.scores import CORE_P, calibrated, combined_log10, merge_looks, robust_tails
+from democheck.audit.scores import calibrated, combined_log10, merge_looks, robust_tails
 
 
 @dataclass(frozen=True)
@@ -39,9 +39,11 @@ class RankingConfig:
     """Every ranked score's ``ScoreSpec`` and the settings of the combination, as data (``summary.json`` records
     it; ``benchmarks/ranking`` varies it)."""
 
-    specs: tuple[ScoreSpec, ...] = ()
-    core_p: float = CORE_P  # a demo whose combined probability is at most this leaves the robust core
-    reason_p: float = 0.05  # a score this surprising (tail probability) is named in a reason beside the first
+    specs: tuple[ScoreSpec, ...]
+    # A demo whose combined probability is at most this leaves the robust core: higher leaves clean demos out of
+    # the core (and so flagged); lower keeps weakly seen bad demos in, where they take the flags' budget.
+    core_p: float
+    reason_p: float  # a score this surprising (tail probability) is named in a reason beside the first
 
     @property
     def names(self) -> list[str]:
@@ -164,35 +166,27 @@ def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list
     return reasons, first
 
 
-CERTAIN = 1e-6  # evidence past this is certain: fitted tails this far out say nothing about which is stronger
-SAME_ORDER = 10.0  # tail probabilities within this factor of each other are evidence of the same strength
-
-
 def clauses(config: RankingConfig, row: np.ndarray, references: int, demoted: np.ndarray | None = None
             ) -> list[int]:
     """The looks a demo's reason names (``row``: their log tail probabilities), in the order it names them: up to
-    three, the smallest probability and those under ``reason_p``.  First the strongest evidence beyond every clean
-    demo (or the smallest alone); of evidence of the same strength (``SAME_ORDER``, ``CERTAIN`` at most), what the
-    demo did before how it was recorded before the model's reading of it (a spec's ``lead``) -- a reviewer acts on
-    the behaviour; a ``demoted`` clause only where nothing else is beyond.  Where that is a reading (neither behaviour nor a recording fault),
-    the strongest behaviour under ``reason_p`` leads instead.  Then by probability."""
+    three, the smallest probability and those under ``reason_p``.  First, of those beyond every clean demo (or the
+    smallest alone), the one whose spec leads (what the demo did before how it was recorded before the model's
+    reading of it -- a reviewer acts on the behaviour; a ``demoted`` one only where no other is beyond); where
+    that is a reading (neither behaviour nor a recording fault), a behaviour under ``reason_p`` leads instead.
+    Then by probability."""
     if not len(row):
         return []
     specs = config.specs
     demoted = np.zeros(len(row), bool) if demoted is None else np.asarray(demoted, bool)
     order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(config.reason_p)]
-    beyond = [j for j in order if np.exp(row[j]) * (references + 1) < 1] or order[:1]
-    certain = np.maximum(row, np.log(CERTAIN))
 
-    def strongest(among: list[int]) -> int:
-        among = [j for j in among if not demoted[j]] or among
-        top = min(certain[j] for j in among) + np.log(SAME_ORDER)
-        return min((j for j in among if certain[j] <= top), key=lambda j: (specs[j].lead, row[j]))
+    def first(among: list[int]) -> int:
+        return min([j for j in among if not demoted[j]] or among, key=lambda j: (specs[j].lead, row[j]))
 
-    lead = strongest(beyond)
+    lead = first([j for j in order if np.exp(row[j]) * (references + 1) < 1] or order[:1])
     if not (specs[lead].behaviour or specs[lead].alone):  # a reading (the coupling, the model): what the demo did
         plain = [j for j in order if specs[j].behaviour]
-        lead = strongest(plain) if plain else lead
+        lead = first(plain) if plain else lead
     return [lead, *[j for j in order if j != lead]][:3]
 
 

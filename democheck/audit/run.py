@@ -25,7 +25,7 @@ from democheck.audit.evidence import GROUP_MIN_DEMOS, Evidence, Scorer, small_ta
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.flagging import (DEFAULT_FPR, broken_recordings, conformal_p, exact_copies, expected_false_flags,
                                       flag_level, flagged_regardless, flags)
-from democheck.audit.scores import CORE_P, rank_order
+from democheck.audit.scores import rank_order
 from democheck.data.cache import dataset_fingerprint
 from democheck.data.demo import DemoSet
 from democheck.errors import DatasetError, DemocheckError
@@ -348,6 +348,7 @@ def flag_summary(table: pd.DataFrame, fpr: float, untrusted=()) -> dict[str, Any
     flagged = table["is_anomaly"].to_numpy(bool)
     copies, broken = exact_copies(table), broken_recordings(table)
     reference = table["reference"].to_numpy(bool)
+    recipe = registry.ranking_recipe()
     out: dict[str, Any] = {
         "fpr": fpr, "rule": f"at most {fpr:g} of the reference demos at least as suspect (p_reference), an exact "
                             "copy of another demo, or a broken recording (frames that cannot be decoded, NaN or "
@@ -358,11 +359,12 @@ def flag_summary(table: pd.DataFrame, fpr: float, untrusted=()) -> dict[str, Any
         "exact_copies": 0 if copies is None else int(copies.sum()),
         "broken_recordings": 0 if broken is None else int(broken.sum()),
         "reference": f"the audited demos' robust core ({int(reference.sum())} of {len(table)}): the demos whose "
-                     f"combined tail probability is above {CORE_P:g} once each score's tail is fitted on them, "
-                     "refitted until it no longer changes -- believed clean while the bad demos are a minority",
+                     f"combined tail probability is above {recipe['core_p']:g} once each score's tail is fitted "
+                     "on them, refitted until it no longer changes -- believed clean while the bad demos are a "
+                     "minority",
         "scores": registry.ranked(table, table["task"].to_numpy(), untrusted=untrusted),
     }
-    left_out = [n for n, s in registry.SCORERS.items() if s.in_suspicion and not s.in_single_task_ranking
+    left_out = [n for n, keys in recipe["scores"].items() if not keys.get("single_task", True)
                 and n in table] if table["task"].nunique() == 1 else []
     if left_out:
         out["one_task"] = (f"one task: {' and '.join(n.replace('_', ' ') for n in left_out)} are reported but not "

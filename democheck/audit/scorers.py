@@ -17,11 +17,15 @@ what the consumers return lands in ``Evidence.behaviour``.
 
 from __future__ import annotations
 
+import functools
+import tomllib
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from democheck import resources
 from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, sensors
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
@@ -29,6 +33,7 @@ from democheck.audit.evidence import Evidence, Scorer, Scores
 from democheck.audit.flagging import is_broken
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.scores import CONSISTENCY_K, consistency_parts
+from democheck.errors import RecipeError
 
 # ---------------------------------------------------------------------------
 # PETNet's scores
@@ -71,14 +76,7 @@ def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors
     return ActionErrors(ev.model, ev.task_variables()[rows], device)
 
 
-ACTIONS_EXPLAINED = "actions explained"  # the look of the action error and the coupling (``Scorer.look``)
 
-# The least spread a robust standard deviation of a recording fault's score stands for in the ranking (a share of
-# the steps for the frozen video, a log ratio for the frame jump, the lag and the timing): a camera whose frames
-# never repeat, actions that no shift explains better or a clock that never slips leave a MAD of zero, which
-# would call a single repeated frame many standard deviations (chosen on the development sets: docs/decisions.md,
-# "Recording faults beside the sum, not in it").
-FAULT_MIN_SCALE = 0.02
 
 
 def _suspicion(ev: Evidence, model_free: bool = False) -> Scores:
@@ -165,8 +163,7 @@ def _traces(ev: Evidence, rows: slice, device: Any) -> modelfree.ActionTraces:
 
 SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("task_uncertainty", "PETNet's task uncertainty (the paper's score): mean task standard deviation of the "
-           "demo's cue, both parts of the variance", ("cues",), _task_uncertainty, in_suspicion=True,
-           in_single_task_ranking=False, log_in_ranking=True, short="unc."),
+           "demo's cue, both parts of the variance", ("cues",), _task_uncertainty, short="unc."),
     Scorer("task_uncertainty_head", "the paper's variance head alone, without the novelty part",
            ("cues",), _task_uncertainty_head, in_audit=False, short="head"),
     Scorer("novelty", "how unfamiliar the demo's end is (its last frame, and where the arm ended where the model "
@@ -176,24 +173,22 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            ("cues", "novelty"), _novelty, short="novel."),
     Scorer("consistency", f"mean distance of the demo's task mean from those of its {CONSISTENCY_K} nearest other "
            "demos of its task, each dimension in units of its median task standard deviation", ("cues",), _consistency,
-           in_suspicion=True, in_single_task_ranking=False, short="cons."),
+           short="cons."),
     Scorer("action_error", f"how badly PETNet's controller, told the task by the other demos of the task, explains "
            f"the demo's normalised actions (MSE at {ACTION_STEPS} evenly spaced timesteps)", ("demos", "model"),
-           _action_error, in_suspicion=True, log_in_ranking=True, look=ACTIONS_EXPLAINED, decode=_decode_action_error,
-           short="act."),
+           _action_error, decode=_decode_action_error, short="act."),
     Scorer("motion", "model-free: how unusually much or little the demo's actions move (mean |action| and mean "
-           "|change of action|, the larger robust |z| within its task)", ("demos",), _motion, in_suspicion=True,
-           in_robust_sd=True, decode=lambda ev, rows, device: modelfree.MotionStats(), short="mot."),
+           "|change of action|, the larger robust |z| within its task)", ("demos",), _motion,
+           decode=lambda ev, rows, device: modelfree.MotionStats(), short="mot."),
     Scorer("idle", "model-free: share of steps at which the actions hardly change (under "
            f"{modelfree.STILL:g} x each dimension's median change), and the longest still stretch", ("demos",),
-           _idle, in_suspicion=True, ranking_min_scale=modelfree.IDLE_MIN_SCALE, behaviour="actions",
-           decode=_traces, short="idle"),
+           _idle, behaviour="actions", decode=_traces, short="idle"),
     Scorer("broken", "model-free: the share of the demo's frames that could not be decoded, or whose states or "
            "actions held NaN or infinite values (repaired to be read; any: the demo ranks first and is flagged)",
            ("demos",), _broken, behaviour="actions", decode=_traces, short="broken"),
     Scorer("jerk", "model-free: log mean |third difference of actions| in median-change units (shaking, "
-           "chatter)", ("demos",), _jerk, in_suspicion=True, alone=True, ranking_min_scale=modelfree.JERK_MIN_SCALE,
-           behaviour="actions", decode=_traces, short="jerk"),
+           "chatter)", ("demos",), _jerk, behaviour="actions",
+           decode=_traces, short="jerk"),
     Scorer("saturation", "model-free: share of steps at which some action dimension sits at its limit over all "
            "the demos", ("demos",), _saturation, behaviour="actions", decode=_traces, short="sat."),
     Scorer("duplicate", "model-free: how much nearer than usual the nearest other demo's actions are (log "
@@ -205,45 +200,38 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            decode=lambda ev, rows, device: dynamics.DynamicsFit(), short="dyn."),
     Scorer("lag", f"model-free: how much better the demo's states follow its actions moved in time (log of the "
            f"dynamics check's error as recorded over the least with the actions moved up to {dynamics.LAG_MAX} "
-           "steps either way): actions recorded late or early", ("demos",), _lag, in_suspicion=True, alone=True,
-           ranking_min_scale=FAULT_MIN_SCALE, behaviour="dynamics",
+           "steps either way): actions recorded late or early", ("demos",), _lag, behaviour="dynamics",
            decode=lambda ev, rows, device: dynamics.DynamicsFit(), short="lag"),
     Scorer("timing", "model-free: how far the worst time step is off the frame period 1/fps, log(1 + |step - "
            "period| / period), 0 when every step is within half a period (dropped, repeated or reordered frames; "
-           "NaN without timestamps)", ("demos",), _timing, in_suspicion=True, alone=True,
-           ranking_min_scale=FAULT_MIN_SCALE, behaviour="actions", decode=_traces, short="time"),
+           "NaN without timestamps)", ("demos",), _timing, behaviour="actions", decode=_traces, short="time"),
     Scorer("frozen_video", "model-free: the longest stretch of steps at which the camera frame repeats while the "
            "actions change, as a share of the demo's steps (a camera that stopped delivering)", ("demos", "frames"),
-           _frozen_video, in_suspicion=True, alone=True, ranking_min_scale=FAULT_MIN_SCALE,
-           decode=lambda ev, rows, device: frames.FrameChanges(), short="frozen"),
+           _frozen_video, decode=lambda ev, rows, device: frames.FrameChanges(), short="frozen"),
     Scorer("frame_jump", "model-free: how much more the camera frame changes at one step than at the "
            f"{frames.JUMP_NEIGHBOURS} steps either side (log of the largest ratio): frames dropped from the "
-           "recording, or recordings spliced", ("demos", "frames"), _frame_jump, in_suspicion=True, alone=True,
-           ranking_min_scale=FAULT_MIN_SCALE, behaviour="frozen_video",
+           "recording, or recordings spliced", ("demos", "frames"), _frame_jump, behaviour="frozen_video",
            decode=lambda ev, rows, device: frames.FrameChanges(), short="jump"),
     Scorer("frozen_state", "model-free: the longest stretch of steps at which a state dimension repeats its "
            "value exactly while the actions change, as a share of the demo (the largest over the dimensions still "
            "in hardly any of its task's demos): a sensor that stopped updating", ("demos",), _frozen_state,
-           in_suspicion=True, alone=True, ranking_min_scale=sensors.FROZEN_STATE_MIN_SCALE,
            decode=lambda ev, rows, device: sensors.StateRepeats(), short="frz.st"),
     Scorer("view", "model-free: share of the demo's average picture (16x16) unlike its task's other demos' there "
            f"(over {modelfree.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
-           "robust z within its task", ("demos", "frames"), _view, in_suspicion=True, in_robust_sd=True,
-           decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
+           "robust z within its task", ("demos", "frames"), _view, decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
     Scorer("colours", "model-free: how differently from its task's other demos the frames are coloured, wherever "
            f"the colours are in the view (every {modelfree.VIEW_EVERY}th frame's pixels in "
            f"{colours.COLOUR_LEVELS ** 3} colour bins, each bin's log share in robust SD within its task, RMS "
            "over the colours shown): an object missing or another one, a covered camera; robust z within its "
-           "task", ("demos", "frames"), _colours, in_suspicion=True, in_robust_sd=True,
+           "task", ("demos", "frames"), _colours,
            decode=lambda ev, rows, device: colours.ColourStats(), short="colour"),
     Scorer("outcome", "model-free: how differently from its task's other demos the demo left the world (the "
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "
-           "z within its task)", ("demos",), _outcome, in_suspicion=True,
+           "z within its task)", ("demos",), _outcome,
            decode=lambda ev, rows, device: outcome.OutcomeStats(), short="outc."),
     Scorer("coupling", "model-free: how little the demo's actions go with its state (minus their mutual "
            "information over its steps, KSG estimate, nats); one look with the action error in the ranking",
-           ("demos",), _coupling, in_suspicion=True, look=ACTIONS_EXPLAINED, tail="normal",
-           ranking_min_scale=coupling.COUPLING_MIN_SCALE,
+           ("demos",), _coupling,
            decode=lambda ev, rows, device: coupling.CouplingStats(), short="coupl."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
            "consistency, motion, idle, view, colours, outcome and whether the actions are explained (the action "
@@ -267,42 +255,70 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            family="baseline", in_audit=False, short="random"),
 )}
 
-# The checks whose words say what the demo did: the arm, the world it left, what the camera saw.
-WHAT_HAPPENED = ("idle", "motion", "jerk", "outcome", "view", "colours")
-# The order in which a reason prefers checks of equally strong evidence (``ScoreSpec.lead``): what the arm did, a
-# state that stopped updating (it explains the end state read from it), the world left, what the camera saw; then
-# the other recording faults, the other model-free checks (the coupling: a frozen sensor and an operator who let go
-# both loosen it), the model's readings last.
-LEAD = ("idle", "motion", "jerk", "frozen_state", "outcome", "view", "colours")
+RANKING_KEYS = {"log": bool, "in_robust_sd": bool, "floor": float, "tail": str, "alone": bool, "look": str,
+                "single_task": bool}
+
+
+@functools.lru_cache(maxsize=None)
+def ranking_recipe(name_or_path: str = "default") -> dict[str, Any]:
+    """How the scores enter the ranking, as data: ``democheck/recipes/ranking/<name>.toml`` (or a path) read and
+    checked -- the ranked scores in order with their keys (``RANKING_KEYS``), ``core_p``, ``reason_p``, the checks
+    whose words say what the demo did (``behaviour``) and the order a reason prefers of equal evidence (``lead``)."""
+    path = Path(name_or_path)
+    if not (path.suffix == ".toml" and path.exists()):
+        path = resources.recipe_file("ranking", str(name_or_path))
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise RecipeError(f"{path}: not a ranking recipe ({exc})") from None
+    unknown = sorted(set(doc) - {"name", "core_p", "reason_p", "behaviour", "lead", "scores"})
+    scores = doc.get("scores", {})
+    bad = sorted(set(scores) - set(SCORERS)) + sorted(
+        f"{n}.{k}" for n, keys in scores.items() for k, v in keys.items()
+        if k not in RANKING_KEYS or not isinstance(v, (RANKING_KEYS[k], int) if RANKING_KEYS[k] is float
+                                                   else RANKING_KEYS[k]))
+    bad += sorted((set(doc.get("lead", [])) | set(doc.get("behaviour", []))) - set(scores))
+    if unknown or bad or not isinstance(doc.get("core_p"), float) or not isinstance(doc.get("reason_p"), float):
+        raise RecipeError(f"{path}: unknown or ill-typed {', '.join(unknown + bad) or 'core_p or reason_p'} (a "
+                          f"ranked score takes {', '.join(RANKING_KEYS)}; scores: {', '.join(SCORERS)})")
+    return {**doc, "scores": {n: dict(keys) for n, keys in scores.items()}}
 
 
 def ranked(available, tasks: np.ndarray, model_free: bool = False, untrusted=()) -> list[str]:
-    """The scores the ranking combines, of those ``available`` (names, or columns by name): every
-    ``in_suspicion`` scorer's, less the task embedding's on a dataset of one task (``in_single_task_ranking``),
-    less the model's with ``model_free`` and those it did not earn (``untrusted``, ``trust.untrusted``), less a
-    column with no score at all (the outcome of a dataset whose tasks are all too small to compare): a look that
-    cannot see anything must not cost the others' correction."""
+    """The scores the ranking combines, of those ``available`` (names, or columns by name): those of the ranking
+    recipe, less the task embedding's on a dataset of one task (``single_task``), less the model's with
+    ``model_free`` and those it did not earn (``untrusted``, ``trust.untrusted``), less a column with no score at
+    all (the outcome of a dataset whose tasks are all too small to compare): a look that cannot see anything must
+    not cost the others' correction."""
     one_task = len(np.unique(tasks)) == 1
     columns = isinstance(available, (dict, pd.DataFrame))
 
     def scored(n: str) -> bool:
         return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
 
-    return [n for n, s in SCORERS.items() if s.in_suspicion and n in available and n not in untrusted
-            and (s.model_free or not model_free) and (s.in_single_task_ranking or not one_task) and scored(n)]
+    return [n for n, keys in ranking_recipe()["scores"].items() if n in available and n not in untrusted
+            and (SCORERS[n].model_free or not model_free) and (keys.get("single_task", True) or not one_task)
+            and scored(n)]
 
 
 def ranking_config(names: list[str]) -> ranking.RankingConfig:
-    """How the scores ``names`` enter the ranking, from their scorers: ``ranking.ScoreSpec`` each."""
-    def lead(s: Scorer) -> int:
-        if s.name in LEAD:
-            return LEAD.index(s.name)
-        return len(LEAD) + (0 if s.alone else 1 if s.model_free else 2)
+    """How the scores ``names`` enter the ranking (``ranking.ScoreSpec`` each), from the ranking recipe; of
+    evidence equally strong, a reason names the recipe's ``lead`` first, then the other recording faults, the
+    other model-free checks, the model's readings."""
+    recipe = ranking_recipe()
+    order = recipe["lead"]
 
-    return ranking.RankingConfig(tuple(
-        ranking.ScoreSpec(n, log=s.log_in_ranking, in_robust_sd=s.in_robust_sd, floor=s.ranking_min_scale,
-                          tail=s.tail, alone=s.alone, look=s.look, lead=lead(s), behaviour=n in WHAT_HAPPENED)
-        for n, s in ((n, SCORERS[n]) for n in names)))
+    def spec(n: str) -> ranking.ScoreSpec:
+        keys = recipe["scores"][n]
+        alone = keys.get("alone", False)
+        lead = order.index(n) if n in order else len(order) + (0 if alone else 1 if SCORERS[n].model_free else 2)
+        return ranking.ScoreSpec(n, log=keys.get("log", False), in_robust_sd=keys.get("in_robust_sd", False),
+                                 floor=float(keys.get("floor", 0.0)), tail=keys.get("tail", "exponential"),
+                                 alone=alone, look=keys.get("look", ""), lead=lead,
+                                 behaviour=n in recipe["behaviour"])
+
+    return ranking.RankingConfig(tuple(spec(n) for n in names), core_p=recipe["core_p"],
+                                 reason_p=recipe["reason_p"])
 
 
 def combination(ev: Evidence, model_free: bool = False) -> ranking.Ranking:

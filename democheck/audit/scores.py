@@ -19,13 +19,13 @@ The ranking, ``suspicion`` (-log10 of ``p_value``: 2 = as unusual as one clean d
   error on a log scale first: long right tails), so that a task whose demos all score high does not fill the top
   ranks; with ``core``, each task's centre and the unit come from the core's demos alone.
 - ``tail_probabilities``: an exponential right tail through the core's ``TAIL_QUANTILES`` (a normal one for a
-  score that is a mean over many steps, ``Scorer.tail``).
-- ``robust_tails``: the robust core -- every demo, then those whose combined probability is above ``CORE_P``,
+  score that is a mean over many steps, ``ScoreSpec.tail``).
+- ``robust_tails``: the robust core -- every demo, then those whose combined probability is above ``core_p``,
   refitted until it stops changing -- so that bad demos widen neither the tails nor the units they are judged by.
 - ``combined_log10``: Fisher's method with Brown's correction (``brown_scale``), so that several moderate
   surprises add up (a demo that gave up half-way is a little still, a little slow and ends a little short); the
   Sidak minimum (``sidak_log10``) under ``BROWN_MIN_DEMOS`` demos.  The scores of one look are merged first
-  (``merge_looks``); the recording faults (``Scorer.alone``) stand beside the sum by their own Sidak minimum.
+  (``merge_looks``); the recording faults (``ScoreSpec.alone``) stand beside the sum by their own Sidak minimum.
 - ``is_anomaly``: the flags, conformal on the same core (``democheck.audit.flagging``).
 
 Each choice, the alternatives and the sets they were measured on: docs/decisions.md ("How scores become a ranking
@@ -48,10 +48,6 @@ TAIL_QUANTILES = (0.25, 0.75)  # the core's percentiles an exponential tail pass
 TAIL_MIN_SCALE = 0.5  # robust SD: no tail falls faster than by e per half a robust standard deviation
 BROWN_CORE = 0.1  # Brown's dependence is measured on the demos whose Sidak-combined probability is above this
 BROWN_MIN_DEMOS = 30  # with fewer such demos, the Sidak minimum instead of Fisher-Brown
-# The robust core the tails are fitted on and the flags calibrated on (``robust_tails``): the demos whose combined
-# tail probability is above this.  Higher leaves clean demos out of the core (and so flagged); lower keeps weakly
-# seen bad demos in, where they take the flags' budget (docs/decisions.md, "The robust core's level").
-CORE_P = 1e-4
 CORE_ROUNDS = 10  # at most this many refits of the core
 
 
@@ -144,7 +140,7 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np
     ``TAIL_MIN_SCALE``; or, for the columns ``normal`` [K] marks, a normal tail through the core's median, its
     scale from the same two percentiles (the interquartile range / 1.349; at least ``TAIL_MIN_SCALE``) -- for a
     score that is a mean over many steps, whose clean spread the central limit theorem makes normal
-    (``Scorer.tail``).  NaN (no score)
+    (``ScoreSpec.tail``).  NaN (no score)
     stays NaN, which the combinations leave out; +inf (an exact copy) gives log 0."""
     from scipy.stats import norm
 
@@ -169,7 +165,7 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np
     return out
 
 
-def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: float = CORE_P,
+def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: float,
                  rounds: int = CORE_ROUNDS, normal: np.ndarray | None = None, alone: np.ndarray | None = None,
                  outside: np.ndarray | None = None, looks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``tail_probabilities`` fitted on the audited demos' robust core, and the core [N] (bool): starting from
@@ -261,7 +257,7 @@ def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None, looks: np
     evidence that the demo is typical (counted as p = 1, it would make a demo with a missing score look more
     ordinary than a clean demo with every score).
 
-    ``alone`` (bool [K]) marks the columns that stand apart (the recording faults, ``Scorer.alone``): the others
+    ``alone`` (bool [K]) marks the columns that stand apart (the recording faults, ``ScoreSpec.alone``): the others
     are combined as above, the marked ones by their Sidak minimum (is the recording faulty?), and those two
     probabilities by theirs -- a camera that froze is a defect whatever the demo's behaviour says, and in Fisher's
     sum its one small probability would be diluted by every ordinary one beside it.  ``looks`` ([K] numbers): the

@@ -8,9 +8,8 @@ change, as a share of the demo's steps.  Only the dimensions live in the demo's 
 rest until the arm reaches it, or one a simulator sometimes lets settle bit for bit, is left out.  The score is
 the largest share over the live dimensions: one joint whose encoder died for the whole demo reads 1, the whole
 state stream frozen from a step on reads the rest of the demo.  The reason names the dimension and the frames.
-A recording fault: in the ranking beside the other scores (``scorers.Scorer.alone``), a robust standard
-deviation of it standing for at least ``FROZEN_STATE_MIN_SCALE``.  A consumer of the audit's decoding pass like
-the other model-free checks (``democheck.audit.modelfree``).
+A recording fault: in the ranking beside the other scores (``alone`` in the ranking recipe).  A consumer of the
+audit's decoding pass like the other model-free checks (``democheck.audit.modelfree``).
 
 (Chosen on the development sets, with planted faults: docs/decisions.md, "Frozen state: added, and its 75th
 percentile".)
@@ -26,7 +25,6 @@ from democheck.data.demo import Demo
 FROZEN_STATE_MIN_DEMOS = 4  # a task with fewer demos is compared with every demo
 FROZEN_STATE_LIVE = 0.05  # a dimension is live in a task where its share's FROZEN_STATE_QUANTILE is at most this
 FROZEN_STATE_QUANTILE = 0.75  # over the task's demos: live means still in hardly any of them
-FROZEN_STATE_MIN_SCALE = 0.05  # in the ranking, a robust SD of the score stands for at least 5% of the steps
 DRIVEN_SHARE = 0.01  # a step is driven when its action changes by this share of the demo's 90th-percentile change
 
 

@@ -42,7 +42,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from democheck.audit.flagging import flag_level
-from democheck.audit.scorers import SCORERS
+from democheck.audit.scorers import SCORERS, ranking_recipe
 from democheck.data.demo import Demo
 from democheck.data.video import VideoWriter
 from democheck.evaluate.meta_test import fmt_rate
@@ -282,7 +282,7 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: Sequence[Demo], 
     for k, (task, demo) in enumerate((typical or {}).items()):
         shown[task] = (f"typical/{k:03d}", demo.episode_index, bool(demo.frames.size))
         _log_demo(rec, shown[task][0], demo, None, fps, names)
-    cols = [n for n, s in SCORERS.items() if s.in_suspicion and n in table]
+    cols = [n for n in ranking_recipe()["scores"] if n in table]
     tabs = []
     for demo, row in zip(suspects, table.head(top).to_dict(orient="records")):
         base = suspect_path(row["rank"], row["episode_index"])
