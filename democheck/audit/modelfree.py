@@ -24,6 +24,8 @@ busiest dimension's, so that a gripper held shut cannot make a tiny twitch look 
   (repaired so that the other checks can read the demo); any makes the demo suspect.
 - ``duplicate``: how close the demo's actions come to another demo's (the log median nearest-neighbour distance,
   resampled to ``DUPLICATE_STEPS`` steps); an exact copy is named as such.
+
+Over 400 lines: these checks share the action traces and their scales, each a consumer and a short function.
 """
 
 from __future__ import annotations
