@@ -187,8 +187,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "actions held NaN or infinite values (repaired to be read; any: the demo ranks first and is flagged)",
            ("demos",), _broken, behaviour="actions", decode=_traces, short="broken"),
     Scorer("jerk", "model-free: log mean |third difference of actions| in median-change units (shaking, "
-           "chatter)", ("demos",), _jerk, behaviour="actions",
-           decode=_traces, short="jerk"),
+           "chatter)", ("demos",), _jerk, behaviour="actions", decode=_traces, short="jerk"),
     Scorer("saturation", "model-free: share of steps at which some action dimension sits at its limit over all "
            "the demos", ("demos",), _saturation, behaviour="actions", decode=_traces, short="sat."),
     Scorer("duplicate", "model-free: how much nearer than usual the nearest other demo's actions are (log "
@@ -218,7 +217,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            decode=lambda ev, rows, device: sensors.StateRepeats(), short="frz.st"),
     Scorer("view", "model-free: share of the demo's average picture (16x16) unlike its task's other demos' there "
            f"(over {modelfree.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
-           "robust z within its task", ("demos", "frames"), _view, decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
+           "robust z within its task", ("demos", "frames"), _view,
+           decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
     Scorer("colours", "model-free: how differently from its task's other demos the frames are coloured, wherever "
            f"the colours are in the view (every {modelfree.VIEW_EVERY}th frame's pixels in "
            f"{colours.COLOUR_LEVELS ** 3} colour bins, each bin's log share in robust SD within its task, RMS "
