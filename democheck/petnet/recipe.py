@@ -181,24 +181,10 @@ def _toml_value(v: Any) -> str:
     return repr(v)
 
 
-# How the training record of models made before recipes named the optional terms (one release).
-_OLD_WEIGHTS = {"contrastive_weight": "task_matching", "mean_hinge_weight": "mean_hinge",
-                "partial_cue_weight": "partial_cue", "partial_kl_weight": "partial_kl",
-                "broken_cue_weight": "broken_cue"}
-
-
 def training_config(record: dict[str, Any]) -> TrainConfig:
-    """The ``TrainConfig`` a model's ``config.json`` records under ``training``, in today's names; records of
-    models made before recipes (``contrastive_weight``, ``kl_weight`` + ``kl_target``, ``margin``...) are read
-    too."""
+    """The ``TrainConfig`` a model's ``config.json`` records under ``training`` (a key this release does not know
+    is left out)."""
     rec = dict(record)
     regs = dict(rec.pop("regularisers", {}) or {})
-    for old, new in _OLD_WEIGHTS.items():
-        if rec.get(old):
-            regs[new] = float(rec[old])
-    if rec.get("kl_weight"):
-        regs["kl_np" if rec.get("kl_target") == "np" else "kl_prior"] = float(rec["kl_weight"])
-    renamed = {"margin": "tecnet_margin", "embed_weight": "tecnet_weight"}
     known = {f.name for f in fields(TrainConfig)}
-    values = {renamed.get(k, k): v for k, v in rec.items() if renamed.get(k, k) in known}
-    return TrainConfig(**values, regularisers=regs)
+    return TrainConfig(**{k: v for k, v in rec.items() if k in known}, regularisers=regs)
