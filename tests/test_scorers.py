@@ -8,6 +8,7 @@ most of the view) beside it; each scorer is judged, as bench judges it, on the c
 import re
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from democheck.audit.run import gather_evidence
@@ -165,3 +166,14 @@ def test_a_reason_leads_with_the_cause_the_other_clauses_follow_from():
     # An arm stopped at once: one jump of the actions, then it stands still.
     assert lead([6e-4, 0.002, 1e-9, 0.001, 0.5, 0.001], demoted=["jerk"]) == "idle"
     assert lead([0.5, 0.5, 1e-9, 0.5, 0.5, 0.5], demoted=["jerk"]) == "jerk"  # nothing else beyond
+
+
+def test_an_arm_moving_somewhat_more_or_less_says_how_it_differs_not_what_went_wrong():
+    from democheck.audit.evidence import Evidence
+    from democheck.audit.scorers import demoted
+
+    level = np.ones(40)
+    level[:4] = 0.5, 3.0, 0.1, 10.0  # a quarter less, three times more, hardly moving, flailing
+    ev = Evidence(episodes=pd.DataFrame({"episode_index": np.arange(40), "task": ["push"] * 40}),
+                  behaviour={"motion": np.column_stack([level, level])})
+    assert demoted(ev)["motion"][:4].tolist() == [True, True, False, False]

@@ -342,13 +342,14 @@ def explanation(ev: Evidence, model_free: bool = False) -> tuple[list[str], list
 
 def demoted(ev: Evidence) -> dict[str, np.ndarray]:
     """Per check, the demos whose words say how the demo differs but not what went wrong, so that what went wrong
-    leads its reason: an arm that moves somewhat less than its task's demos (a wrong task and a careful operator
-    alike; not one that hardly moves), actions that jump once (an arm stopped at once: that it then stands still,
-    or left the world unfinished, is the news)."""
+    leads its reason: an arm that moves somewhat less or more than its task's demos (within a factor of
+    1 / ``HARDLY_MOVES`` of their median: another task and a careful or hurried operator alike; not one that
+    hardly moves or flails), actions that jump once (an arm stopped at once: that it then stands still, or left the
+    world unfinished, is the news)."""
     out = {}
     if "motion" in ev.behaviour:
         ratio = modelfree.motion_ratio(np.asarray(ev.behaviour["motion"]), ev.groups)
-        out["motion"] = (ratio >= modelfree.HARDLY_MOVES) & (ratio < 1)
+        out["motion"] = (ratio >= modelfree.HARDLY_MOVES) & (ratio <= 1 / modelfree.HARDLY_MOVES)
     if "actions" in ev.behaviour:
         out["jerk"] = modelfree.jerk_jumps(ev.behaviour["actions"])
     return out
