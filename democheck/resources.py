@@ -13,8 +13,12 @@ anywhere finds them; nothing is looked up relative to a source checkout.
 
 from __future__ import annotations
 
+import tomllib
 from importlib.resources import files
 from pathlib import Path
+from typing import Any
+
+from democheck.errors import RecipeError
 
 DEFAULT_MODEL = "petnet-push-v1"
 RECIPE_KINDS = ("synth", "train", "dagger", "ranking")
@@ -50,3 +54,18 @@ def recipe_file(kind: str, name: str) -> Path:
 def recipe_names(kind: str) -> list[str]:
     root = recipe_dir(kind)
     return sorted(p.stem for p in root.glob("*.toml")) if root.is_dir() else []
+
+
+def read_recipe(kind: str, name_or_path: str | Path, what: str) -> tuple[Path, dict[str, Any]]:
+    """A recipe of a ``kind`` by shipped name or by path to a .toml file, and its TOML read; a name that is not
+    shipped, or a file that is not TOML, is one ``RecipeError`` line (``what``: the recipe's kind in words)."""
+    path = Path(name_or_path)
+    if not (path.suffix == ".toml" and path.exists()):
+        path = recipe_file(kind, str(name_or_path))
+        if not path.exists():
+            raise RecipeError(f"no {what} recipe {str(name_or_path)!r}; known: "
+                              f"{', '.join(recipe_names(kind)) or 'none'} (or give a path to a .toml file)")
+    try:
+        return path, tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise RecipeError(f"{path}: not valid TOML ({exc})") from None

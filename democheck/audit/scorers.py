@@ -18,8 +18,6 @@ what the consumers return lands in ``Evidence.behaviour``.
 from __future__ import annotations
 
 import functools
-import tomllib
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -264,13 +262,7 @@ def ranking_recipe(name_or_path: str = "default") -> dict[str, Any]:
     """How the scores enter the ranking, as data: ``democheck/recipes/ranking/<name>.toml`` (or a path) read and
     checked -- the ranked scores in order with their keys (``RANKING_KEYS``), ``core_p``, ``reason_p``, the checks
     whose words say what the demo did (``behaviour``) and the order a reason prefers of equal evidence (``lead``)."""
-    path = Path(name_or_path)
-    if not (path.suffix == ".toml" and path.exists()):
-        path = resources.recipe_file("ranking", str(name_or_path))
-    try:
-        doc = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise RecipeError(f"{path}: not a ranking recipe ({exc})") from None
+    path, doc = resources.read_recipe("ranking", name_or_path, "ranking")
     unknown = sorted(set(doc) - {"name", "core_p", "reason_p", "behaviour", "lead", "scores"})
     scores = doc.get("scores", {})
     bad = sorted(set(scores) - set(SCORERS)) + sorted(

@@ -36,7 +36,6 @@ from __future__ import annotations
 import json
 import shutil
 import time
-import tomllib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -54,7 +53,7 @@ from democheck.petnet.batches import Batches, task_rows, uniform_steps
 from democheck.petnet.card import git_commit, model_card
 from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
 from democheck.petnet.encode import encode_rows
-from democheck.petnet.recipe import parse_value
+from democheck.petnet.recipe import parse_set
 from democheck.petnet.run_state import load_state, save_state, work_dir
 from democheck.petnet.train import resolve_device
 from democheck.sim.catalog import OBJECTS
@@ -87,22 +86,9 @@ def load_recipe(name_or_path: str | Path = DEFAULT_RECIPE, sets: list[str] | Non
     """The ``DaggerConfig`` of a recovery recipe (a shipped name or a path to a .toml file) with its ``--set
     key=value`` overrides and the machine's options that are not None (``workers``, ``device``), and the resolved
     recipe as a document."""
-    path = Path(name_or_path)
-    if not (path.suffix == ".toml" and path.exists()):
-        path = resources.recipe_file("dagger", str(name_or_path))
-        if not path.exists():
-            raise RecipeError(f"no recovery recipe {str(name_or_path)!r}; known: "
-                              f"{', '.join(resources.recipe_names('dagger'))} (or give a path to a .toml file)")
-    try:
-        doc = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise RecipeError(f"{path}: not valid TOML ({exc})") from None
+    path, doc = resources.read_recipe("dagger", name_or_path, "recovery")
     values = {k: v for k, v in doc.items() if k not in ("name", "description")}
-    for item in sets or []:
-        key, eq, text = item.partition("=")
-        if not eq or not key.strip():
-            raise RecipeError(f"--set takes key=value (e.g. steps=500), not {item!r}")
-        values[key.strip()] = parse_value(text.strip())
+    values.update(parse_set(item, "steps=500") for item in sets or [])
     where = f"{path}" + (" with --set " + " ".join(sets) if sets else "")
     unknown = sorted(set(values) - set(RECIPE_KEYS))
     if unknown:

@@ -40,15 +40,13 @@ KEYS: dict[str, dict[str, str]] = {
 }
 
 
-def recipe_path(name_or_path: str | Path) -> Path:
-    path = Path(name_or_path)
-    if path.suffix == ".toml" and path.exists():
-        return path
-    found = resources.recipe_file("train", str(name_or_path))
-    if not found.exists():
-        raise RecipeError(f"no training recipe {str(name_or_path)!r}; known: "
-                          f"{', '.join(resources.recipe_names('train'))} (or give a path to a .toml file)")
-    return found
+def parse_set(item: str, example: str) -> tuple[str, Any]:
+    """A ``--set key=value`` as (key, value), the value read as TOML (``parse_value``); ``example`` shows the form
+    in the error a malformed one gets."""
+    key, eq, text = item.partition("=")
+    if not eq or not key.strip():
+        raise RecipeError(f"--set takes key=value (e.g. {example}), not {item!r}")
+    return key.strip(), parse_value(text.strip())
 
 
 def parse_value(text: str) -> Any:
@@ -85,11 +83,7 @@ def load_recipe(name_or_path: str | Path = DEFAULT_RECIPE, sets: list[str] | Non
                 **everyday: Any) -> tuple[TrainConfig, dict[str, Any]]:
     """The ``TrainConfig`` of a recipe with its ``--set`` overrides and the everyday options that are not None
     (``steps``, ``seed``, ``device``, ``val_every``...), and the resolved recipe as a document."""
-    path = recipe_path(name_or_path)
-    try:
-        doc = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise RecipeError(f"{path}: not valid TOML ({exc})") from None
+    path, doc = resources.read_recipe("train", name_or_path, "training")
     values: dict[str, Any] = {}
     regs: dict[str, float] = {}
     for key, value in doc.items():
@@ -114,14 +108,12 @@ def load_recipe(name_or_path: str | Path = DEFAULT_RECIPE, sets: list[str] | Non
             else:
                 values[KEYS[section][name]] = value
     for item in sets or []:
-        key, eq, text = item.partition("=")
-        if not eq or not key.strip():
-            raise RecipeError(f"--set takes key=value (e.g. optim.lr=1e-3), not {item!r}")
-        section, name = _field_of(key.strip(), "--set")
+        key, value = parse_set(item, "optim.lr=1e-3")
+        section, name = _field_of(key, "--set")
         if section == "regularisers":
-            regs[name] = parse_value(text.strip())
+            regs[name] = value
         else:
-            values[KEYS[section][name]] = parse_value(text.strip())
+            values[KEYS[section][name]] = value
     values.update({k: v for k, v in everyday.items() if v is not None})
     if values.get("init") == "":
         values["init"] = None

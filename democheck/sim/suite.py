@@ -10,7 +10,6 @@ depend on the number of workers.
 from __future__ import annotations
 
 import time
-import tomllib
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -164,16 +163,7 @@ def available_recipes() -> list[str]:
 
 def load_recipe(name_or_path: str) -> Recipe:
     """A recipe by name (``synth/<name>.toml``) or by path to a TOML file."""
-    path = Path(name_or_path)
-    if not (path.suffix == ".toml" and path.exists()):
-        path = resources.recipe_file("synth", name_or_path)
-    if not path.exists():
-        raise RecipeError(f"no suite recipe {name_or_path!r}; known: {', '.join(available_recipes()) or 'none'}"
-                          " (or give a path to a .toml file)")
-    try:
-        doc = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise RecipeError(f"{path}: not valid TOML ({exc})") from None
+    path, doc = resources.read_recipe("synth", name_or_path, "suite")
     flat: dict[str, Any] = {"name": doc.get("name", path.stem)}
     for key in ("seed", "description"):
         if key in doc:
