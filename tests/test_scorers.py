@@ -6,6 +6,7 @@ most of the view) beside it; each scorer is judged, as bench judges it, on the c
 """
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -177,3 +178,16 @@ def test_an_arm_moving_somewhat_more_or_less_says_how_it_differs_not_what_went_w
     ev = Evidence(episodes=pd.DataFrame({"episode_index": np.arange(40), "task": ["push"] * 40}),
                   behaviour={"motion": np.column_stack([level, level])})
     assert demoted(ev)["motion"][:4].tolist() == [True, True, False, False]
+
+
+def test_a_ranking_recipe_with_an_unknown_score_key_or_tail_is_one_clear_error(tmp_path):
+    from democheck.audit.scorers import ranking_recipe
+    from democheck.errors import RecipeError
+
+    shipped = (Path(__file__).resolve().parents[1] / "democheck/recipes/ranking/default.toml").read_text()
+    for bad, words in (('tail = "normal"', 'tail = "Normal"'), ("[scores.outcome]", "[scores.outcom]"),
+                       ("floor = 0.05  # a share", "flor = 0.05  # a share")):
+        path = tmp_path / "r.toml"
+        path.write_text(shipped.replace(bad, words, 1))
+        with pytest.raises(RecipeError, match="unknown or ill-typed"):
+            ranking_recipe(str(path))

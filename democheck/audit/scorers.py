@@ -253,6 +253,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            family="baseline", in_audit=False, short="random"),
 )}
 
+TAILS = ("exponential", "normal")  # the families a score's clean right tail may be given (``scores.tail_probabilities``)
 RANKING_KEYS = {"log": bool, "in_robust_sd": bool, "floor": float, "tail": str, "alone": bool, "look": str,
                 "single_task": bool}
 
@@ -270,6 +271,7 @@ def ranking_recipe(name_or_path: str = "default") -> dict[str, Any]:
         if k not in RANKING_KEYS or not isinstance(v, (RANKING_KEYS[k], int) if RANKING_KEYS[k] is float
                                                    else RANKING_KEYS[k]))
     bad += sorted((set(doc.get("lead", [])) | set(doc.get("behaviour", []))) - set(scores))
+    bad += sorted(f"{n}.tail" for n, keys in scores.items() if keys.get("tail", "exponential") not in TAILS)
     if unknown or bad or not isinstance(doc.get("core_p"), float) or not isinstance(doc.get("reason_p"), float):
         raise RecipeError(f"{path}: unknown or ill-typed {', '.join(unknown + bad) or 'core_p or reason_p'} (a "
                           f"ranked score takes {', '.join(RANKING_KEYS)}; scores: {', '.join(SCORERS)})")
