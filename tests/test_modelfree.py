@@ -242,7 +242,7 @@ def test_frozen_state_ranks_a_stopped_sensor_first_and_says_where():
     for d in demos:
         d.state[:, -1] = 0.5
     ev = _evidence(demos, ["frozen_state"])
-    assert ev.scores["frozen_state"][4] == 1.0 and "state dimension 1 holds" in ev.reasons["frozen_state"][4]
+    assert ev.scores["frozen_state"][4] == 1.0 and "state[1] holds" in ev.reasons["frozen_state"][4]
     assert (np.delete(ev.scores["frozen_state"], 4) == 0).all()
     # Named as the dataset names it, where it does.
     for d in demos:
@@ -886,7 +886,9 @@ def test_outcome_compares_an_end_with_the_demos_that_started_on_its_side():
 
     rng = np.random.default_rng(0)
     stats = outcome.OutcomeStats()
-    starts = np.r_[rng.uniform(0.05, 0.2, 10), rng.uniform(-0.2, -0.05, 4)]
+    # The push runs along x; y starts 1-3 cm off the goal's line, so that 18 mm across it is far past the task's
+    # own spread and its job on y (outcome.TASK_FLOOR of how far its demos move y).
+    starts = np.r_[rng.uniform(0.012, 0.03, 10), rng.uniform(-0.03, -0.012, 4)]
     for i, y0 in enumerate(starts):
         y1 = (0.009 if y0 > 0 else -0.009) + rng.normal(0, 2e-4)
         if i == 13:
@@ -897,7 +899,7 @@ def test_outcome_compares_an_end_with_the_demos_that_started_on_its_side():
         stats.names.append(["target.x", "target.y"])
     tasks = np.zeros(len(starts), int)
     by_side, reasons = outcome.outcome(stats, tasks)
-    assert int(np.argmax(by_side)) == 13 and by_side[10:13].max() < 3 < 10 < by_side[13]
+    assert int(np.argmax(by_side)) == 13 and by_side[10:13].max() < 3 < 5 < by_side[13]
     assert "target.y at the end" in reasons[13]
 
 

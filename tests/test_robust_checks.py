@@ -168,3 +168,62 @@ def test_the_clean_shapes_benchmark_runs_and_reports_the_rate(capsys):
     result = bench.main(["--seeds", "3-3"])
     assert result["of"] == 200 and result["flagged"] <= stats.binom.interval(0.99, 200, 0.01)[1]
     assert "clean demos flagged" in capsys.readouterr().out
+
+
+def test_a_part_left_short_of_where_its_task_piles_is_a_job_done_in_part_not_far_out():
+    """A slide most of its task's demos push to the stop at 0.44 and a few leave 0.24-0.38 open: those are a few
+    units of the task's own job out, not the pile's spread of nothing.  A demo that never moved it, and one of
+    another task that opened it, stay far out."""
+    from democheck.audit.outcome import OutcomeStats, outcome
+
+    rng = np.random.default_rng(0)
+    stats, tasks = OutcomeStats(), []
+
+    def add(task: str, slide: float, kettle: float) -> None:
+        first, last = np.array([0.0, 0.0]), np.array([slide, kettle])
+        stats.ends.append(np.stack([first, last]))
+        stats.sources.append("environment state")
+        stats.names.append(["slide_cabinet", "kettle_x"])
+        stats.moves.append(np.stack([np.abs(last - first), np.zeros(2)]))
+        tasks.append(task)
+
+    for _ in range(34):
+        add("slide", 0.44 + rng.normal(0, 1e-5), 0.0)
+    short = rng.uniform(0.24, 0.38, 6)
+    for v in short:
+        add("slide", v, 0.0)
+    add("slide", 0.0, 0.0)  # never opened it
+    for _ in range(40):
+        add("kettle", 0.0, 0.2 + rng.normal(0, 0.01))
+    add("kettle", 0.2, 0.0)  # opened the slide instead
+    score, reasons = outcome(stats, np.array(tasks))
+    assert score[34:40].max() < 5  # a few tenths short: a few units of the job
+    assert score[40] > 5 and score[-1] > 15  # never opened it; the other task opened it
+    assert "slide_cabinet" in reasons[-1]
+
+
+def test_the_outcome_says_whether_the_world_differed_from_the_start_and_what_never_changed():
+    """A demo from another scene (its object elsewhere from the first step, never moved) differs at the start and
+    its reason says the part held one value; one that pushed its object elsewhere differs by what it did."""
+    from democheck.audit.outcome import OutcomeStats, compare
+
+    rng = np.random.default_rng(1)
+    stats, tasks = OutcomeStats(), []
+
+    def add(start: float, end: float) -> None:
+        first, last = np.array([start]), np.array([end])
+        stats.ends.append(np.stack([first, last]))
+        stats.sources.append("state")
+        stats.names.append(None)
+        stats.moves.append(np.stack([np.abs(last - first), np.full(1, 1e-6)]))
+        tasks.append("push")
+
+    for _ in range(30):
+        s = rng.normal(0.3, 0.01)
+        add(s, s + 0.2 + rng.normal(0, 0.01))
+    add(0.9, 0.9)  # another scene: its object elsewhere, never moved
+    add(0.3, 0.8)  # pushed it too far
+    _, reasons, where = compare(stats, np.array(tasks))
+    assert where[30].at_start and not where[31].at_start and where[30].columns == [0]
+    assert "state[0] holds one value through the demo (0.9)" in reasons[30], reasons[30]
+    assert "holds one value" not in reasons[31]

@@ -167,6 +167,55 @@ def test_a_reason_leads_with_the_cause_the_other_clauses_follow_from():
     # An arm stopped at once: one jump of the actions, then it stands still.
     assert lead([6e-4, 0.002, 1e-9, 0.001, 0.5, 0.001], demoted=["jerk"]) == "idle"
     assert lead([0.5, 0.5, 1e-9, 0.5, 0.5, 0.5], demoted=["jerk"]) == "jerk"  # nothing else beyond
+    # A frozen state yields to the outcome where the world already differed at the first step (another scene whose
+    # parts hold still because the demo never moves them), where both are beyond every clean demo, and only then.
+    f, o = names.index("frozen_state"), names.index("outcome")
+    p = np.log([0.75, 1.0, 0.5, 1e-46, 1e-17, 0.5])
+    assert names[clauses(config, p, 160, None, [(f, o)])[0]] == "outcome"
+    assert names[clauses(config, p, 160)[0]] == "frozen_state"
+    assert names[clauses(config, np.log([0.75, 1.0, 0.5, 0.02, 1e-17, 0.5]), 160, None, [(f, o)])[0]] \
+        == "frozen_state"
+
+
+def test_a_late_start_or_a_pause_says_how_the_demo_differs_and_a_stop_what_went_wrong():
+    """The arm still for the first fifth of a demo (it began late) or for a fifth in the middle (it paused) is
+    demoted; still from the middle to the end (it stopped), or throughout, is not."""
+    from democheck.audit.modelfree import ActionTraces, paused
+
+    rng = np.random.default_rng(0)
+    traces = ActionTraces()
+    moving = np.cumsum(rng.normal(0, 1, (100, 4)), 0)
+    late, pause, stopped, never = moving.copy(), moving.copy(), moving.copy(), np.zeros((100, 4))
+    late[:20] = late[20]
+    pause[40:60] = pause[40]
+    stopped[50:] = stopped[50]
+    for a in (moving, late, pause, stopped, never):
+        traces.actions.append(a)
+    assert paused(traces).tolist() == [False, True, True, False, False]
+
+
+def test_a_part_of_the_state_at_rest_for_a_while_is_no_sensor_that_died():
+    """One dimension holding still over a stretch and moving again while the others change (an object left alone
+    for a time), or two holding together to the end, is at rest; one dimension held to the end (an encoder that
+    died), or the whole state held over the stretch (a stream that stalled), is not."""
+    from democheck.audit.sensors import StateRepeats, at_rest
+    from democheck.data.demo import Demo, no_frames
+
+    rng = np.random.default_rng(0)
+    stats = StateRepeats()
+    kinds = ["clean"] * 20 + ["rest", "object", "dead", "stall"]
+    for kind in kinds:
+        state = np.cumsum(rng.normal(0, 1, (100, 3)), 0)
+        if kind == "rest":
+            state[40:60, 1] = state[40, 1]
+        elif kind == "object":  # two dimensions of one object at rest to the end
+            state[40:, 1:] = state[40, 1:]
+        elif kind == "dead":
+            state[40:, 1] = state[40, 1]
+        elif kind == "stall":
+            state[40:60] = state[40]
+        stats.add(Demo(0, "t", no_frames(100), state, rng.normal(0, 1, (100, 2))))
+    assert at_rest(stats, np.zeros(len(kinds), int)).tolist() == [False] * 20 + [True, True, False, False]
 
 
 def test_an_arm_moving_somewhat_more_or_less_says_how_it_differs_not_what_went_wrong():

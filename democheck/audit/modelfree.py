@@ -114,21 +114,36 @@ class ActionTraces(PerDemo):
         self.digests.append(h.hexdigest())
 
 
-def idle(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
-    """Share of each demo's steps at which the actions hardly change, and its longest still stretch."""
+def still_steps(traces: ActionTraces) -> list[np.ndarray]:
+    """Per demo, bool per step: whether the actions hardly change there (``STILL`` of the typical change)."""
     changes = [np.abs(np.diff(a.astype(np.float64), axis=0)) for a in traces.actions]
     scale = change_scale(changes)
-    out, reasons = np.zeros(len(changes)), []
-    for i, c in enumerate(changes):
-        if not len(c):
+    return [(c / scale).mean(1) < STILL if len(c) else np.zeros(0, bool) for c in changes]
+
+
+def idle(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
+    """Share of each demo's steps at which the actions hardly change, and its longest still stretch."""
+    out, reasons = np.zeros(len(traces.actions)), []
+    for i, still in enumerate(still_steps(traces)):
+        if not len(still):
             reasons.append("a single frame")
             continue
-        still = (c / scale).mean(1) < STILL
         out[i] = float(still.mean())
         start, n = longest_run(still)
         reasons.append(f"the arm stands still at {100 * out[i]:.0f}% of steps, longest "
-                       f"{steps_text(start, start + n, len(c) + 1)}" if n else "never still")
+                       f"{steps_text(start, start + n, len(still) + 1)}" if n else "never still")
     return out, reasons
+
+
+def paused(traces: ActionTraces) -> np.ndarray:
+    """bool [N]: the arm stands still for less than half the demo and moves again after its longest still stretch
+    -- it began late or paused, which says how the demo differs but not what went wrong (an arm that stopped, or
+    never moved, stands still to the end or throughout)."""
+    out = []
+    for still in still_steps(traces):
+        start, n = longest_run(still)
+        out.append(bool(len(still) and n and start + n < len(still) and still.mean() < 0.5))
+    return np.array(out, bool)
 
 
 def broken(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:

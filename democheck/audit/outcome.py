@@ -17,9 +17,17 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
 - **Units from how the feature moves**: a value's robust SD is at least ``END_FLOOR`` of its spread at the end
   over all the demos and ``MOVE_FLOOR`` of how far the task that works it most moves it within a typical episode
   (the median over its demos that move it), and never under ``RESOLUTION`` of its size; a rotation's at least
-  ``ROTATION_FLOOR``.  A feature no demo moves further than float noise (a fixed part) says nothing.
+  ``ROTATION_FLOOR``.  For a demo that moved the feature, at least ``TASK_FLOOR`` of how far its task's demos
+  typically move it: a job done in part is measured in shares of the job, a part never moved in its task's
+  spread.  A feature no demo moves further than float noise (a fixed part) says nothing.
+- **A switch is a task's, not a stray demo's**: a value is discrete (each measured against the demos that reached
+  its outcome) where the demos of two tasks or more each split between outcomes, each held by ``MODE_SHARE`` of
+  the task -- one wrong-task demo in each of two tasks makes no switch.
 
-NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.  A consumer of the audit's decoding pass like the other
+``compare`` also says where each demo differs most and whether that part already differed at its first step
+(another scene, not what the demo did: ``Differs``), and the reason says when the part never changed in the demo.
+NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.  Over 400 lines: one check, whose features, units and
+outcomes are each a short function the others need.  A consumer of the audit's decoding pass like the other
 model-free checks (``democheck.audit.modelfree``); ``benchmarks/shapes.py`` measures what the shapes cost.
 """
 
@@ -43,10 +51,15 @@ OUTCOME_MIN_SIDE = 2  # demos (itself among them) that started on its side for t
 POOLED_SCALE = 0.5  # a task's robust SD of a feature is at least this share of the median task's
 END_FLOOR = 0.05  # a value's least robust SD: this share of its spread at the end over all the demos,
 MOVE_FLOOR = 0.005  # and this share of how far the demos that move it move it (a near-constant end has no spread)
+# Within a task that works a feature: at least this share of how far its demos typically move it.  A demo that left
+# a part a few tenths short of where its task's others pile (a slide short of its stop) did the task's job in part;
+# one that never moved it, or moved what its task leaves alone, stays many units out.
+TASK_FLOOR = 0.1
 ROTATION_FLOOR = 0.05  # a rotation's least robust SD, in units of q q^T or of cosine and sine (about 3 degrees)
 # A demo moves a dimension when its range over the demo exceeds this many of its jitters (the median size of its
 # second differences: about 0 for smooth motion, and white noise's range is 3-6 of them).
 STILL = 10.0
+ALREADY = 0.5  # a difference this share of which the feature showed at the first step was there before the demo
 RESOLUTION = 1e-5  # ... and more than this share of its size (at least 1): what float noise cannot reach
 
 _QUAT = re.compile(r"^(.*?)[._/\-]?(?:q|quat|quaternion|orientation|rot)?[._/\-]?\[?([wxyz0-3])\]?$", re.I)
@@ -185,6 +198,13 @@ def modes(r: np.ndarray, floor: float, depth: int = 2, piles: bool = True) -> np
     return label
 
 
+def _several(label: np.ndarray) -> bool:
+    """Whether a task's demos reach more than one of ``label``'s outcomes, each held by ``MODE_SHARE`` of them
+    (at least 2)."""
+    counts = np.unique(label, return_counts=True)[1]
+    return int((counts >= max(2, MODE_SHARE * len(label))).sum()) > 1
+
+
 def _sd(v: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(v - np.median(v))))
 
@@ -193,11 +213,8 @@ def unit(feature: Feature, value: np.ndarray, moves: np.ndarray, tasks: np.ndarr
     """The least robust SD of a feature (see the module docstring), None when no demo moves it (it says
     nothing).  ``value`` [N, m] its represented values at the end, ``moves`` [N, 2, d] each demo's range and
     jitter per record dimension, ``tasks`` [N] what each demo is compared with."""
-    rng, jitter = moves[:, 0, feature.columns], moves[:, 1, feature.columns]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        size = np.nanmedian(np.abs(value)) if feature.kind in ("value", "relative") else 1.0
-    moving = (rng > STILL * jitter) & (rng > RESOLUTION * max(1.0, float(np.nan_to_num(size))))
+    rng = moves[:, 0, feature.columns]
+    size, moving = _moving(feature, value, moves)
     if not moving.any():
         return None
     if feature.kind in ("rotation", "angle"):
@@ -212,11 +229,57 @@ def unit(feature: Feature, value: np.ndarray, moves: np.ndarray, tasks: np.ndarr
     return max(MOVE_FLOOR * moved, END_FLOOR * spread, RESOLUTION * max(1.0, float(np.nan_to_num(size))))
 
 
+def _moving(feature: Feature, value: np.ndarray, moves: np.ndarray) -> tuple[float, np.ndarray]:
+    """The feature's typical size (at least 1), and [N, c] whether each demo moved each of its columns beyond its
+    jitter and float noise."""
+    rng, jitter = moves[:, 0, feature.columns], moves[:, 1, feature.columns]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        size = np.nanmedian(np.abs(value)) if feature.kind in ("value", "relative") else 1.0
+    size = max(1.0, float(np.nan_to_num(size)))
+    return size, (rng > STILL * jitter) & (rng > RESOLUTION * size)
+
+
+def task_floors(feature: Feature, value: np.ndarray, moves: np.ndarray, tasks: np.ndarray) -> np.ndarray:
+    """[N] each demo's least unit from its own task's job: ``TASK_FLOOR`` of how far its task's demos typically
+    move the feature (the median of their ranges: about 0 where most leave it alone), where the demo moved it
+    itself -- one that never touched it is measured in its task's spread -- for a plain value or a relative
+    position; 0 for a rotation or an angle."""
+    floors = np.zeros(len(tasks))
+    if feature.kind not in ("value", "relative"):
+        return floors
+    rng = moves[:, 0, feature.columns[0]]
+    moved = _moving(feature, value, moves)[1][:, 0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for t in np.unique(tasks):
+            floors[tasks == t] = TASK_FLOOR * float(np.nan_to_num(np.nanmedian(rng[tasks == t])))
+    return np.where(moved, floors, 0.0)
+
+
+@dataclass
+class Differs:
+    """Where a demo's world differs most from its task's: the record (``"state"`` or ``"environment state"``), the
+    columns of the feature, and whether the feature already differed at the demo's first step (by ``ALREADY`` of
+    the difference or more: another scene, not what the demo did to it)."""
+
+    source: str
+    columns: list[int]
+    at_start: bool
+
+
 def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """How differently from its task's other demos each demo left the world (see the module docstring), and the
     feature that differs most, in words."""
+    out, reasons, _ = compare(stats, tasks)
+    return out, reasons
+
+
+def compare(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str], list[Differs]]:
+    """``outcome``'s scores and words, and where each demo differs most (``Differs``)."""
     n = len(stats.ends)
     out, reasons = np.full(n, np.nan), ["no task of enough demos to compare with"] * n
+    where = [Differs("", [], False)] * n
     tasks = np.asarray(tasks)
     for source in sorted(set(stats.sources)):
         rows = np.flatnonzero(np.asarray(stats.sources) == source)
@@ -224,14 +287,18 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[st
         last = _padded([stats.ends[i][1] for i in rows])
         moves = np.stack([_padded_pair(stats.moves[i], last.shape[1]) for i in rows])
         names = next((stats.names[i] for i in rows if stats.names[i]), None)
-        z_cols, what, values, refs = [], [], [], []
+        z_cols, what, values, refs, before, held = [], [], [], [], [], []
         for f in features_of(names, first, last, source):
             end, start = represent(f, last), represent(f, first)
             u = unit(f, end, moves, tasks[rows])
             if u is None:
                 continue
+            own = task_floors(f, end, moves, tasks[rows])
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                at_start = np.nanmax(_task_gaps(start, None, tasks[rows], u)[0], axis=1, initial=-np.inf)
             for part, x, sided in (("at the end", end, True), ("change", end - start, False)):
-                z, ref = _task_gaps(x, start if sided else None, tasks[rows], u)
+                z, ref = _task_gaps(x, start if sided else None, tasks[rows], u, own)
                 best = np.nanargmax(np.where(np.isnan(z), -np.inf, z), axis=1)
                 with warnings.catch_warnings():  # a demo of a task too small to compare has only NaN
                     warnings.simplefilter("ignore", RuntimeWarning)
@@ -239,6 +306,8 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[st
                 what.append((f, part))
                 values.append(x[np.arange(len(x)), best])
                 refs.append(ref[np.arange(len(x)), best])
+                before.append(at_start)
+                held.append((moves[:, 0, f.columns] == 0).all(axis=1) & (f.kind == "value"))
         if not z_cols:
             for i in rows:
                 reasons[i] = f"no part of the {source} moves in any demo"
@@ -253,8 +322,9 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[st
                     reasons[i] = f"no {source} recorded"
                 continue
             j = int(np.nanargmax(z[k]))
-            reasons[i] = _reason(*what[j], values[j][k], refs[j][k], z[k, j])
-    return out, reasons
+            reasons[i] = _reason(*what[j], values[j][k], refs[j][k], z[k, j], bool(held[j][k]))
+            where[i] = Differs(source, list(what[j][0].columns), bool(before[j][k] >= ALREADY * z[k, j]))
+    return out, reasons, where
 
 
 def _robust_sd_text(z: float) -> str:
@@ -262,7 +332,14 @@ def _robust_sd_text(z: float) -> str:
     return f"{z:.2g} robust SD" if z < 100 else "over 100 robust SD"
 
 
-def _reason(feature: Feature, part: str, value: float, ref: float, z: float) -> str:
+def _reason(feature: Feature, part: str, value: float, ref: float, z: float, held: bool = False) -> str:
+    """The words for the feature that differs most; ``held``: the demo's record of it never changed (a part it
+    never moved, or a sensor that read one value)."""
+    if held:
+        value_text, ref_text = words.pair(value, ref, 3)
+        theirs = f"reach {ref_text}" if part == "at the end" else f"change it by {ref_text}"
+        return (f"left the world unlike its task's other demos: {feature.name} holds one value through the demo "
+                f"({value_text}) where its task's demos {theirs} ({_robust_sd_text(z)})")
     if feature.kind == "rotation":
         what = f"{feature.name} at the end" if part == "at the end" else f"how {feature.name} changed"
         return f"left the world unlike its task's other demos: {what} differs from theirs ({_robust_sd_text(z)})"
@@ -274,8 +351,8 @@ def _reason(feature: Feature, part: str, value: float, ref: float, z: float) -> 
             f"{ref_text} ({_robust_sd_text(z)})")
 
 
-def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor: float
-               ) -> tuple[np.ndarray, np.ndarray]:
+def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor: float,
+               own: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """[N, m] robust z of each value against its task's demos and the value it was measured against.
 
     A column whose values over the whole dataset fall into several outcomes (``modes``: a switch on or off, a
@@ -283,8 +360,10 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
     the same outcome (the dataset's where it is the only one of its task).  Otherwise against the median of its
     task's demos -- with ``start``, of those that started on the same side of the task's median value, where at
     least ``OUTCOME_MIN_SIDE`` did -- and, where the task's own values fall into several outcomes, of those that
-    reached the same one.  The unit: the task's robust SD about those medians, at least ``floor`` and
-    ``POOLED_SCALE`` of the typical task's (a task of a few demos that happen to agree is not that precise)."""
+    reached the same one.  The unit: the task's robust SD about those medians, at least ``floor``, each demo's own
+    floor in ``own`` and ``POOLED_SCALE`` of the typical task's (a task of a few demos that happen to
+    agree is not that precise)."""
+    own = np.zeros(len(x)) if own is None else own
     z, ref = np.full(x.shape, np.nan), np.full(x.shape, np.nan)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -292,8 +371,9 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
             every = np.flatnonzero(np.isfinite(x[:, c]))
             outcomes = np.full(len(x), -1)
             outcomes[every] = modes(x[every, c], floor, piles=False)
-            # Several outcomes that recur within more than one task: a switch, not where one task's demos went.
-            spans = [len(np.unique(outcomes[every][tasks[every] == t])) > 1 for t in np.unique(tasks[every])]
+            # Several outcomes that recur within more than one task: a switch, not where one task's demos went --
+            # each an outcome of the task (``MODE_SHARE`` of its demos, at least 2), not a stray demo or two.
+            spans = [_several(outcomes[every][tasks[every] == t]) for t in np.unique(tasks[every])]
             discrete = outcomes.max() > 0 and sum(spans) >= 2
             fitted = []
             for t in np.unique(tasks):
@@ -325,6 +405,7 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
                 scale = np.full(len(v), pooled)
                 for k in np.unique(label):
                     scale[label == k] = max(pooled, _sd((v - centre)[label == k]))
+                scale = np.maximum(scale, own[rows[ok]])
                 fitted.append((rows[ok], v, centre, scale, pooled))
             typical = POOLED_SCALE * np.median([f[4] for f in fitted]) if fitted else 0.0
             for at, v, centre, scale, _ in fitted:

@@ -140,22 +140,26 @@ def rank(values: Mapping[str, np.ndarray], groups: np.ndarray, config: RankingCo
 
 
 def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list[str] | None = None,
-            demoted: Mapping[str, np.ndarray] | None = None) -> tuple[list[str], list[str]]:
+            demoted: Mapping[str, np.ndarray] | None = None,
+            yields: Mapping[str, tuple[str, np.ndarray]] | None = None) -> tuple[list[str], list[str]]:
     """Each demo's reason and the check it names first: what the checks saw in their own ``words`` (by name, one
     per demo), in the order ``clauses`` gives, each with which check and how rare; a broken recording's
     ``broken_words``.  ``demoted`` (by name, bool per demo): where a check's words say how the demo differs but
-    not what went wrong, so that they lead a reason only where nothing else can."""
+    not what went wrong, so that they lead a reason only where nothing else can.  ``yields`` (by name: another
+    name, bool per demo): where a check gives the lead to the other when both are beyond every clean demo."""
     names, n = ranking.config.names, len(ranking.suspicion)
     references = int(np.asarray(ranking.core, bool).sum())
     weak = np.column_stack([np.asarray((demoted or {}).get(k, np.zeros(n, bool)), bool) for k in names]
                            ) if names else np.zeros((n, 0), bool)
+    after = [(names.index(a), names.index(b), np.asarray(mask, bool)) for a, (b, mask) in (yields or {}).items()
+             if a in names and b in names]
     reasons, first = [], []
     for i, row in enumerate(np.nan_to_num(ranking.look_odds(), nan=0.0)):  # no score: nothing to name
         if ranking.broken.size and ranking.broken[i]:
             reasons.append(f"broken: {(broken_words or [''] * n)[i]}")
             first.append("broken")
             continue
-        order = clauses(ranking.config, row, references, weak[i])
+        order = clauses(ranking.config, row, references, weak[i], [(a, b) for a, b, mask in after if mask[i]])
         parts = []
         for j in order:  # what the check saw in its own words first, then which check and how rare
             own = (words.get(names[j]) or [""] * n)[i]
@@ -166,14 +170,15 @@ def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list
     return reasons, first
 
 
-def clauses(config: RankingConfig, row: np.ndarray, references: int, demoted: np.ndarray | None = None
-            ) -> list[int]:
+def clauses(config: RankingConfig, row: np.ndarray, references: int, demoted: np.ndarray | None = None,
+            yields: list[tuple[int, int]] = ()) -> list[int]:
     """The looks a demo's reason names (``row``: their log tail probabilities), in the order it names them: up to
     three, the smallest probability and those under ``reason_p``.  First, of those beyond every clean demo (or the
     smallest alone), the one whose spec leads (what the demo did before how it was recorded before the model's
     reading of it -- a reviewer acts on the behaviour; a ``demoted`` one only where no other is beyond); where
-    that is a reading (neither behaviour nor a recording fault), a behaviour under ``reason_p`` leads instead.
-    Then by probability."""
+    that is a reading (neither behaviour nor a recording fault), a behaviour under ``reason_p`` leads instead; a
+    look that ``yields`` to another (pairs of columns) where both are beyond gives it the lead.  Then by
+    probability."""
     if not len(row):
         return []
     specs = config.specs
@@ -183,7 +188,9 @@ def clauses(config: RankingConfig, row: np.ndarray, references: int, demoted: np
     def first(among: list[int]) -> int:
         return min([j for j in among if not demoted[j]] or among, key=lambda j: (specs[j].lead, row[j]))
 
-    lead = first([j for j in order if np.exp(row[j]) * (references + 1) < 1] or order[:1])
+    beyond = [j for j in order if np.exp(row[j]) * (references + 1) < 1]
+    lead = first(beyond or order[:1])
+    lead = next((b for a, b in yields if a == lead and b in beyond), lead)
     if not (specs[lead].behaviour or specs[lead].alone):  # a reading (the coupling, the model): what the demo did
         plain = [j for j in order if specs[j].behaviour]
         lead = first(plain) if plain else lead

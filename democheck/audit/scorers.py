@@ -143,7 +143,8 @@ def _frozen_state(ev: Evidence) -> Scores:
 
 
 def _outcome(ev: Evidence) -> Scores:
-    return outcome.outcome(ev.behaviour["outcome"], ev.groups)
+    values, reasons, ev.named["outcome"] = outcome.compare(ev.behaviour["outcome"], ev.groups)
+    return values, reasons
 
 
 def _coupling(ev: Evidence) -> Scores:
@@ -330,7 +331,7 @@ def explanation(ev: Evidence, model_free: bool = False) -> tuple[list[str], list
     """Each demo's reason (every clause) and the check it names first (``ranking.explain``), once."""
     if model_free not in ev.explained:
         ev.explained[model_free] = ranking.explain(combination(ev, model_free), ev.reasons, ev.reasons.get("broken"),
-                                                   demoted(ev))
+                                                   demoted(ev), yields(ev))
     return ev.explained[model_free]
 
 
@@ -339,14 +340,29 @@ def demoted(ev: Evidence) -> dict[str, np.ndarray]:
     leads its reason: an arm that moves somewhat less or more than its task's demos (within a factor of
     1 / ``HARDLY_MOVES`` of their median: another task and a careful or hurried operator alike; not one that
     hardly moves or flails), actions that jump once (an arm stopped at once: that it then stands still, or left the
-    world unfinished, is the news)."""
+    world unfinished, is the news), an arm that began late or paused (``modelfree.paused``), a part of the state at
+    rest for a while (``sensors.at_rest``)."""
     out = {}
     if "motion" in ev.behaviour:
         ratio = modelfree.motion_ratio(np.asarray(ev.behaviour["motion"]), ev.groups)
         out["motion"] = (ratio >= modelfree.HARDLY_MOVES) & (ratio <= 1 / modelfree.HARDLY_MOVES)
     if "actions" in ev.behaviour:
         out["jerk"] = modelfree.jerk_jumps(ev.behaviour["actions"])
+        out["idle"] = modelfree.paused(ev.behaviour["actions"])
+    if "frozen_state" in ev.behaviour:
+        out["frozen_state"] = sensors.at_rest(ev.behaviour["frozen_state"], ev.groups)
     return out
+
+
+def yields(ev: Evidence) -> dict[str, tuple[str, np.ndarray]]:
+    """Per check, another whose words lead before its own where both are beyond every clean demo, and the demos
+    where they do.  Where the world the outcome reads already differed at the demo's first step, the demo is of
+    another scene, and that is the news: before what its arm did (another task's motion) and before the parts
+    that hold still because it never moves them (elsewhere a frozen state explains the end read from it)."""
+    if "outcome" not in ev.named:
+        return {}
+    scene = np.array([d.at_start for d in ev.named["outcome"]], bool)
+    return {name: ("outcome", scene) for name in ("idle", "motion", "frozen_state")}
 
 
 def broken_rows(ev: Evidence) -> np.ndarray:

@@ -32,10 +32,14 @@ class StateRepeats(PerDemo):
     """Consumer of decoded demos: per state dimension, the longest stretch of steps at which the value repeats
     while the actions change (by more than ``DRIVEN_SHARE`` of the demo's large changes) (its share of the demo's steps, where it starts, how many steps it lasts)."""
 
-    fields = ("shares", "starts", "lengths", "steps", "names")
+    fields = ("shares", "starts", "lengths", "steps", "names", "rests")
     shares: list[np.ndarray]  # [S]
     starts: list[np.ndarray]  # [S]
     lengths: list[np.ndarray]  # [S]
+    # [S] whether that stretch is a part at rest: other dimensions change during it, and the value changes again
+    # after it or other dimensions hold with it (an object's position and orientation); an encoder that died holds
+    # alone to the end, a stream that stopped holds every dimension
+    rests: list[np.ndarray]
     steps: list[int]  # the demo's steps (frames - 1)
     names: list[list[str] | None]  # the dataset's names of the state dimensions, where it names them
 
@@ -55,6 +59,11 @@ class StateRepeats(PerDemo):
         self.lengths.append(lengths)
         self.steps.append(n)
         self.names.append(demo.extra.get("state_names"))
+        changes = x[1:] != x[:-1] if n else np.zeros((0, x.shape[1]), bool)
+        moves = changes.any(axis=0)  # a goal or a constant holds through every stretch: no part of an object
+        self.rests.append(np.array([k > 0 and changes[s:s + k].any() and (
+            changes[s + k:, j].any() or (repeats[s:s + k].all(axis=0) & moves).sum() > 1)
+            for j, (s, k) in enumerate(runs)], bool))
 
 
 def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = None) -> tuple[np.ndarray, list[str]]:
@@ -63,6 +72,38 @@ def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = No
     and where."""
     if not stats.shares:
         return np.zeros(0), []
+    seen = _live_shares(stats, tasks, live)
+    out, reasons = np.zeros(len(seen)), []
+    for i in range(len(seen)):
+        if not seen.shape[1] or not stats.steps[i]:
+            reasons.append("no state" if not seen.shape[1] else "a single frame")
+            continue
+        j = int(np.argmax(seen[i]))
+        out[i] = float(seen[i, j])
+        start, length = int(stats.starts[i][j]), int(stats.lengths[i][j])
+        names = stats.names[i] if i < len(stats.names) else None
+        what = names[j] if names and j < len(names) else f"state[{j}]"
+        reasons.append(f"{what} holds one value while the arm is driven over "
+                       f"{steps_text(start, start + length, stats.steps[i] + 1)}, where its task's demos rarely "
+                       "do" if out[i] > 0 else "every state dimension that moves in its task's demos moves")
+    return out, reasons
+
+
+def at_rest(stats: StateRepeats, tasks: np.ndarray) -> np.ndarray:
+    """bool [N]: the frozen state the check names is a part at rest (``StateRepeats.rests``: it moves again later,
+    or holds with others of its kind, while the rest of the state changes), which says how the demo differs (an
+    object left alone), not that a sensor failed."""
+    seen = _live_shares(stats, tasks)
+    out = np.zeros(len(seen), bool)
+    for i, row in enumerate(seen):
+        if row.size and row.max() > 0:
+            out[i] = bool(stats.rests[i][int(np.argmax(row))])
+    return out
+
+
+def _live_shares(stats: StateRepeats, tasks: np.ndarray, live: float | None = None) -> np.ndarray:
+    """[N, S] each demo's frozen share per state dimension, 0 where the dimension is not live in its task (those
+    whose share's ``FROZEN_STATE_QUANTILE`` over the task's demos is more than ``live``)."""
     live = FROZEN_STATE_LIVE if live is None else live
     shares = np.stack(stats.shares).astype(np.float64)
     tasks = np.asarray(tasks)
@@ -71,18 +112,4 @@ def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = No
         rows = tasks == t
         usual[rows] = np.quantile(shares[rows] if rows.sum() >= FROZEN_STATE_MIN_DEMOS else shares,
                                   FROZEN_STATE_QUANTILE, axis=0)
-    seen = np.where(usual <= live, shares, 0.0)
-    out, reasons = np.zeros(len(shares)), []
-    for i in range(len(shares)):
-        if not seen.shape[1] or not stats.steps[i]:
-            reasons.append("no state" if not seen.shape[1] else "a single frame")
-            continue
-        j = int(np.argmax(seen[i]))
-        out[i] = float(seen[i, j])
-        start, length = int(stats.starts[i][j]), int(stats.lengths[i][j])
-        names = stats.names[i] if i < len(stats.names) else None
-        what = names[j] if names and j < len(names) else f"state dimension {j}"
-        reasons.append(f"{what} holds one value while the arm is driven over "
-                       f"{steps_text(start, start + length, stats.steps[i] + 1)}, where its task's demos rarely "
-                       "do" if out[i] > 0 else "every state dimension that moves in its task's demos moves")
-    return out, reasons
+    return np.where(usual <= live, shares, 0.0)
