@@ -17,9 +17,9 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
 - **Units from how the feature moves**: a value's robust SD is at least ``END_FLOOR`` of its spread at the end
   over all the demos and ``MOVE_FLOOR`` of how far the task that works it most moves it within a typical episode
   (the median over its demos that move it), and never under ``RESOLUTION`` of its size; a rotation's at least
-  ``ROTATION_FLOOR``.  For a demo that moved the feature, at least ``TASK_FLOOR`` of how far its task's demos
-  typically move it: a job done in part is measured in shares of the job, a part never moved in its task's
-  spread.  A feature no demo moves further than float noise (a fixed part) says nothing.
+  ``ROTATION_FLOOR``.  For a demo that moved the feature at least ``TASK_FLOOR`` of how far its task's demos
+  typically move it, at least that: a job done in part is measured in shares of the job, a part never moved (or
+  only stirred) in its task's spread.  A feature no demo moves further than float noise (a fixed part) says nothing.
 - **A switch is a task's, not a stray demo's**: a value is discrete (each measured against the demos that reached
   its outcome) where the demos of two tasks or more each split between outcomes, each held by ``MODE_SHARE`` of
   the task -- one wrong-task demo in each of two tasks makes no switch.
@@ -240,21 +240,21 @@ def _moving(feature: Feature, value: np.ndarray, moves: np.ndarray) -> tuple[flo
     return size, (rng > STILL * jitter) & (rng > RESOLUTION * size)
 
 
-def task_floors(feature: Feature, value: np.ndarray, moves: np.ndarray, tasks: np.ndarray) -> np.ndarray:
+def task_floors(feature: Feature, moves: np.ndarray, tasks: np.ndarray) -> np.ndarray:
     """[N] each demo's least unit from its own task's job: ``TASK_FLOOR`` of how far its task's demos typically
-    move the feature (the median of their ranges: about 0 where most leave it alone), where the demo moved it
-    itself -- one that never touched it is measured in its task's spread -- for a plain value or a relative
-    position; 0 for a rotation or an angle."""
+    move the feature (the median of their ranges: about 0 where most leave it alone), where the demo itself moved
+    it at least that far -- did a tenth of the job or more; one that never moved it, or only stirred it (a block
+    slid along the table where its task lifts it), is measured in its task's spread -- for a plain value or a
+    relative position; 0 for a rotation or an angle."""
     floors = np.zeros(len(tasks))
     if feature.kind not in ("value", "relative"):
         return floors
     rng = moves[:, 0, feature.columns[0]]
-    moved = _moving(feature, value, moves)[1][:, 0]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for t in np.unique(tasks):
             floors[tasks == t] = TASK_FLOOR * float(np.nan_to_num(np.nanmedian(rng[tasks == t])))
-    return np.where(moved, floors, 0.0)
+    return np.where(rng >= floors, floors, 0.0)
 
 
 @dataclass
@@ -293,7 +293,7 @@ def compare(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[st
             u = unit(f, end, moves, tasks[rows])
             if u is None:
                 continue
-            own = task_floors(f, end, moves, tasks[rows])
+            own = task_floors(f, moves, tasks[rows])
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 at_start = np.nanmax(_task_gaps(start, None, tasks[rows], u)[0], axis=1, initial=-np.inf)
