@@ -198,7 +198,7 @@ def test_a_part_of_the_state_at_rest_for_a_while_is_no_sensor_that_died():
     """One dimension holding still over a stretch and moving again while the others change (an object left alone
     for a time), or two holding together to the end, is at rest; one dimension held to the end (an encoder that
     died), or the whole state held over the stretch (a stream that stalled), is not."""
-    from democheck.audit.sensors import StateRepeats, at_rest
+    from democheck.audit.sensors import StateRepeats, at_rest, frozen_state
     from democheck.data.demo import Demo, no_frames
 
     rng = np.random.default_rng(0)
@@ -215,7 +215,8 @@ def test_a_part_of_the_state_at_rest_for_a_while_is_no_sensor_that_died():
         elif kind == "stall":
             state[40:60] = state[40]
         stats.add(Demo(0, "t", no_frames(100), state, rng.normal(0, 1, (100, 2))))
-    assert at_rest(stats, np.zeros(len(kinds), int)).tolist() == [False] * 20 + [True, True, False, False]
+    named = frozen_state(stats, np.zeros(len(kinds), int))[2]
+    assert at_rest(stats, named).tolist() == [False] * 20 + [True, True, False, False]
 
 
 def test_an_arm_moving_somewhat_more_or_less_says_how_it_differs_not_what_went_wrong():

@@ -64,7 +64,8 @@ class Evidence:
     behaviour: dict[str, Any] = field(default_factory=dict)  # results of the decoding pass, by scorer name
     scores: dict[str, np.ndarray] = field(default_factory=dict)  # computed so far, by scorer name
     reasons: dict[str, list[str]] = field(default_factory=dict)
-    # Per check, what in the record its words name for each demo (the outcome: its record and columns).
+    # Per check, what in the record its words name for each demo (the outcome: its record and columns; the frozen
+    # state: the state dimension).
     named: dict[str, list[Any]] = field(default_factory=dict)
     seed: int = 0
     frames: bool = True  # the demos have camera frames (False: a dataset that records no camera, ``NO_CAMERA``)

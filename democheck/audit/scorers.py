@@ -139,7 +139,8 @@ def _lag(ev: Evidence) -> Scores:
 
 
 def _frozen_state(ev: Evidence) -> Scores:
-    return sensors.frozen_state(ev.behaviour["frozen_state"], ev.groups)
+    values, reasons, ev.named["frozen_state"] = sensors.frozen_state(ev.behaviour["frozen_state"], ev.groups)
+    return values, reasons
 
 
 def _outcome(ev: Evidence) -> Scores:
@@ -349,8 +350,8 @@ def demoted(ev: Evidence) -> dict[str, np.ndarray]:
     if "actions" in ev.behaviour:
         out["jerk"] = modelfree.jerk_jumps(ev.behaviour["actions"])
         out["idle"] = modelfree.paused(ev.behaviour["actions"])
-    if "frozen_state" in ev.behaviour:
-        out["frozen_state"] = sensors.at_rest(ev.behaviour["frozen_state"], ev.groups)
+    if "frozen_state" in ev.named:
+        out["frozen_state"] = sensors.at_rest(ev.behaviour["frozen_state"], ev.named["frozen_state"])
     return out
 
 

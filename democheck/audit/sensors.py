@@ -50,7 +50,8 @@ class StateRepeats(PerDemo):
         # Driven: the command changes by more than float noise around a held pose -- a share of the demo's own
         # large changes (a controller holding still at its goal repeats its command to the sixth digit).
         driven = change > DRIVEN_SHARE * np.quantile(change, 0.9) if n else np.zeros(0, bool)
-        repeats = (x[1:] == x[:-1]) & driven[:, None] if n else np.zeros((0, x.shape[1]), bool)
+        changes = x[1:] != x[:-1] if n else np.zeros((0, x.shape[1]), bool)
+        repeats = ~changes & driven[:, None]
         runs = [longest_run(repeats[:, j]) for j in range(x.shape[1])]
         starts = np.array([s for s, _ in runs], int)
         lengths = np.array([k for _, k in runs], int)
@@ -59,46 +60,42 @@ class StateRepeats(PerDemo):
         self.lengths.append(lengths)
         self.steps.append(n)
         self.names.append(demo.extra.get("state_names"))
-        changes = x[1:] != x[:-1] if n else np.zeros((0, x.shape[1]), bool)
         moves = changes.any(axis=0)  # a goal or a constant holds through every stretch: no part of an object
         self.rests.append(np.array([k > 0 and changes[s:s + k].any() and (
             changes[s + k:, j].any() or (repeats[s:s + k].all(axis=0) & moves).sum() > 1)
             for j, (s, k) in enumerate(runs)], bool))
 
 
-def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = None) -> tuple[np.ndarray, list[str]]:
+def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = None
+                 ) -> tuple[np.ndarray, list[str], np.ndarray]:
     """The longest frozen stretch's share (see the module docstring) of the state dimensions live in the demo's
     task (those whose share's ``FROZEN_STATE_QUANTILE`` over the task's demos is at most ``live``), the largest;
-    and where."""
+    where, in words; and the dimension named ([N] int; -1 where no live dimension holds)."""
     if not stats.shares:
-        return np.zeros(0), []
+        return np.zeros(0), [], np.zeros(0, int)
     seen = _live_shares(stats, tasks, live)
-    out, reasons = np.zeros(len(seen)), []
+    out, reasons, dims = np.zeros(len(seen)), [], np.full(len(seen), -1)
     for i in range(len(seen)):
         if not seen.shape[1] or not stats.steps[i]:
             reasons.append("no state" if not seen.shape[1] else "a single frame")
             continue
         j = int(np.argmax(seen[i]))
         out[i] = float(seen[i, j])
+        dims[i] = j if out[i] > 0 else -1
         start, length = int(stats.starts[i][j]), int(stats.lengths[i][j])
         names = stats.names[i] if i < len(stats.names) else None
         what = names[j] if names and j < len(names) else f"state[{j}]"
         reasons.append(f"{what} holds one value while the arm is driven over "
                        f"{steps_text(start, start + length, stats.steps[i] + 1)}, where its task's demos rarely "
                        "do" if out[i] > 0 else "every state dimension that moves in its task's demos moves")
-    return out, reasons
+    return out, reasons, dims
 
 
-def at_rest(stats: StateRepeats, tasks: np.ndarray) -> np.ndarray:
-    """bool [N]: the frozen state the check names is a part at rest (``StateRepeats.rests``: it moves again later,
-    or holds with others of its kind, while the rest of the state changes), which says how the demo differs (an
-    object left alone), not that a sensor failed."""
-    seen = _live_shares(stats, tasks)
-    out = np.zeros(len(seen), bool)
-    for i, row in enumerate(seen):
-        if row.size and row.max() > 0:
-            out[i] = bool(stats.rests[i][int(np.argmax(row))])
-    return out
+def at_rest(stats: StateRepeats, dims: np.ndarray) -> np.ndarray:
+    """bool [N]: the frozen state named in each demo's words (``dims``, from ``frozen_state``) is a part at rest
+    (``StateRepeats.rests``: it moves again later, or holds with others of its kind, while the rest of the state
+    changes), which says how the demo differs (an object left alone), not that a sensor failed."""
+    return np.array([j >= 0 and bool(stats.rests[i][j]) for i, j in enumerate(dims)], bool)
 
 
 def _live_shares(stats: StateRepeats, tasks: np.ndarray, live: float | None = None) -> np.ndarray:
