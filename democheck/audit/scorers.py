@@ -74,9 +74,6 @@ def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors
     return ActionErrors(ev.model, ev.task_variables()[rows], device)
 
 
-
-
-
 def _suspicion(ev: Evidence, model_free: bool = False) -> Scores:
     r = combination(ev, model_free)
     return (r.suspicion, explanation(ev, model_free)[0]) if r.config.specs else (r.suspicion, None)
@@ -342,7 +339,7 @@ def demoted(ev: Evidence) -> dict[str, np.ndarray]:
     1 / ``HARDLY_MOVES`` of their median: another task and a careful or hurried operator alike; not one that
     hardly moves or flails), actions that jump once (an arm stopped at once: that it then stands still, or left the
     world unfinished, is the news), an arm that began late or paused (``modelfree.paused``), a part of the state at
-    rest for a while (``sensors.at_rest``)."""
+    rest (``sensors.at_rest``)."""
     out = {}
     if "motion" in ev.behaviour:
         ratio = modelfree.motion_ratio(np.asarray(ev.behaviour["motion"]), ev.groups)
