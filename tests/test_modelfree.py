@@ -881,7 +881,8 @@ def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos():
 def test_outcome_compares_an_end_with_the_demos_that_started_on_its_side():
     # A push that stops 9 mm short of its goal's line on the side it came from: 10 demos start above the line,
     # 3 below.  Those 3 end below it -- as they should -- and a demo that started below but ended above is the
-    # one that differs.
+    # one that differs.  Two demos of another scene, whose target sits 20 cm off from the first step and never
+    # moves, are no side of their own: each is far from its task's.
     from democheck.audit import outcome
 
     rng = np.random.default_rng(0)
@@ -889,18 +890,22 @@ def test_outcome_compares_an_end_with_the_demos_that_started_on_its_side():
     # The push runs along x; y starts 1-3 cm off the goal's line, so that 18 mm across it is far past the task's
     # own spread and its job on y (outcome.TASK_FLOOR of how far its demos move y).
     starts = np.r_[rng.uniform(0.012, 0.03, 10), rng.uniform(-0.03, -0.012, 4)]
+    starts = np.r_[starts, np.full(12, -0.02), 0.2, 0.2]  # a second task: every demo starts below the line
     for i, y0 in enumerate(starts):
         y1 = (0.009 if y0 > 0 else -0.009) + rng.normal(0, 2e-4)
         if i == 13:
             y1 = 0.009  # started below, ended above: pushed past
+        if i >= len(starts) - 2:
+            y1 = y0  # another scene: the target is elsewhere and stays there
         stats.ends.append(np.array([[0.5, y0], [0.7 + rng.normal(0, 1e-3), y1]]))
         stats.moves.append(np.array([[0.2, abs(y1 - y0)], [0.002, abs(y1 - y0) / 100]]))  # range, jitter
         stats.sources.append("environment state")
         stats.names.append(["target.x", "target.y"])
-    tasks = np.zeros(len(starts), int)
+    tasks = np.r_[np.zeros(14, int), np.ones(14, int)]
     by_side, reasons = outcome.outcome(stats, tasks)
-    assert int(np.argmax(by_side)) == 13 and by_side[10:13].max() < 3 < 5 < by_side[13]
+    assert by_side[10:13].max() < 3 < 5 < by_side[13] and by_side[:13].max() < by_side[13]
     assert "target.y at the end" in reasons[13]
+    assert by_side[14:26].max() < 3 < 5 < by_side[26:].min()
 
 
 def _camera_less_copies(data, tmp_path):

@@ -219,6 +219,40 @@ def test_a_part_of_the_state_at_rest_for_a_while_is_no_sensor_that_died():
     assert at_rest(stats, named).tolist() == [False] * 20 + [True, True, False, False]
 
 
+def test_an_arm_that_rests_gives_the_lead_to_a_state_held_for_longer_while_it_moved():
+    """A demo that finished and rested for its last tenth, whose one state dimension read its first value all
+    along (an encoder that died), names the encoder first; an arm that stopped half-way (its state holds because
+    nothing moves it) keeps the lead, and so does a rest longer than the hold."""
+    from democheck.audit.evidence import Evidence
+    from democheck.audit.modelfree import ActionTraces
+    from democheck.audit.scorers import yields
+    from democheck.audit.sensors import StateRepeats, frozen_state
+    from democheck.data.demo import Demo, no_frames
+
+    rng = np.random.default_rng(0)
+    traces, stats = ActionTraces(), StateRepeats()
+    kinds = ["clean"] * 20 + ["dead, rests at the end", "stopped", "dead for a while, rests longer"]
+    for kind in kinds:
+        actions = np.cumsum(rng.normal(0, 1, (100, 2)), 0)
+        state = np.cumsum(rng.normal(0, 1, (100, 3)), 0)
+        if kind == "dead, rests at the end":
+            actions[90:] = actions[90]
+            state[:, 1] = state[0, 1]
+        elif kind == "stopped":
+            actions[50:] = actions[50]
+            state[50:] = state[50]
+        elif kind == "dead for a while, rests longer":
+            actions[60:] = actions[60]
+            state[:20, 1] = state[0, 1]
+        traces.actions.append(actions)
+        stats.add(Demo(0, "t", no_frames(100), state, actions))
+    ev = Evidence(episodes=pd.DataFrame({"episode_index": np.arange(len(kinds)), "task": ["t"] * len(kinds)}),
+                  behaviour={"actions": traces, "frozen_state": stats})
+    ev.scores["frozen_state"], _, ev.named["frozen_state"] = frozen_state(stats, np.zeros(len(kinds), int))
+    to_sensor = [mask for name, other, mask in yields(ev) if (name, other) == ("idle", "frozen_state")]
+    assert len(to_sensor) == 1 and to_sensor[0][20:].tolist() == [True, False, False]
+
+
 def test_an_arm_moving_somewhat_more_or_less_says_how_it_differs_not_what_went_wrong():
     from democheck.audit.evidence import Evidence
     from democheck.audit.scorers import demoted

@@ -135,6 +135,11 @@ def idle(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
     return out, reasons
 
 
+def longest_still(traces: ActionTraces) -> np.ndarray:
+    """[N] each demo's longest still stretch (``still_steps``) as a share of its steps."""
+    return np.array([longest_run(still)[1] / len(still) if len(still) else 0.0 for still in still_steps(traces)])
+
+
 def paused(traces: ActionTraces) -> np.ndarray:
     """bool [N]: the arm stands still for less than half the demo and moves again after its longest still stretch
     -- it began late or paused, which says how the demo differs but not what went wrong (an arm that stopped, or

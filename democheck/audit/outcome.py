@@ -8,9 +8,10 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
 - **A task may end in several ways** (a button toggles a lock; a push stops short of its goal on the side it came
   from): a demo's value is measured against the median of its task's demos that started on the same side and
   reached the same outcome (``modes``: an outcome a share ``MODE_SHARE`` of the task reaches, well apart from the
-  others), not against the whole task's median, so the minority's outcome is not an anomaly.  Values piled at
-  one place (a kettle most demos leave where it stands, a slide against its stop) beside a spread of others are
-  two outcomes too, each measured in its own spread, once the spread holds that share.
+  others; a side, that share of the task too), not against the whole task's median, so the minority's outcome is
+  not an anomaly.  Values piled at one place (a kettle most demos leave where it stands, a slide against its stop)
+  beside a spread of others are two outcomes too, each measured in its own spread, once the spread holds that
+  share.
 - **Rotations are compared as rotations**: a quaternion (four consecutive dimensions named ``*w/x/y/z`` or
   ``*quat*``, or of unit norm throughout) as its outer product ``q q^T``, the same for ``q`` and ``-q``; an angle
   named so (``yaw``, ``angle``, ...) as its cosine and sine, so that +pi and -pi are one angle.
@@ -47,7 +48,9 @@ OUTCOME_MIN_DEMOS = 4
 MODE_SHARE = 0.2  # an outcome this share of a task's demos reach (at least 2) is one of its outcomes,
 MODE_GAP = 6.0  # when it lies this many robust SD from the task's other outcomes
 PILE_MIN = 10  # demos in a pile: fewer that happen to agree are no pile (see ``modes``)
-OUTCOME_MIN_SIDE = 2  # demos (itself among them) that started on its side for the side to be its reference
+# Demos (itself among them) that started on its side for the side to be its reference: this many and
+# ``MODE_SHARE`` of its task's -- two demos of another scene whose parts start elsewhere are no side of the task.
+OUTCOME_MIN_SIDE = 2
 POOLED_SCALE = 0.5  # a task's robust SD of a feature is at least this share of the median task's
 END_FLOOR = 0.05  # a value's least robust SD: this share of its spread at the end over all the demos,
 MOVE_FLOOR = 0.005  # and this share of how far the demos that move it move it (a near-constant end has no spread)
@@ -359,7 +362,7 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
     drawer open or closed) that the demos of more than one task reach is discrete: each value is measured against the median of its task's demos that reached
     the same outcome (the dataset's where it is the only one of its task).  Otherwise against the median of its
     task's demos -- with ``start``, of those that started on the same side of the task's median value, where at
-    least ``OUTCOME_MIN_SIDE`` did -- and, where the task's own values fall into several outcomes, of those that
+    least ``OUTCOME_MIN_SIDE`` and ``MODE_SHARE`` of the task's did -- and, where the task's own values fall into several outcomes, of those that
     reached the same one.  The unit: the task's robust SD about those medians, at least ``floor``, each demo's own
     floor in ``own`` and ``POOLED_SCALE`` of the typical task's (a task of a few demos that happen to
     agree is not that precise)."""
@@ -394,7 +397,7 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
                         side = np.sign(start[rows[ok], c] - centre)
                         for s in (-1.0, 1.0):
                             on = side == s
-                            if on.sum() >= OUTCOME_MIN_SIDE:
+                            if on.sum() >= max(OUTCOME_MIN_SIDE, MODE_SHARE * len(v)):
                                 centre[on] = np.median(v[on])
                     label = modes(v - centre, floor)
                     for k in np.unique(label):

@@ -10,7 +10,7 @@ from its scorers (``scorers.ranking_config``); this module knows no check by nam
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -141,17 +141,18 @@ def rank(values: Mapping[str, np.ndarray], groups: np.ndarray, config: RankingCo
 
 def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list[str] | None = None,
             demoted: Mapping[str, np.ndarray] | None = None,
-            yields: Mapping[str, tuple[str, np.ndarray]] | None = None) -> tuple[list[str], list[str]]:
+            yields: Iterable[tuple[str, str, np.ndarray]] = ()) -> tuple[list[str], list[str]]:
     """Each demo's reason and the check it names first: what the checks saw in their own ``words`` (by name, one
     per demo), in the order ``clauses`` gives, each with which check and how rare; a broken recording's
     ``broken_words``.  ``demoted`` (by name, bool per demo): where a check's words say how the demo differs but
-    not what went wrong, so that they lead a reason only where nothing else can.  ``yields`` (by name: another
-    name, bool per demo): where a check gives the lead to the other when both are beyond every clean demo."""
+    not what went wrong, so that they lead a reason only where nothing else can.  ``yields`` ((check, other, bool
+    per demo), the first that holds counts): where a check gives the lead to the other when both are beyond every
+    clean demo."""
     names, n = ranking.config.names, len(ranking.suspicion)
     references = int(np.asarray(ranking.core, bool).sum())
     weak = np.column_stack([np.asarray((demoted or {}).get(k, np.zeros(n, bool)), bool) for k in names]
                            ) if names else np.zeros((n, 0), bool)
-    after = [(names.index(a), names.index(b), np.asarray(mask, bool)) for a, (b, mask) in (yields or {}).items()
+    after = [(names.index(a), names.index(b), np.asarray(mask, bool)) for a, b, mask in yields
              if a in names and b in names]
     reasons, first = [], []
     for i, row in enumerate(np.nan_to_num(ranking.look_odds(), nan=0.0)):  # no score: nothing to name

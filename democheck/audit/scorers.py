@@ -352,15 +352,22 @@ def demoted(ev: Evidence) -> dict[str, np.ndarray]:
     return out
 
 
-def yields(ev: Evidence) -> dict[str, tuple[str, np.ndarray]]:
-    """Per check, another whose words lead before its own where both are beyond every clean demo, and the demos
-    where they do.  Where the world the outcome reads already differed at the demo's first step, the demo is of
-    another scene, and that is the news: before what its arm did (another task's motion) and before the parts
-    that hold still because it never moves them (elsewhere a frozen state explains the end read from it)."""
-    if "outcome" not in ev.named:
-        return {}
-    scene = np.array([d.at_start for d in ev.named["outcome"]], bool)
-    return {name: ("outcome", scene) for name in ("idle", "motion", "frozen_state")}
+def yields(ev: Evidence) -> list[tuple[str, str, np.ndarray]]:
+    """(check, another whose words lead before its own where both are beyond every clean demo, the demos where it
+    does), the first that holds counts.  Where the world the outcome reads already differed at the demo's first
+    step, the demo is of another scene, and that is the news: before what its arm did (another task's motion) and
+    before the parts that hold still because it never moves them (elsewhere a frozen state explains the end read
+    from it).  Where a part of the state held while the arm was driven for longer than the arm ever stood still,
+    the sensor is the news, not the arm's rest (a demo that finished and waited)."""
+    out = []
+    if "outcome" in ev.named:
+        scene = np.array([d.at_start for d in ev.named["outcome"]], bool)
+        out += [(name, "outcome", scene) for name in ("idle", "motion", "frozen_state")]
+    if "actions" in ev.behaviour and "frozen_state" in ev.named and "frozen_state" in ev.scores:
+        held = np.asarray(ev.scores["frozen_state"], np.float64)
+        sensor = ~sensors.at_rest(ev.behaviour["frozen_state"], ev.named["frozen_state"])
+        out.append(("idle", "frozen_state", sensor & (held > modelfree.longest_still(ev.behaviour["actions"]))))
+    return out
 
 
 def broken_rows(ev: Evidence) -> np.ndarray:
