@@ -253,6 +253,32 @@ def test_an_arm_that_rests_gives_the_lead_to_a_state_held_for_longer_while_it_mo
     assert len(to_sensor) == 1 and to_sensor[0][20:].tolist() == [True, False, False]
 
 
+def test_an_arm_that_moved_with_a_purpose_gives_the_lead_to_the_world_it_left():
+    """Another task's demo: its arm moves far more than its task's, smoothly but for one jump, and it left the
+    world unlike theirs: the world it left leads.  A flailing arm, whose actions shake, leads with its motion."""
+    from democheck.audit.evidence import Evidence
+    from democheck.audit.modelfree import ActionTraces
+    from democheck.audit.outcome import Differs
+    from democheck.audit.ranking import Ranking, explain
+    from democheck.audit.scorers import ranking_config, yields
+
+    rng = np.random.default_rng(0)
+    traces = ActionTraces()
+    smooth = np.column_stack([np.sin(np.linspace(0, 3, 100)), np.cos(np.linspace(0, 3, 100))])
+    smooth[50:] += 1.0  # one jump
+    traces.actions += [smooth, rng.uniform(-1, 1, (100, 2))]
+    config = ranking_config(["motion", "jerk", "outcome", "coupling"])
+    log_p = np.log([[1e-9, 1e-29, 1e-35, 1.0],  # another task's job
+                    [1e-60, 1e-25, 1e-8, 0.9]])  # flailing
+    combined = Ranking(config, log_p, np.ones(2, bool), np.zeros(2))
+    ev = Evidence(episodes=pd.DataFrame({"episode_index": [0, 1], "task": ["reach", "reach"]}),
+                  behaviour={"actions": traces}, named={"outcome": [Differs("state", [21], False)] * 2})
+    words = {name: [f"{name} words"] * 2 for name in config.names}
+    _, first = explain(combined, words, yields=yields(ev, combined))
+    assert first == ["outcome", "motion"]
+    assert explain(combined, words)[1] == ["motion", "motion"]
+
+
 def test_an_arm_moving_somewhat_more_or_less_says_how_it_differs_not_what_went_wrong():
     from democheck.audit.evidence import Evidence
     from democheck.audit.scorers import demoted

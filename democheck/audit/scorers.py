@@ -328,8 +328,9 @@ def combination(ev: Evidence, model_free: bool = False) -> ranking.Ranking:
 def explanation(ev: Evidence, model_free: bool = False) -> tuple[list[str], list[str]]:
     """Each demo's reason (every clause) and the check it names first (``ranking.explain``), once."""
     if model_free not in ev.explained:
-        ev.explained[model_free] = ranking.explain(combination(ev, model_free), ev.reasons, ev.reasons.get("broken"),
-                                                   demoted(ev), yields(ev))
+        combined = combination(ev, model_free)
+        ev.explained[model_free] = ranking.explain(combined, ev.reasons, ev.reasons.get("broken"), demoted(ev),
+                                                   yields(ev, combined))
     return ev.explained[model_free]
 
 
@@ -352,17 +353,27 @@ def demoted(ev: Evidence) -> dict[str, np.ndarray]:
     return out
 
 
-def yields(ev: Evidence) -> list[tuple[str, str, np.ndarray]]:
+def yields(ev: Evidence, combined: ranking.Ranking | None = None) -> list[tuple[str, str, np.ndarray]]:
     """(check, another whose words lead before its own where both are beyond every clean demo, the demos where it
-    does), the first that holds counts.  Where the world the outcome reads already differed at the demo's first
-    step, the demo is of another scene, and that is the news: before what its arm did (another task's motion) and
-    before the parts that hold still because it never moves them (elsewhere a frozen state explains the end read
-    from it).  Where a part of the state held while the arm was driven for longer than the arm ever stood still,
-    the sensor is the news, not the arm's rest (a demo that finished and waited)."""
+    does), the first that holds counts.
+
+    - Where the world the outcome reads already differed at the demo's first step, the demo is of another scene,
+      and that is the news: before what its arm did (another task's motion) and before the parts that hold still
+      because it never moves them (elsewhere a frozen state explains the end read from it).
+    - Where the demo's actions do not shake (the jerk is no surprise in ``combined``, or one jump), an arm that
+      moved unlike its task's followed a purpose, and the world it left is the news (another task's job done);
+      a flailing or shaking arm is the news itself.
+    - Where a part of the state held while the arm was driven for longer than the arm ever stood still, the
+      sensor is the news, not the arm's rest (a demo that finished and waited)."""
     out = []
     if "outcome" in ev.named:
         scene = np.array([d.at_start for d in ev.named["outcome"]], bool)
         out += [(name, "outcome", scene) for name in ("idle", "motion", "frozen_state")]
+        if combined is not None and "jerk" in combined.config.names and "actions" in ev.behaviour:
+            log_p = combined.log_p[:, combined.config.names.index("jerk")]
+            with np.errstate(invalid="ignore"):
+                shakes = (log_p < np.log(combined.config.reason_p)) & ~modelfree.jerk_jumps(ev.behaviour["actions"])
+            out.append(("motion", "outcome", ~shakes))
     if "actions" in ev.behaviour and "frozen_state" in ev.named and "frozen_state" in ev.scores:
         held = np.asarray(ev.scores["frozen_state"], np.float64)
         sensor = ~sensors.at_rest(ev.behaviour["frozen_state"], ev.named["frozen_state"])
