@@ -361,11 +361,11 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
     A column whose values over the whole dataset fall into several outcomes (``modes``: a switch on or off, a drawer
     open or closed) between which the demos of two tasks or more each split (``_several``) is discrete: each value
     is measured against the median of its task's demos that reached the same outcome (the dataset's where it is the
-    only one of its task).  Otherwise against the median of its task's demos -- with ``start``, of those that started on the same side of
-    the task's median value, where at least ``OUTCOME_MIN_SIDE`` and ``MODE_SHARE`` of the task's did -- and, where
-    the task's own values fall into several outcomes, of those that reached the same one.  The unit: the task's
-    robust SD about those medians, at least ``floor``, each demo's own floor in ``own`` and ``POOLED_SCALE`` of the
-    typical task's (a task of a few demos that happen to agree is not that precise)."""
+    only one of its task).  Otherwise against the median of its task's demos -- with ``start``, of those that
+    started on the same side of the task's median value, where at least ``OUTCOME_MIN_SIDE`` and ``MODE_SHARE`` of
+    the task's did -- and, where the task's own values fall into several outcomes, of those that reached the same
+    one.  The unit: the task's robust SD about those medians, at least ``floor``, each demo's own floor in ``own``
+    and ``POOLED_SCALE`` of the typical task's (a task of a few demos that happen to agree is not that precise)."""
     own = np.zeros(len(x)) if own is None else own
     z, ref = np.full(x.shape, np.nan), np.full(x.shape, np.nan)
     with warnings.catch_warnings():
