@@ -328,9 +328,9 @@ def combination(ev: Evidence, model_free: bool = False) -> ranking.Ranking:
 def explanation(ev: Evidence, model_free: bool = False) -> tuple[list[str], list[str]]:
     """Each demo's reason (every clause) and the check it names first (``ranking.explain``), once."""
     if model_free not in ev.explained:
-        combined = combination(ev, model_free)
-        ev.explained[model_free] = ranking.explain(combined, ev.reasons, ev.reasons.get("broken"), demoted(ev),
-                                                   yields(ev, combined))
+        combined, weak = combination(ev, model_free), demoted(ev)
+        ev.explained[model_free] = ranking.explain(combined, ev.reasons, ev.reasons.get("broken"), weak,
+                                                   yields(ev, combined, weak))
     return ev.explained[model_free]
 
 
@@ -353,9 +353,11 @@ def demoted(ev: Evidence) -> dict[str, np.ndarray]:
     return out
 
 
-def yields(ev: Evidence, combined: ranking.Ranking | None = None) -> list[tuple[str, str, np.ndarray]]:
+def yields(ev: Evidence, combined: ranking.Ranking | None = None, weak: dict[str, np.ndarray] | None = None
+           ) -> list[tuple[str, str, np.ndarray]]:
     """(check, another whose words lead before its own where both are beyond every clean demo, the demos where it
-    does), the first that holds counts.
+    does), the first that holds counts.  ``weak``: ``demoted(ev)``, where it is at hand (its one jump and part at
+    rest are read here too).
 
     - Where the world the outcome reads already differed at the demo's first step, the demo is of another scene,
       and that is the news: before what its arm did (another task's motion) and before the parts that hold still
@@ -365,19 +367,19 @@ def yields(ev: Evidence, combined: ranking.Ranking | None = None) -> list[tuple[
       a flailing or shaking arm is the news itself.
     - Where a part of the state held while the arm was driven for longer than the arm ever stood still, the
       sensor is the news, not the arm's rest (a demo that finished and waited)."""
+    weak = demoted(ev) if weak is None else weak
     out = []
     if "outcome" in ev.named:
         scene = np.array([d.at_start for d in ev.named["outcome"]], bool)
         out += [(name, "outcome", scene) for name in ("idle", "motion", "frozen_state")]
-        if combined is not None and "jerk" in combined.config.names and "actions" in ev.behaviour:
+        if combined is not None and "jerk" in combined.config.names and "jerk" in weak:
             log_p = combined.log_p[:, combined.config.names.index("jerk")]
             with np.errstate(invalid="ignore"):
-                shakes = (log_p < np.log(combined.config.reason_p)) & ~modelfree.jerk_jumps(ev.behaviour["actions"])
+                shakes = (log_p < np.log(combined.config.reason_p)) & ~weak["jerk"]
             out.append(("motion", "outcome", ~shakes))
-    if "actions" in ev.behaviour and "frozen_state" in ev.named and "frozen_state" in ev.scores:
-        held = np.asarray(ev.scores["frozen_state"], np.float64)
-        sensor = ~sensors.at_rest(ev.behaviour["frozen_state"], ev.named["frozen_state"])
-        out.append(("idle", "frozen_state", sensor & (held > modelfree.longest_still(ev.behaviour["actions"]))))
+    if "actions" in ev.behaviour and "frozen_state" in weak:
+        held = np.asarray(ev.scores["frozen_state"], np.float64) > modelfree.longest_still(ev.behaviour["actions"])
+        out.append(("idle", "frozen_state", held & ~weak["frozen_state"]))
     return out
 
 
