@@ -146,6 +146,20 @@ def test_a_reason_leads_with_what_the_demo_did_over_a_reading_of_it():
     assert names[clauses(config, np.log([0.01, 1e-6, 1e-6]), 100)[0]] == "frozen_video"
 
 
+def test_a_behaviour_barely_named_does_not_lead_one_that_would_flag_the_demo_alone():
+    """A covered camera seen weakly (the view as unusual as 1 clean demo in 500) beside the actions 1 in 21: the
+    view leads where the reading (the coupling, beyond every clean demo) gives the lead to a behaviour; where both
+    would flag the demo alone, the arm leads (the order of equally clear evidence)."""
+    from democheck.audit.ranking import clauses
+    from democheck.audit.scorers import ranking_config
+
+    config = ranking_config(["jerk", "view", "coupling"])
+    names = config.names
+    assert names[clauses(config, np.log([0.048, 0.002, 1e-5]), 600)[0]] == "view"
+    assert names[clauses(config, np.log([0.008, 0.002, 1e-5]), 600)[0]] == "jerk"
+    assert names[clauses(config, np.log([0.048, 0.03, 1e-5]), 600)[0]] == "view"  # neither clear: the rarer
+
+
 def test_a_reason_leads_with_the_cause_the_other_clauses_follow_from():
     """A frozen state leads over the end state read from it; an arm moving somewhat less than its task's, or
     actions that jump once (demoted), lead only where nothing else is beyond every clean demo."""

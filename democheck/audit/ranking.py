@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from democheck.audit.flagging import conformal_p
+from democheck.audit.flagging import DEFAULT_FPR, conformal_p
 from democheck.audit.scores import calibrated, combined_log10, merge_looks, robust_tails
 
 
@@ -177,19 +177,25 @@ def clauses(config: RankingConfig, row: np.ndarray, references: int, demoted: np
     three, the smallest probability and those under ``reason_p``.  First, of those beyond every clean demo (or the
     smallest alone), the one whose spec leads (what the demo did before how it was recorded before the model's
     reading of it -- a reviewer acts on the behaviour; a ``demoted`` one only where no other is beyond); where
-    that is a reading (neither behaviour nor a recording fault), a behaviour under ``reason_p`` leads instead; a
-    look that ``yields`` to another (pairs of columns) where both are beyond gives it the lead.  Then by
-    probability."""
+    that is a reading (neither behaviour nor a recording fault), a behaviour under ``reason_p`` leads instead: by
+    its spec's order among those beyond every clean demo, else among those that would flag the demo alone
+    (``DEFAULT_FPR``), else the rarest -- a look barely under ``reason_p`` does not lead one that is clearly
+    unusual; a look that ``yields`` to another (pairs of columns) where both are beyond gives it the lead.  Then
+    by probability."""
     if not len(row):
         return []
     specs = config.specs
     demoted = np.zeros(len(row), bool) if demoted is None else np.asarray(demoted, bool)
     order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(config.reason_p)]
+    beyond = [j for j in order if np.exp(row[j]) * (references + 1) < 1]
 
     def first(among: list[int]) -> int:
-        return min([j for j in among if not demoted[j]] or among, key=lambda j: (specs[j].lead, row[j]))
+        def key(j: int) -> tuple:
+            tier = 0 if j in beyond else 1 if row[j] <= np.log(DEFAULT_FPR) else 2
+            return tier, specs[j].lead if tier < 2 else 0, row[j]
 
-    beyond = [j for j in order if np.exp(row[j]) * (references + 1) < 1]
+        return min([j for j in among if not demoted[j]] or among, key=key)
+
     lead = first(beyond or order[:1])
     lead = next((b for a, b in yields if a == lead and b in beyond), lead)
     if not (specs[lead].behaviour or specs[lead].alone):  # a reading (the coupling, the model): what the demo did
