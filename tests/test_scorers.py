@@ -293,6 +293,33 @@ def test_an_arm_that_moved_with_a_purpose_gives_the_lead_to_the_world_it_left():
     assert explain(combined, words)[1] == ["motion", "motion"]
 
 
+def test_a_shaking_arm_in_another_picture_gives_the_lead_to_the_world_it_left():
+    """Another task's policy chatters where its task's demos glide: its arm moves twice as much as theirs, its
+    actions shake, and the camera saw another picture and the world ended elsewhere: the world leads.  An operator
+    who shakes at the demo's own task (the picture as its task's) leads with the shaking; a flailing arm with its
+    motion."""
+    from democheck.audit.evidence import Evidence
+    from democheck.audit.ranking import Ranking, explain
+    from democheck.audit.scorers import demoted, ranking_config, yields
+
+    n = 40
+    level = np.ones(n)
+    level[:3] = 2.0, 2.0, 10.0  # another task's policy, a shaking operator, a flailing arm
+    ev = Evidence(episodes=pd.DataFrame({"episode_index": np.arange(n), "task": ["press"] * n}),
+                  behaviour={"motion": np.column_stack([level, level])})
+    config = ranking_config(["motion", "jerk", "view", "outcome"])
+    log_p = np.zeros((n, 4))
+    log_p[:3] = np.log([[1e-3, 1e-6, 1e-10, 1e-200],
+                        [1e-3, 1e-6, 0.3, 1e-9],
+                        [1e-40, 1e-20, 1e-10, 1e-30]])
+    combined = Ranking(config, log_p, np.ones(n, bool), np.zeros(n))
+    words = {name: [f"{name} words"] * n for name in config.names}
+    weak = demoted(ev)
+    _, first = explain(combined, words, None, weak, yields(ev, combined, weak))
+    assert first[:3] == ["outcome", "jerk", "motion"]
+    assert explain(combined, words, None, weak)[1][:3] == ["jerk", "jerk", "motion"]
+
+
 def test_an_arm_moving_somewhat_more_or_less_says_how_it_differs_not_what_went_wrong():
     from democheck.audit.evidence import Evidence
     from democheck.audit.scorers import demoted

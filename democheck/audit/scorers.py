@@ -365,6 +365,9 @@ def yields(ev: Evidence, combined: ranking.Ranking | None = None, weak: dict[str
     - Where the demo's actions do not shake (the jerk is no surprise in ``combined``, or one jump), an arm that
       moved unlike its task's followed a purpose, and the world it left is the news (another task's job done);
       a flailing or shaking arm is the news itself.
+    - Where the actions shake but the arm moved within its task's range and the camera too saw another picture
+      (beyond every clean demo), the shaking is how another task's policy moves and the world it left is the news;
+      an operator who shakes at the demo's own task leaves its task's world and picture.
     - Where a part of the state held while the arm was driven for longer than the arm ever stood still, the
       sensor is the news, not the arm's rest (a demo that finished and waited)."""
     weak = demoted(ev) if weak is None else weak
@@ -372,11 +375,14 @@ def yields(ev: Evidence, combined: ranking.Ranking | None = None, weak: dict[str
     if "outcome" in ev.named:
         scene = np.array([d.at_start for d in ev.named["outcome"]], bool)
         out += [(name, "outcome", scene) for name in ("idle", "motion", "frozen_state")]
-        if combined is not None and "jerk" in combined.config.names and "jerk" in weak:
-            log_p = combined.log_p[:, combined.config.names.index("jerk")]
-            with np.errstate(invalid="ignore"):
-                shakes = (log_p < np.log(combined.config.reason_p)) & ~weak["jerk"]
-            out.append(("motion", "outcome", ~shakes))
+    names = combined.config.names if combined is not None else []
+    if "jerk" in names and "jerk" in weak:
+        with np.errstate(invalid="ignore"):
+            shakes = (combined.log_p[:, names.index("jerk")] < np.log(combined.config.reason_p)) & ~weak["jerk"]
+        out.append(("motion", "outcome", ~shakes))
+    if "view" in names and "motion" in weak:
+        seen = combined.log_p[:, names.index("view")] + np.log(combined.core.sum() + 1) < 0  # beyond every clean
+        out.append(("jerk", "outcome", seen & weak["motion"]))
     if "actions" in ev.behaviour and "frozen_state" in weak:
         held = np.asarray(ev.scores["frozen_state"], np.float64) > modelfree.longest_still(ev.behaviour["actions"])
         out.append(("idle", "frozen_state", held & ~weak["frozen_state"]))
