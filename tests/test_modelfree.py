@@ -262,7 +262,7 @@ def test_lag_ranks_actions_recorded_late_first_and_says_by_how_much():
     fit = dynamics._dynamics_fit(states, actions)
     errors = {k: dynamics._dynamics_errors([states[bad]], [dynamics._shifted(actions[bad], k)], fit)[0].mean()
               for k in range(-dynamics.LAG_MAX, dynamics.LAG_MAX + 1)}
-    gain, shift = dynamics._lag(states[bad], actions[bad], fit)
+    gain, shift, _, _ = dynamics._lag(states[bad], actions[bad], fit)
     assert shift == min(errors, key=errors.get) == 10
     np.testing.assert_allclose(gain, np.log(errors[0] / errors[10]), rtol=1e-9)
 
@@ -1058,3 +1058,16 @@ def test_numbers_compared_in_a_reason_never_read_the_same():
     assert pair(0.25, 0.5) == ("0.25", "0.5")
     assert pair(2.0, 2.0) == ("2", "2")
     assert colour_name(0) == "black (#202020)" and colour_name(21).startswith("grey")
+
+
+def test_actions_recorded_at_another_scale_are_named_a_scale_not_a_delay():
+    """One demo's actions recorded x3 (another unit or gain) against states that follow the others' scale: moved in
+    time they fit better (to where they are smaller), but one factor fits better still; the reason names the scale
+    and says nothing of a delay.  The demo recorded 10 steps late keeps its delay."""
+    demos, bad = _planted("lag")
+    demos[3].actions[:] *= 3.0
+    ev = _evidence(demos, ["lag"])
+    scaled, late = ev.reasons["lag"][3], ev.reasons["lag"][bad]
+    factor = float(re.search(r"taken at ([\d.]+) x their size", scaled).group(1))
+    assert factor < 0.7 and "another scale" in scaled and "late" not in scaled, scaled
+    assert "recorded 10 steps late" in late, late

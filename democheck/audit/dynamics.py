@@ -14,7 +14,9 @@ the log of its mean squared prediction error with the actions as recorded over t
 up to ``LAG_MAX`` steps earlier or later (0 for a demo whose recorded alignment explains it best), and the
 shift.  An action stream recorded late or early against the states and frames (a clock offset between two
 recorders) is what a policy trained on it learns to be late by; the mean error above barely sees it where
-actions change slowly, since a shifted action is still close to the right one.
+actions change slowly, since a shifted action is still close to the right one.  Actions recorded at another
+scale also follow the states better shifted (to where they are smaller or larger); where one factor on the
+actions explains the demo at least as well as the best shift, the reason names the scale, not a delay.
 
 A demo's action gain, read off the same fit, was measured and not kept (docs/decisions.md, "A demo's action gain:
 measured, not kept").
@@ -70,13 +72,15 @@ def _shifted(actions: np.ndarray, k: int) -> np.ndarray:
     return actions[idx]
 
 
-def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | None) -> tuple[float, int]:
+def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | None
+         ) -> tuple[float, int, float, float]:
     """(log of the error as recorded over the least error with the actions moved up to ``LAG_MAX`` steps,
-    that shift); NaN without a fit or under 3 steps.  The fit is linear, so each part of the prediction is
-    computed once and moving the actions is moving rows of theirs: what ``_dynamics_errors`` gives the actions
-    ``_shifted`` by each k, at the cost of one prediction."""
+    that shift, the one factor on the actions' part of the prediction that fits the demo best, the log of the
+    error as recorded over the error with it); NaN without a fit or under 3 steps.  The fit is linear, so each
+    part of the prediction is computed once and moving the actions is moving rows of theirs: what
+    ``_dynamics_errors`` gives the actions ``_shifted`` by each k, at the cost of one prediction."""
     if fit is None or len(actions) < 3:
-        return float("nan"), 0
+        return float("nan"), 0, 1.0, 0.0
     s, a = state.astype(np.float64), actions.astype(np.float64)
     n, ds, da = len(a), s.shape[1], a.shape[1]
     w = np.zeros((ds + 2 * da, fit["w"].shape[1]))
@@ -94,7 +98,13 @@ def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | No
         pred = from_state + from_action[np.clip(steps + k, 0, n - 1)] + before
         errors[k] = float(((pred - target) ** 2).mean())
     best = min(errors, key=lambda k: (errors[k], abs(k)))
-    return float(np.log(max(errors[0], 1e-12) / max(errors[best], 1e-12))), best
+    before = from_before[np.clip(steps - 1, 0, n - 1)]
+    before[0] = 0.0
+    part, rest = from_action[:-1] + before, target - from_state
+    factor = float((part * rest).sum() / max(float((part ** 2).sum()), 1e-12))
+    scaled = float(((rest - factor * part) ** 2).mean())
+    return (float(np.log(max(errors[0], 1e-12) / max(errors[best], 1e-12))), best, factor,
+            float(np.log(max(errors[0], 1e-12) / max(scaled, 1e-12))))
 
 
 def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray], fit: dict[str, np.ndarray] | None
@@ -122,7 +132,7 @@ class DynamicsFit(PerDemo):
     fields = ("errors", "worst", "lags", "states", "actions")
     errors: list[float]  # per scored demo: mean squared error (NaN: not scored)
     worst: list[tuple[int, int, int]]  # per scored demo: start, width of its worst stretch, its steps
-    lags: list[tuple[float, int]]  # per scored demo: ``_lag``
+    lags: list[tuple[float, int, float, float]]  # per scored demo: ``_lag``
     states: list[np.ndarray]  # the block not scored yet
     actions: list[np.ndarray]
 
@@ -149,7 +159,7 @@ class DynamicsFit(PerDemo):
                 if e is None:
                     self.errors.append(np.nan)
                     self.worst.append((0, 0, 0))
-                    self.lags.append((np.nan, 0))
+                    self.lags.append((np.nan, 0, 1.0, 0.0))
                     continue
                 self.lags.append(_lag(state, a, fit))
                 width = min(DYNAMICS_WINDOW, len(e))
@@ -201,13 +211,18 @@ def dynamics(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
 def lag(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
     """How much better each demo's states follow its actions moved in time (``_lag``; see the module docstring),
     and by how many steps."""
-    out = np.array([g for g, _ in fit.lags], np.float64)
+    out = np.array([lag[0] for lag in fit.lags], np.float64)
     reasons = []
-    for gain, k in fit.lags:
+    for gain, k, factor, scaled in fit.lags:
         if not np.isfinite(gain):
             reasons.append("too short, or a state that never changes")
         elif k == 0:
             reasons.append("its actions go with its states as recorded")
+        elif scaled >= gain:  # one factor explains the demo as well as the shift: a scale, not a delay
+            reasons.append(f"its states follow its actions best taken at {factor:.2g} x their size "
+                           f"({np.exp(scaled):.2g} x less error)"
+                           + (": the actions were recorded at another scale" if scaled >= np.log(LAG_NAMED)
+                              else ""))
         else:
             steps = f"{abs(k)} step{'s' if abs(k) > 1 else ''}"
             reasons.append(f"its states follow its actions best with the actions {steps} "
