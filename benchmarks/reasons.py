@@ -28,7 +28,7 @@ CAUSE = {
     "occluded": VIEW, "hidden": VIEW, "no-objects": VIEW,
     "wrong-object": WORLD, "both-objects": WORLD, "wrong-task": WORLD,
     "frozen-camera": ("picture stays the same",), "frozen-state": ("holds one value",),
-    "dead-dim": ("holds one value",), "scaled": FLAIL, "sensor-nan": ("broken",),
+    "dead-dim": ("holds one value",), "scaled": FLAIL + ("another scale",), "sensor-nan": ("broken",),
     "lagged": ("follow its actions best",), "dropped": ("frame jumps",), "nan": ("broken",),
 }
 TINY = re.compile(r"e-(1[2-9]|[2-9]\d|\d{3,})\b")  # a probability under 1e-12, printed
