@@ -24,7 +24,7 @@ VIEW = ("view is covered", "colours changed")
 WORLD = ("left the world",)
 CAUSE = {
     "idle": STILL, "no-action": STILL, "gave-up": STILL + WORLD,
-    "random": FLAIL, "jerky": FLAIL,
+    "random": FLAIL, "jerky": FLAIL, "jittery": FLAIL,
     "occluded": VIEW, "hidden": VIEW, "no-objects": VIEW,
     "wrong-object": WORLD, "both-objects": WORLD, "wrong-task": WORLD,
     "frozen-camera": ("picture stays the same",), "frozen-state": ("holds one value",),

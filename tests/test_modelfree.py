@@ -1061,13 +1061,22 @@ def test_numbers_compared_in_a_reason_never_read_the_same():
 
 
 def test_actions_recorded_at_another_scale_are_named_a_scale_not_a_delay():
-    """One demo's actions recorded x3 (another unit or gain) against states that follow the others' scale: moved in
-    time they fit better (to where they are smaller), but one factor fits better still; the reason names the scale
-    and says nothing of a delay.  The demo recorded 10 steps late keeps its delay."""
-    demos, bad = _planted("lag")
+    """Arms that reach (commands large at first, then small) and whose position integrates them; one demo's actions
+    recorded x3 (another unit or gain), one recorded 10 steps late.  Moved later the x3 actions fit better (where
+    they are smaller), but one factor, far off the other demos', fits better still: its reason names the scale
+    and no delay.  The late demo keeps its delay."""
+    rng = np.random.default_rng(3)
+    demos = []
+    for i in range(40):
+        drift = np.cumsum(rng.normal(0, 0.05, (T, A)), 0)
+        actions = rng.normal(0, 1, A) * np.exp(-np.arange(T) / 20.0)[:, None] + drift
+        state = np.concatenate([np.cumsum(actions, 0) * 0.05, rng.normal(0, 0.01, (T, S - A))], 1)
+        demos.append(Demo(episode_index=i, task="reach", frames=np.zeros((T, 8, 8, 3), np.uint8),
+                          state=state.astype(np.float32), actions=actions.astype(np.float32)))
     demos[3].actions[:] *= 3.0
+    demos[17].actions[:] = np.concatenate([np.repeat(demos[17].actions[:1], 10, 0), demos[17].actions[:-10]])
     ev = _evidence(demos, ["lag"])
-    scaled, late = ev.reasons["lag"][3], ev.reasons["lag"][bad]
-    factor = float(re.search(r"taken at ([\d.]+) x their size", scaled).group(1))
-    assert factor < 0.7 and "another scale" in scaled and "late" not in scaled, scaled
-    assert "recorded 10 steps late" in late, late
+    scaled, late = ev.reasons["lag"][3], ev.reasons["lag"][17]
+    size = float(re.search(r"taken at ([\d.]+) x their size", scaled).group(1))
+    assert size < 0.5 and "another scale" in scaled and "late" not in scaled, scaled
+    assert "steps late" in late and "scale" not in late, late

@@ -16,7 +16,8 @@ shift.  An action stream recorded late or early against the states and frames (a
 recorders) is what a policy trained on it learns to be late by; the mean error above barely sees it where
 actions change slowly, since a shifted action is still close to the right one.  Actions recorded at another
 scale also follow the states better shifted (to where they are smaller or larger); where one factor on the
-actions explains the demo at least as well as the best shift, the reason names the scale, not a delay.
+actions explains the demo at least as well as the best shift, and that factor is ``SCALE_NAMED`` or more off its
+task's demos' (a unit or a gain, not the fit's spread), the reason names the scale, not a delay.
 
 A demo's action gain, read off the same fit, was measured and not kept (docs/decisions.md, "A demo's action gain:
 measured, not kept").
@@ -35,6 +36,7 @@ DYNAMICS_MIN_BLOCK = 32  # a last block of fewer demos is judged by the fit of t
 DYNAMICS_WINDOW = 10  # the reason names the stretch of this many steps the state follows the actions worst
 LAG_MAX = 16  # steps either way the ``lag`` check moves a demo's actions (0.2 s at 80 fps, 0.5 s at 30 fps)
 LAG_NAMED = 1.2  # the reason says the actions were recorded late or early where the shift cuts the error this much
+SCALE_NAMED = 2.0  # ... at another scale where a factor this far off its task's demos' explains the demo as well
 
 
 def _dynamics_features(state: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -208,21 +210,28 @@ def dynamics(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
     return out, reasons
 
 
-def lag(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
+def lag(fit: DynamicsFit, tasks: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
     """How much better each demo's states follow its actions moved in time (``_lag``; see the module docstring),
-    and by how many steps."""
+    and by how many steps -- or, where one factor on the actions explains it as well and lies ``SCALE_NAMED`` or
+    more off the median of its task's (``tasks``, default one task) demos', at what size."""
     out = np.array([lag[0] for lag in fit.lags], np.float64)
+    factors = np.array([lag[2] for lag in fit.lags], np.float64)
+    tasks = np.zeros(len(out), int) if tasks is None else np.asarray(tasks)
+    typical = np.ones(len(out))
+    for task in np.unique(tasks):
+        mine = (tasks == task) & np.isfinite(out)
+        if mine.any():
+            typical[tasks == task] = max(float(np.median(factors[mine])), 1e-12)
     reasons = []
-    for gain, k, factor, scaled in fit.lags:
+    for (gain, k, _, scaled), size in zip(fit.lags, factors / typical):
         if not np.isfinite(gain):
             reasons.append("too short, or a state that never changes")
         elif k == 0:
             reasons.append("its actions go with its states as recorded")
-        elif scaled >= gain:  # one factor explains the demo as well as the shift: a scale, not a delay
-            reasons.append(f"its states follow its actions best taken at {factor:.2g} x their size "
-                           f"({np.exp(scaled):.2g} x less error)"
-                           + (": the actions were recorded at another scale" if scaled >= np.log(LAG_NAMED)
-                              else ""))
+        elif scaled >= gain and not 1 / SCALE_NAMED < size < SCALE_NAMED:  # a scale, not a delay
+            reasons.append(f"its states follow its actions best taken at {size:.2g} x their size against its "
+                           f"task's demos ({np.exp(scaled):.2g} x less error): the actions were recorded at another "
+                           "scale")
         else:
             steps = f"{abs(k)} step{'s' if abs(k) > 1 else ''}"
             reasons.append(f"its states follow its actions best with the actions {steps} "
