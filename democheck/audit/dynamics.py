@@ -229,9 +229,8 @@ def lag(fit: DynamicsFit, tasks: np.ndarray | None = None) -> tuple[np.ndarray, 
         elif k == 0:
             reasons.append("its actions go with its states as recorded")
         elif scaled >= gain and not 1 / SCALE_NAMED < size < SCALE_NAMED:  # a scale, not a delay
-            reasons.append(f"its states follow its actions best taken at {size:.2g} x their size against its "
-                           f"task's demos ({np.exp(scaled):.2g} x less error): the actions were recorded at another "
-                           "scale")
+            reasons.append(f"the actions are {1 / size:.2g} x the size its states follow, against its task's "
+                           f"demos ({np.exp(scaled):.2g} x less error taken so): recorded at another scale")
         else:
             steps = f"{abs(k)} step{'s' if abs(k) > 1 else ''}"
             reasons.append(f"its states follow its actions best with the actions {steps} "
