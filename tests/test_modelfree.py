@@ -1080,3 +1080,30 @@ def test_actions_recorded_at_another_scale_are_named_a_scale_not_a_delay():
     size = float(re.search(r"the actions are ([\d.]+) x the size its states follow", scaled).group(1))
     assert size > 2 and "another scale" in scaled and "late" not in scaled, scaled
     assert "steps late" in late and "scale" not in late, late
+
+
+def test_a_camera_that_stopped_delivers_frames_like_its_tasks_and_a_card_does_not():
+    """Two pictures that stay the same while the arm moves: one camera stopped at frame 40, one still scene whose
+    moving square a grey card covers all along.  The frames each delivered (but for the repeats) are like the
+    task's at the same steps for the stopped camera, and unlike them for the card; so the view gives the stopped
+    camera's reason to the frozen picture and keeps the covered one's."""
+    from democheck.audit import frames
+    from democheck.audit.ranking import Ranking, explain
+    from democheck.audit.scorers import ranking_config, yields
+
+    rng = np.random.default_rng(2)
+    demos = [_demo(i, rng, np.stack([_moving_square(int(rng.integers(0, 30)) + t) for t in range(T)]))
+             for i in range(20)]
+    demos[5].frames[40:] = demos[5].frames[40]
+    demos[9].frames[:] = demos[9].frames[0]  # a still scene but for the arm, which moves under the card
+    demos[9].frames[:, 6:18] = 128
+    ev = _evidence(demos, ["frozen_video", "view"])
+    assert ev.scores["frozen_video"][5] > 0.5 and ev.scores["frozen_video"][9] > 0.9
+    z = frames.delivered_unlike(ev.behaviour["frozen_video"], ev.groups)
+    assert z[5] < modelfree.VIEW_K < z[9], (z[5], z[9])
+    config = ranking_config(["frozen_video", "view"])
+    log_p = np.zeros((20, 2))
+    log_p[[5, 9]] = np.log([1e-20, 1e-3])  # both beyond every clean demo
+    words = {name: [f"{name} words"] * 20 for name in config.names}
+    _, first = explain(Ranking(config, log_p, np.ones(20, bool), np.zeros(20)), words, yields=yields(ev))
+    assert (first[5], first[9]) == ("frozen_video", "view")

@@ -11,6 +11,13 @@ the steps re-indexed, so that no timestamp shows it), or two recordings spliced.
 
 Both read one consumer of the audit's decoding pass (``FrameChanges``) and, with ``dynamics.lag`` and
 ``modelfree.timing``, are recording faults: in the ranking apart from the other scores (``alone`` in the ranking recipe).
+
+A picture that stays the same is a camera that stopped or a view the arm left (under a card, say); the view and
+colour checks then read a changed picture either way.  ``delivered_unlike`` tells them apart for the reasons: the
+frames delivered before the picture stopped, each against its task's demos' frames at the same step, are like
+theirs where the camera stopped and unlike where a card covered them all along.  Only a stretch of at least
+``STOPPED_SHARE`` of the demo explains the view's and the colours' reading (their average picture is then mostly
+the repeated frame); a shorter one leaves their reading its own.
 """
 
 from __future__ import annotations
@@ -18,31 +25,39 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from democheck.audit.modelfree import STILL, PerDemo, change_scale, longest_run, steps_text
+from democheck.audit.modelfree import (STILL, VIEW_EVERY, VIEW_FLOOR, VIEW_K, VIEW_MIN_DEMOS, VIEW_MIN_SCALE,
+                                       PerDemo, change_scale, longest_run, steps_text, task_z)
+from democheck.audit.scores import calibrated
 from democheck.data.demo import Demo
 
 FROZEN_LEVEL = 0.1  # grey levels (0-255): a frame this close to the previous one repeats it
 FRAME_CHECK_SIZE = 64  # pixels: the frame checks read frames shrunk to this (``FrameChanges``)
 JUMP_NEIGHBOURS = 5  # steps either side of a frame change that say what the change there usually is
 JUMP_FLOOR = 0.5  # grey levels: the least usual change a jump is measured against (a still scene's sensor noise)
+STEP_THUMB = 8  # pixels: the grey thumbnails of every ``VIEW_EVERY``-th frame ``delivered_unlike`` compares
+STOPPED_SHARE = 0.5  # a frozen stretch this share of the demo or more is most of the picture the view checks average
 
 
 class FrameChanges(PerDemo):
     """Consumer of decoded demos: per step, the mean absolute grey-level change of the camera frame, and
-    whether the actions changed (the ``frozen_video`` and ``frame_jump`` checks).  Frames larger than
+    whether the actions changed (the ``frozen_video`` and ``frame_jump`` checks), and a ``STEP_THUMB`` grey
+    thumbnail of every ``VIEW_EVERY``-th frame (``delivered_unlike``; 768 bytes a demo of 120 steps).  Frames larger than
     ``FRAME_CHECK_SIZE`` on their longer side are first shrunk to it (area averaging): the checks then read the
     same numbers whether or not a model had the frames decoded at its own size, and a video codec's per-pixel
     noise, which hides a jump among the steps around it, averages out."""
 
-    fields = ("deltas", "changes")
+    fields = ("deltas", "changes", "thumbs")
     deltas: list[np.ndarray]
     changes: list[np.ndarray]
+    thumbs: list[np.ndarray]
 
     def add(self, demo: Demo) -> None:
         grey = np.stack([_check_size(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2GRAY))
                          for f in demo.frames])
         self.deltas.append(np.abs(np.diff(grey.astype(np.int16), axis=0)).mean(axis=(1, 2)).astype(np.float32))
         self.changes.append(np.abs(np.diff(np.asarray(demo.actions, np.float64), axis=0)))
+        size = (STEP_THUMB, STEP_THUMB)
+        self.thumbs.append(np.stack([cv2.resize(g, size, interpolation=cv2.INTER_AREA) for g in grey[::VIEW_EVERY]]))
 
 
 def _check_size(grey: np.ndarray) -> np.ndarray:
@@ -54,19 +69,24 @@ def _check_size(grey: np.ndarray) -> np.ndarray:
     return cv2.resize(grey, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
 
 
+def _frozen(frames: FrameChanges) -> list[np.ndarray]:
+    """Per demo, bool per step: the frame repeats while the actions change."""
+    scale = change_scale(frames.changes)
+    return [(d[:n] < FROZEN_LEVEL) & ((c[:n] / scale).mean(1) >= STILL)
+            for d, c in zip(frames.deltas, frames.changes) for n in [min(len(d), len(c))]]
+
+
 def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
     """The longest stretch of steps at which the frame repeats while the actions change, as a share of the demo's
     steps, and where it is: a camera that stopped delivering repeats one frame for a stretch, where a video
     codec's or a still scene's repeated frames are scattered (Meta-World's clean demos, AV1: 14% of their steps,
     but never two in a row)."""
-    scale = change_scale(frames.changes)
     out, reasons = np.zeros(len(frames.deltas)), []
-    for i, (d, c) in enumerate(zip(frames.deltas, frames.changes)):
-        n = min(len(d), len(c))
+    for i, frozen in enumerate(_frozen(frames)):
+        n = len(frozen)
         if not n:
             reasons.append("a single frame")
             continue
-        frozen = (d[:n] < FROZEN_LEVEL) & ((c[:n] / scale).mean(1) >= STILL)
         start, length = longest_run(frozen)
         out[i] = length / n
         scattered = int(frozen.sum()) - length  # repeats elsewhere, outside the longest stretch
@@ -76,6 +96,29 @@ def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
                        + (f"; {scattered} more repeated frames elsewhere" if scattered else "") if length
                        else "frames change while the arm moves")
     return out, reasons
+
+
+def delivered_unlike(frames: FrameChanges, tasks: np.ndarray) -> np.ndarray:
+    """[N] robust z within its task of the share of a demo's thumbnails, but for the repeats of its longest frozen
+    stretch (the frames the camera delivered), unlike its task's demos' at the same step: over ``VIEW_K`` robust
+    SD (at least ``VIEW_FLOOR`` grey levels) from their median there -- the view check's measure, step by step.
+    NaN without thumbnails."""
+    thumbs = getattr(frames, "thumbs", None)
+    if not thumbs:
+        return np.full(len(frames.deltas), np.nan)
+    steps = max(len(t) for t in thumbs)
+    x = np.full((len(thumbs), steps, STEP_THUMB, STEP_THUMB), np.nan, np.float32)
+    for i, t in enumerate(thumbs):
+        x[i, :len(t)] = t
+    z, _ = task_z(x, tasks, VIEW_FLOOR, VIEW_MIN_DEMOS, small="all")
+    share = np.zeros(len(thumbs))
+    for i, frozen in enumerate(_frozen(frames)):
+        start, length = longest_run(frozen)
+        shown = np.arange(len(thumbs[i])) * VIEW_EVERY
+        repeats = (shown > start) & (shown <= start + length)  # frames start + 1 .. start + length repeat frame start
+        seen = z[i, :len(shown)][~repeats]
+        share[i] = float((seen > VIEW_K).mean()) if seen.size else 0.0
+    return calibrated(share, tasks, min_scale=VIEW_MIN_SCALE)
 
 
 def frame_jump(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:

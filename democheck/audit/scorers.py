@@ -369,7 +369,11 @@ def yields(ev: Evidence, combined: ranking.Ranking | None = None, weak: dict[str
       (beyond every clean demo), the shaking is how another task's policy moves and the world it left is the news;
       an operator who shakes at the demo's own task leaves its task's world and picture.
     - Where a part of the state held while the arm was driven for longer than the arm ever stood still, the
-      sensor is the news, not the arm's rest (a demo that finished and waited)."""
+      sensor is the news, not the arm's rest (a demo that finished and waited).
+    - Where the picture stayed the same while the arm moved for at least ``frames.STOPPED_SHARE`` of the demo and
+      the frames delivered were like its task's at the same steps (``frames.delivered_unlike`` under ``VIEW_K``),
+      the camera stopped: the picture the view and colour checks read changed because it stopped.  A card over
+      the view changes the delivered frames too."""
     weak = demoted(ev) if weak is None else weak
     out = []
     if "outcome" in ev.named:
@@ -383,6 +387,11 @@ def yields(ev: Evidence, combined: ranking.Ranking | None = None, weak: dict[str
     if "view" in names and "motion" in weak:
         seen = combined.log_p[:, names.index("view")] + np.log(combined.core.sum() + 1) < 0  # beyond every clean
         out.append(("jerk", "outcome", seen & weak["motion"]))
+    if "frozen_video" in ev.behaviour and "frozen_video" in ev.scores:
+        with np.errstate(invalid="ignore"):
+            stopped = (frames.delivered_unlike(ev.behaviour["frozen_video"], ev.groups) < modelfree.VIEW_K) \
+                & (np.asarray(ev.scores["frozen_video"], np.float64) >= frames.STOPPED_SHARE)
+        out += [(name, "frozen_video", stopped) for name in ("view", "colours")]
     if "actions" in ev.behaviour and "frozen_state" in weak:
         held = np.asarray(ev.scores["frozen_state"], np.float64) > modelfree.longest_still(ev.behaviour["actions"])
         out.append(("idle", "frozen_state", held & ~weak["frozen_state"]))
