@@ -210,18 +210,18 @@ def dynamics(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
     return out, reasons
 
 
-def lag(fit: DynamicsFit, tasks: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
+def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
     """How much better each demo's states follow its actions moved in time (``_lag``; see the module docstring),
     and by how many steps -- or, where one factor on the actions explains it as well and lies ``SCALE_NAMED`` or
-    more off the median of its task's (``tasks``, default one task) demos', at what size."""
+    more off the median of its group's (``Evidence.groups``; default one group) demos', at what size."""
     out = np.array([lag[0] for lag in fit.lags], np.float64)
     factors = np.array([lag[2] for lag in fit.lags], np.float64)
-    tasks = np.zeros(len(out), int) if tasks is None else np.asarray(tasks)
+    groups = np.zeros(len(out), int) if groups is None else np.asarray(groups)
     typical = np.ones(len(out))
-    for task in np.unique(tasks):
-        mine = (tasks == task) & np.isfinite(out)
+    for group in np.unique(groups):
+        mine = (groups == group) & np.isfinite(out)
         if mine.any():
-            typical[tasks == task] = max(float(np.median(factors[mine])), 1e-12)
+            typical[groups == group] = max(float(np.median(factors[mine])), 1e-12)
     reasons = []
     for (gain, k, _, scaled), size in zip(fit.lags, factors / typical):
         if not np.isfinite(gain):

@@ -25,8 +25,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from democheck.audit.modelfree import (STILL, VIEW_EVERY, VIEW_FLOOR, VIEW_K, VIEW_MIN_DEMOS, VIEW_MIN_SCALE,
-                                       PerDemo, change_scale, longest_run, steps_text, task_z)
+from democheck.audit.modelfree import (STILL, VIEW_EVERY, VIEW_FLOOR, VIEW_K, VIEW_MIN_SCALE, PerDemo,
+                                       change_scale, longest_run, steps_text, task_z)
 from democheck.audit.scores import calibrated
 from democheck.data.demo import Demo
 
@@ -41,8 +41,8 @@ STOPPED_SHARE = 0.5  # a frozen stretch this share of the demo or more is most o
 class FrameChanges(PerDemo):
     """Consumer of decoded demos: per step, the mean absolute grey-level change of the camera frame, and
     whether the actions changed (the ``frozen_video`` and ``frame_jump`` checks), and a ``STEP_THUMB`` grey
-    thumbnail of every ``VIEW_EVERY``-th frame (``delivered_unlike``; 768 bytes a demo of 120 steps).  Frames larger than
-    ``FRAME_CHECK_SIZE`` on their longer side are first shrunk to it (area averaging): the checks then read the
+    thumbnail of every ``VIEW_EVERY``-th frame (``delivered_unlike``; 768 bytes a demo of 120 steps).  Frames
+    larger than ``FRAME_CHECK_SIZE`` on their longer side are first shrunk to it (area averaging): the checks then read the
     same numbers whether or not a model had the frames decoded at its own size, and a video codec's per-pixel
     noise, which hides a jump among the steps around it, averages out."""
 
@@ -57,7 +57,8 @@ class FrameChanges(PerDemo):
         self.deltas.append(np.abs(np.diff(grey.astype(np.int16), axis=0)).mean(axis=(1, 2)).astype(np.float32))
         self.changes.append(np.abs(np.diff(np.asarray(demo.actions, np.float64), axis=0)))
         size = (STEP_THUMB, STEP_THUMB)
-        self.thumbs.append(np.stack([cv2.resize(g, size, interpolation=cv2.INTER_AREA) for g in grey[::VIEW_EVERY]]))
+        self.thumbs.append(np.stack([cv2.resize(g, size, interpolation=cv2.INTER_AREA)
+                                     for g in grey[::VIEW_EVERY]]))
 
 
 def _check_size(grey: np.ndarray) -> np.ndarray:
@@ -72,8 +73,11 @@ def _check_size(grey: np.ndarray) -> np.ndarray:
 def _frozen(frames: FrameChanges) -> list[np.ndarray]:
     """Per demo, bool per step: the frame repeats while the actions change."""
     scale = change_scale(frames.changes)
-    return [(d[:n] < FROZEN_LEVEL) & ((c[:n] / scale).mean(1) >= STILL)
-            for d, c in zip(frames.deltas, frames.changes) for n in [min(len(d), len(c))]]
+    out = []
+    for d, c in zip(frames.deltas, frames.changes):
+        n = min(len(d), len(c))
+        out.append((d[:n] < FROZEN_LEVEL) & ((c[:n] / scale).mean(1) >= STILL))
+    return out
 
 
 def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
@@ -98,27 +102,31 @@ def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
     return out, reasons
 
 
-def delivered_unlike(frames: FrameChanges, tasks: np.ndarray) -> np.ndarray:
-    """[N] robust z within its task of the share of a demo's thumbnails, but for the repeats of its longest frozen
-    stretch (the frames the camera delivered), unlike its task's demos' at the same step: over ``VIEW_K`` robust
-    SD (at least ``VIEW_FLOOR`` grey levels) from their median there -- the view check's measure, step by step.
-    NaN without thumbnails."""
+def delivered_unlike(frames: FrameChanges, groups: np.ndarray) -> np.ndarray:
+    """[N] robust z within its group (``Evidence.groups``) of the share of a demo's thumbnails, but for the repeats
+    of its longest frozen stretch (the frames the camera delivered), unlike its group's demos' at the same step:
+    over ``VIEW_K`` robust SD (at least ``VIEW_FLOOR`` grey levels) from their median there -- the view check's
+    measure, step by step, one group in memory at a time.  NaN without thumbnails."""
     thumbs = getattr(frames, "thumbs", None)
     if not thumbs:
         return np.full(len(frames.deltas), np.nan)
+    groups = np.asarray(groups)
     steps = max(len(t) for t in thumbs)
-    x = np.full((len(thumbs), steps, STEP_THUMB, STEP_THUMB), np.nan, np.float32)
-    for i, t in enumerate(thumbs):
-        x[i, :len(t)] = t
-    z, _ = task_z(x, tasks, VIEW_FLOOR, VIEW_MIN_DEMOS, small="all")
     share = np.zeros(len(thumbs))
-    for i, frozen in enumerate(_frozen(frames)):
-        start, length = longest_run(frozen)
-        shown = np.arange(len(thumbs[i])) * VIEW_EVERY
-        repeats = (shown > start) & (shown <= start + length)  # frames start + 1 .. start + length repeat frame start
-        seen = z[i, :len(shown)][~repeats]
-        share[i] = float((seen > VIEW_K).mean()) if seen.size else 0.0
-    return calibrated(share, tasks, min_scale=VIEW_MIN_SCALE)
+    frozen = _frozen(frames)
+    for group in np.unique(groups):
+        rows = np.flatnonzero(groups == group)
+        x = np.full((len(rows), steps, STEP_THUMB, STEP_THUMB), np.nan, np.float32)
+        for k, i in enumerate(rows):
+            x[k, :len(thumbs[i])] = thumbs[i]
+        z, _ = task_z(x, np.zeros(len(rows), int), VIEW_FLOOR, 1)
+        for k, i in enumerate(rows):
+            start, length = longest_run(frozen[i])
+            shown = np.arange(len(thumbs[i])) * VIEW_EVERY
+            repeats = (shown > start) & (shown <= start + length)  # frames start + 1 .. start + length: frame start
+            seen = z[k, :len(shown)][~repeats]
+            share[i] = float((seen > VIEW_K).mean()) if seen.size else 0.0
+    return calibrated(share, groups, min_scale=VIEW_MIN_SCALE)
 
 
 def frame_jump(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:

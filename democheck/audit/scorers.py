@@ -132,7 +132,7 @@ def _frame_jump(ev: Evidence) -> Scores:
 
 
 def _lag(ev: Evidence) -> Scores:
-    return dynamics.lag(ev.behaviour["dynamics"], ev.tasks)
+    return dynamics.lag(ev.behaviour["dynamics"], ev.groups)
 
 
 def _frozen_state(ev: Evidence) -> Scores:
