@@ -16,8 +16,9 @@ shift.  An action stream recorded late or early against the states and frames (a
 recorders) is what a policy trained on it learns to be late by; the mean error above barely sees it where
 actions change slowly, since a shifted action is still close to the right one.  Actions recorded at another
 scale also follow the states better shifted (to where they are smaller or larger); where one factor on the
-actions explains the demo at least as well as the best shift, and that factor is ``SCALE_NAMED`` or more off its
-task's demos' (a unit or a gain, not the fit's spread), the reason names the scale, not a delay.
+actions explains the demo at least as well as the best shift (and ``LAG_NAMED`` better than as recorded), and that
+factor is positive and ``SCALE_NAMED`` or more off its task's demos' (a unit or a gain, not the fit's spread; a
+negative one is no scale), the reason names the scale, not a delay.
 
 A demo's action gain, read off the same fit, was measured and not kept (docs/decisions.md, "A demo's action gain:
 measured, not kept").
@@ -221,14 +222,16 @@ def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray,
     for group in np.unique(groups):
         mine = (groups == group) & np.isfinite(out)
         if mine.any():
-            typical[groups == group] = max(float(np.median(factors[mine])), 1e-12)
+            typical[groups == group] = float(np.median(factors[mine]))
     reasons = []
-    for (gain, k, _, scaled), size in zip(fit.lags, factors / typical):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sizes = np.where(typical > 0, factors / typical, np.nan)  # a group whose actions fit backwards has no size
+    for (gain, k, _, scaled), size in zip(fit.lags, sizes):
         if not np.isfinite(gain):
             reasons.append("too short, or a state that never changes")
         elif k == 0:
             reasons.append("its actions go with its states as recorded")
-        elif scaled >= gain and not 1 / SCALE_NAMED < size < SCALE_NAMED:  # a scale, not a delay
+        elif scaled >= max(gain, np.log(LAG_NAMED)) and size > 0 and not 1 / SCALE_NAMED < size < SCALE_NAMED:
             reasons.append(f"the actions are {1 / size:.2g} x the size its states follow, against its task's "
                            f"demos ({np.exp(scaled):.2g} x less error taken so): recorded at another scale")
         else:

@@ -14,8 +14,9 @@ Both read one consumer of the audit's decoding pass (``FrameChanges``) and, with
 
 A picture that stays the same is a camera that stopped or a view the arm left (under a card, say); the view and
 colour checks then read a changed picture either way.  ``delivered_unlike`` tells them apart for the reasons: the
-frames delivered before the picture stopped, each against its task's demos' frames at the same step, are like
-theirs where the camera stopped and unlike where a card covered them all along.  Only a stretch of at least
+frames delivered, and the repeated one, each against its task's demos' frames at the same step, are like theirs
+where the camera stopped and unlike where a card covers the view (from the start, or from where the picture
+stopped).  Only a stretch of at least
 ``STOPPED_SHARE`` of the demo explains the view's and the colours' reading (their average picture is then mostly
 the repeated frame); a shorter one leaves their reading its own.
 """
@@ -103,10 +104,11 @@ def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
 
 
 def delivered_unlike(frames: FrameChanges, groups: np.ndarray) -> np.ndarray:
-    """[N] robust z within its group (``Evidence.groups``) of the share of a demo's thumbnails, but for the repeats
-    of its longest frozen stretch (the frames the camera delivered), unlike its group's demos' at the same step:
-    over ``VIEW_K`` robust SD (at least ``VIEW_FLOOR`` grey levels) from their median there -- the view check's
-    measure, step by step, one group in memory at a time.  NaN without thumbnails."""
+    """[N] robust z within its group (``Evidence.groups``) of the share of a demo's thumbnails unlike its group's
+    demos' at the same step (over ``VIEW_K`` robust SD, at least ``VIEW_FLOOR`` grey levels, from their median
+    there -- the view check's measure, step by step): the larger of the share over the frames before and after
+    its longest frozen stretch and that of the repeated frame itself, so that a card put down where the picture
+    stopped counts.  One group in memory at a time; NaN without thumbnails."""
     thumbs = getattr(frames, "thumbs", None)
     if not thumbs:
         return np.full(len(frames.deltas), np.nan)
@@ -124,8 +126,8 @@ def delivered_unlike(frames: FrameChanges, groups: np.ndarray) -> np.ndarray:
             start, length = longest_run(frozen[i])
             shown = np.arange(len(thumbs[i])) * VIEW_EVERY
             repeats = (shown > start) & (shown <= start + length)  # frames start + 1 .. start + length: frame start
-            seen = z[k, :len(shown)][~repeats]
-            share[i] = float((seen > VIEW_K).mean()) if seen.size else 0.0
+            parts = [z[k, :len(shown)][~repeats], z[k, np.flatnonzero(repeats)[:1]]]  # and the repeated frame, once
+            share[i] = max((float((p > VIEW_K).mean()) for p in parts if p.size), default=0.0)
     return calibrated(share, groups, min_scale=VIEW_MIN_SCALE)
 
 

@@ -371,9 +371,9 @@ def yields(ev: Evidence, combined: ranking.Ranking | None = None, weak: dict[str
     - Where a part of the state held while the arm was driven for longer than the arm ever stood still, the
       sensor is the news, not the arm's rest (a demo that finished and waited).
     - Where the picture stayed the same while the arm moved for at least ``frames.STOPPED_SHARE`` of the demo and
-      the frames delivered were like its task's at the same steps (``frames.delivered_unlike`` under ``VIEW_K``),
-      the camera stopped: the picture the view and colour checks read changed because it stopped.  A card over
-      the view changes the delivered frames too."""
+      the frames delivered and the repeated one were like its task's at the same steps (``frames.delivered_unlike``
+      under ``VIEW_K``), the camera stopped: the picture the view and colour checks read changed because it
+      stopped.  A card over the view shows in those frames."""
     weak = demoted(ev) if weak is None else weak
     out = []
     if "outcome" in ev.named:
