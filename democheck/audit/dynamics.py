@@ -100,10 +100,10 @@ def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | No
         before[0] = 0.0  # the first step has no action before it
         pred = from_state + from_action[np.clip(steps + k, 0, n - 1)] + before
         errors[k] = float(((pred - target) ** 2).mean())
+        if k == 0:
+            part = from_action[:-1] + before  # the actions' part of the prediction, as recorded
     best = min(errors, key=lambda k: (errors[k], abs(k)))
-    before = from_before[np.clip(steps - 1, 0, n - 1)]
-    before[0] = 0.0
-    part, rest = from_action[:-1] + before, target - from_state
+    rest = target - from_state
     factor = float((part * rest).sum() / max(float((part ** 2).sum()), 1e-12))
     scaled = float(((rest - factor * part) ** 2).mean())
     return (float(np.log(max(errors[0], 1e-12) / max(errors[best], 1e-12))), best, factor,

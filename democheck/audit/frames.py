@@ -16,9 +16,8 @@ A picture that stays the same is a camera that stopped or a view the arm left (u
 colour checks then read a changed picture either way.  ``delivered_unlike`` tells them apart for the reasons: the
 frames delivered, and the repeated one, each against its task's demos' frames at the same step, are like theirs
 where the camera stopped and unlike where a card covers the view (from the start, or from where the picture
-stopped).  Only a stretch of at least
-``STOPPED_SHARE`` of the demo explains the view's and the colours' reading (their average picture is then mostly
-the repeated frame); a shorter one leaves their reading its own.
+stopped).  Only a stretch of at least ``STOPPED_SHARE`` of the demo explains the view's and the colours' reading
+(their average picture is then mostly the repeated frame); a shorter one leaves their reading its own.
 """
 
 from __future__ import annotations
@@ -43,9 +42,9 @@ class FrameChanges(PerDemo):
     """Consumer of decoded demos: per step, the mean absolute grey-level change of the camera frame, and
     whether the actions changed (the ``frozen_video`` and ``frame_jump`` checks), and a ``STEP_THUMB`` grey
     thumbnail of every ``VIEW_EVERY``-th frame (``delivered_unlike``; 768 bytes a demo of 120 steps).  Frames
-    larger than ``FRAME_CHECK_SIZE`` on their longer side are first shrunk to it (area averaging): the checks then read the
-    same numbers whether or not a model had the frames decoded at its own size, and a video codec's per-pixel
-    noise, which hides a jump among the steps around it, averages out."""
+    larger than ``FRAME_CHECK_SIZE`` on their longer side are first shrunk to it (area averaging): the checks then
+    read the same numbers whether or not a model had the frames decoded at its own size, and a video codec's
+    per-pixel noise, which hides a jump among the steps around it, averages out."""
 
     fields = ("deltas", "changes", "thumbs")
     deltas: list[np.ndarray]

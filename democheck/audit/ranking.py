@@ -139,6 +139,12 @@ def rank(values: Mapping[str, np.ndarray], groups: np.ndarray, config: RankingCo
     return Ranking(config, log_p, core, np.where(broken, np.inf, suspicion), broken)
 
 
+def beyond_every_clean(log_p: np.ndarray | float, references: int) -> np.ndarray | bool:
+    """Whether a tail probability (its natural log) lies beyond what ``references`` demos believed clean can
+    support: rarer than one in ``references + 1``."""
+    return np.exp(log_p) * (references + 1) < 1
+
+
 def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list[str] | None = None,
             demoted: Mapping[str, np.ndarray] | None = None,
             yields: Iterable[tuple[str, str, np.ndarray]] = ()) -> tuple[list[str], list[str]]:
@@ -187,7 +193,7 @@ def clauses(config: RankingConfig, row: np.ndarray, references: int, demoted: np
     specs = config.specs
     demoted = np.zeros(len(row), bool) if demoted is None else np.asarray(demoted, bool)
     order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(config.reason_p)]
-    beyond = [j for j in order if np.exp(row[j]) * (references + 1) < 1]
+    beyond = [j for j in order if beyond_every_clean(row[j], references)]
 
     def first(among: list[int]) -> int:
         def key(j: int) -> tuple:
@@ -225,6 +231,6 @@ def _odds(log_p: float, references: int) -> str:
     p = float(np.exp(log_p))
     if p >= 0.5:
         return "typical"
-    if p * (references + 1) < 1:
+    if beyond_every_clean(log_p, references):
         return "beyond every clean demo"
     return f"as unusual as 1 clean demo in {float(f'{1 / p:.2g}'):,.0f}"

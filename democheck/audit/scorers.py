@@ -385,7 +385,7 @@ def yields(ev: Evidence, combined: ranking.Ranking | None = None, weak: dict[str
             shakes = (combined.log_p[:, names.index("jerk")] < np.log(combined.config.reason_p)) & ~weak["jerk"]
         out.append(("motion", "outcome", ~shakes))
     if "view" in names and "motion" in weak:
-        seen = combined.log_p[:, names.index("view")] + np.log(combined.core.sum() + 1) < 0  # beyond every clean
+        seen = ranking.beyond_every_clean(combined.log_p[:, names.index("view")], int(combined.core.sum()))
         out.append(("jerk", "outcome", seen & weak["motion"]))
     if "frozen_video" in ev.behaviour and "frozen_video" in ev.scores:
         with np.errstate(invalid="ignore"):
