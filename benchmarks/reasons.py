@@ -1,13 +1,15 @@
-"""Do the reasons say what happened?  Per planted kind, the share of its flagged demos whose reason's first clause
-names the cause in a reviewer's words:
+"""Do the reasons say what happened?  Per planted kind, the share of its flagged demos whose reason leads with the
+finding that names the cause:
 
     python benchmarks/reasons.py AUDIT [--labels LABELS.csv]
 
 AUDIT is a ``democheck audit`` folder; labels come from the table's ``label`` column (synthetic sets) or from a
-csv of ``episode_index,label``.  ``CAUSE`` holds, per kind, the words that name its cause (the arm standing
-still for an idle demo, the view covered for an occluded one, the world left unlike the task's for a wrong
-object...).  Also printed: the median and largest reason length, and whether any reason prints a probability
-under 1e-12, a negative mutual information or a latent dimension.
+csv of ``episode_index,label``.  ``CAUSE`` holds, per kind, the findings (``check`` or ``check:kind``, as the
+table's ``finding`` column names the lead) that name its cause: the arm standing still for an idle demo, the view
+covered for an occluded one, the world left unlike the task's for a wrong object...  Also printed: the median and
+largest reason length, whether any reason prints a probability under 1e-12, a negative mutual information or a
+latent dimension, and how many demos of the reference (believed clean) a reason calls beyond every clean demo
+(none should be).
 """
 
 from __future__ import annotations
@@ -18,25 +20,26 @@ from pathlib import Path
 
 import pandas as pd
 
-STILL = ("stands still", "hardly moves", "moves less")
-FLAIL = ("move more", "shake")
-VIEW = ("view is covered", "colours changed")
-WORLD = ("left the world",)
+STILL = ("idle", "motion:hardly", "motion:less")
+FLAIL = ("motion:more", "motion:flails", "jerk:shakes")
+VIEW = ("view:changed", "colours:changed")
+WORLD = ("outcome",)
 CAUSE = {
     "idle": STILL, "no-action": STILL, "gave-up": STILL + WORLD,
     "random": FLAIL, "jerky": FLAIL, "jittery": FLAIL,
     "occluded": VIEW, "hidden": VIEW, "no-objects": VIEW,
     "wrong-object": WORLD, "both-objects": WORLD, "wrong-task": WORLD,
-    "frozen-camera": ("picture stays the same",), "frozen-state": ("holds one value",),
-    "dead-dim": ("holds one value",), "scaled": FLAIL + ("another scale",), "sensor-nan": ("broken",),
-    "lagged": ("follow its actions best",), "dropped": ("frame jumps",), "nan": ("broken",),
+    "frozen-camera": ("frozen_video",), "frozen-state": ("frozen_state",), "dead-dim": ("frozen_state",),
+    "scaled": FLAIL + ("lag:scale",), "sensor-nan": ("broken",), "lagged": ("lag:delay",),
+    "dropped": ("frame_jump",), "nan": ("broken",),
 }
 TINY = re.compile(r"e-(1[2-9]|[2-9]\d|\d{3,})\b")  # a probability under 1e-12, printed
 LATENT = re.compile(r"(?<!state )dimension \d|widest on|furthest from its task on")  # not a recorded one
 
 
-def first_clause(reason: str) -> str:
-    return str(reason).split("; also ")[0]
+def names_cause(finding: str, cause: tuple[str, ...]) -> bool:
+    """Whether a lead ('check:kind') is one of ``cause`` ('check' for any of its kinds, or 'check:kind')."""
+    return any(finding == c or finding.split(":")[0] == c for c in cause)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -51,18 +54,22 @@ def main(argv: list[str] | None = None) -> dict:
     out = {}
     for kind in sorted(set(labels) - {"clean"}):
         flagged = table[(labels == kind) & table["is_anomaly"]]
-        words = CAUSE.get(kind, ())
-        named = flagged["reason"].map(lambda r: any(w in first_clause(r) for w in words))
-        out[kind] = {"flagged": len(flagged), "first clause names the cause": round(float(named.mean()), 2)
+        cause = CAUSE.get(kind, ())
+        named = flagged["finding"].astype(str).map(lambda f: names_cause(f, cause))
+        out[kind] = {"flagged": len(flagged), "lead names the cause": round(float(named.mean()), 2)
                      if len(flagged) else None}
         if len(flagged) and named.mean() < 1:
-            out[kind]["e.g."] = first_clause(flagged.loc[~named, "reason"].iloc[0])[:150]
+            missed = flagged.loc[~named]
+            out[kind]["leads"] = missed["finding"].value_counts().head(3).to_dict()
+            out[kind]["e.g."] = str(missed["reason"].iloc[0]).split("; also ")[0][:150]
     details = table["details"].astype(str)
     lengths = table["reason"].astype(str).str.len()
     out["reasons"] = {"median characters": int(lengths.median()), "largest": int(lengths.max()),
                       "probability under 1e-12": int(details.map(lambda d: bool(TINY.search(d))).sum()),
                       "negative information": int(details.str.contains(r"information -\d").sum()),
-                      "latent dimension": int(details.str.contains(LATENT).sum())}
+                      "latent dimension": int(details.str.contains(LATENT).sum()),
+                      "reference demos called beyond every clean demo": int(
+                          (table["reference"] & details.str.contains("beyond every clean demo")).sum())}
     for k, v in out.items():
         print(f"{k:14s} {v}")
     return out

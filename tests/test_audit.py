@@ -326,12 +326,14 @@ def test_a_missing_video_file_breaks_its_episodes_and_the_audit_goes_on(tiny_dat
 
 
 def test_runs_of_episodes_read_as_ranges():
+    from democheck.audit.modelfree import BROKEN
     from democheck.audit.run import spans, unreadable_files
 
     assert spans([9, 3, 7, 8, 12, 13]) == "3, 7-9, 12-13" and spans([5]) == "5"
-    reasons = ["", "unreadable frames (v/a.mp4: frame 9 is missing)", "unreadable frames (v/a.mp4: bad packet)",
-               "unreadable frames (v/b.mp4: bad); NaN or infinite values in 'action'"]
-    assert unreadable_files(np.array([0, 10, 11, 12]), reasons) == [
+    found = [BROKEN("intact"), BROKEN("damaged", what="", files=[("v/a.mp4", "frame 9 is missing")]),
+             BROKEN("damaged", what="", files=[("v/a.mp4", "bad packet")]),
+             BROKEN("damaged", what="", files=[("v/b.mp4", "bad")])]
+    assert unreadable_files(np.array([0, 10, 11, 12]), found) == [
         "v/a.mp4 cannot be read (frame 9 is missing): 2 episodes (10-11) flagged as broken recordings",
         "v/b.mp4 cannot be read (bad): 1 episode (12) flagged as broken recordings"]
 
@@ -361,7 +363,8 @@ def test_nan_in_a_lerobot_episode_is_repaired_reported_and_refused_where_nothing
     pq.write_table(table.set_column(table.column_names.index("action"), "action", column), data)
     demo = open_dataset(ds)[2]
     assert np.isfinite(demo.actions).all() and (demo.actions[3:6, 1] == actions[rows[2], 1]).all()
-    assert demo.damaged == [(3, f"NaN or infinite values in 'action' at 3 of {len(rows)} frames, 3-5")]
+    assert [d.what for d in demo.damaged] == [f"NaN or infinite values in 'action' at 3 of {len(rows)} frames, 3-5"]
+    assert demo.damaged[0].frames == 3 and not demo.damaged[0].file
     assert not open_dataset(ds)[1].damaged
     res = runner.invoke(app, ["audit", str(ds), "--out", str(tmp_path / "r"), "--model", str(tiny_model),
                               "--device", "cpu"])

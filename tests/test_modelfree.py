@@ -10,7 +10,7 @@ from scipy import stats
 
 from democheck.audit import dynamics, modelfree
 from democheck.audit.evidence import Evidence
-from democheck.audit.scorers import SCORERS, compute, select
+from democheck.audit.scorers import SCORERS, compute, explanation, select
 from democheck.audit.flagging import conformal_p, flags
 from democheck.audit.scores import combined_log10, robust_tails, sidak_log10, tail_probabilities
 from democheck.data.demo import Demo
@@ -114,8 +114,8 @@ def test_a_broken_recording_is_repaired_to_be_read_ranks_first_and_is_flagged_wh
     assert np.isfinite(state).all() and np.isfinite(actions).all() and set(bad_state) == {17} and set(bad_actions) == {5}
     assert (state[17 * T + 40:17 * T + 45, 2] == clean_state[17 * T + 39, 2]).all()
     assert actions[5 * T, 0] == actions[5 * T + 1, 0]
-    assert bad_state[17] == (5, "NaN or infinite values in 'observation.state' at 5 of 100 frames, 40-44")
-    assert bad_actions[5] == (1, "NaN or infinite values in 'action' at 1 of 100 frames, 0")
+    assert bad_state[17][:2] == (5, "NaN or infinite values in 'observation.state' at 5 of 100 frames, 40-44")
+    assert bad_actions[5][:2] == (1, "NaN or infinite values in 'action' at 1 of 100 frames, 0")
     for i, d in enumerate(demos):
         d.state, d.actions = state[i * T:(i + 1) * T], actions[i * T:(i + 1) * T]
         d.damaged = [found[i] for found in (bad_state, bad_actions) if i in found]
@@ -137,7 +137,9 @@ def test_jerk_and_saturation_rank_first():
     assert specs["jerk"].alone and specs["frozen_state"].alone and not specs["motion"].alone
     assert specs["jerk"].floor == 0.25 and specs["frozen_state"].floor == 0.05
     ev = _evidence(_planted("jerk")[0], ["jerk", "motion", "idle", "suspicion"])
-    assert np.argmax(ev.scores["suspicion"]) == 17 and "(jerk, beyond every clean demo)" in ev.reasons["suspicion"][17]
+    told = explanation(ev)
+    assert np.argmax(ev.scores["suspicion"]) == 17 and told.lead[17] in ("jerk:shakes", "motion:flails")
+    assert "(jerk, beyond every clean demo)" in told.details[17]
     ev = _ranks_first("saturation")
     assert "dimension 0" in ev.reasons["saturation"][17]
 
@@ -359,9 +361,9 @@ def test_model_free_suspicion_without_a_model_ranks_the_still_arm_first():
     ev = _evidence(demos, [n for n, s in SCORERS.items() if s.model_free and s.in_audit])
     assert int(np.argmax(ev.scores["suspicion"])) == bad
     # What happened first, in the check's words; which check and how rare after.
-    assert ev.reasons["suspicion"][bad].startswith(("the arm stands still", "the arm hardly moves",
-                                                    "its actions go with its state less")), ev.reasons["suspicion"][bad]
-    assert re.search(r"\((idle|motion|coupling), beyond every clean demo\)", ev.reasons["suspicion"][bad])
+    told = explanation(ev)
+    assert told.lead[bad] in ("idle:still", "motion:hardly", "coupling:less"), told.details[bad]
+    assert re.search(r"\((idle|motion|coupling), beyond every clean demo\)", told.details[bad])
 
 
 def test_a_normal_tail_keeps_the_rate_on_normal_scores_and_sees_how_far_out_a_demo_is():
@@ -902,9 +904,10 @@ def test_outcome_compares_an_end_with_the_demos_that_started_on_its_side():
         stats.sources.append("environment state")
         stats.names.append(["target.x", "target.y"])
     tasks = np.r_[np.zeros(14, int), np.ones(14, int)]
-    by_side, reasons = outcome.outcome(stats, tasks)
+    by_side, found = outcome.outcome(stats, tasks)
     assert by_side[10:13].max() < 3 < 5 < by_side[13] and by_side[:13].max() < by_side[13]
-    assert "target.y at the end" in reasons[13]
+    assert found[13].kind == "another job" and (found[13].params["name"], found[13].params["part"]) == \
+        ("target.y", "at the end")
     assert by_side[14:26].max() < 3 < 5 < by_side[26:].min()
 
 
@@ -1044,7 +1047,7 @@ def test_a_motion_dimension_one_task_uses_weighs_as_much_as_the_others():
         a = np.column_stack([rng.uniform(0.4, 0.6, (50, 3)), np.full(50, grip)])
         stats_.add(SimpleNamespace(actions=a, task="closes" if i < 10 else "opens"))
         tasks.append(0 if i < 10 else 1)
-    ratio = modelfree.motion_ratio(stats_.finish(), np.array(tasks))
+    ratio = np.array([f.params["ratio"] for f in modelfree.motion(stats_.finish(), np.array(tasks))[1]])
     assert 0.5 < ratio[3] < 0.9, ratio[3]
     assert np.all(np.abs(np.delete(ratio, 3) - 1) < 0.15)
 
@@ -1076,10 +1079,9 @@ def test_actions_recorded_at_another_scale_are_named_a_scale_not_a_delay():
     demos[3].actions[:] *= 3.0
     demos[17].actions[:] = np.concatenate([np.repeat(demos[17].actions[:1], 10, 0), demos[17].actions[:-10]])
     ev = _evidence(demos, ["lag"])
-    scaled, late = ev.reasons["lag"][3], ev.reasons["lag"][17]
-    size = float(re.search(r"the actions are ([\d.]+) x the size its states follow", scaled).group(1))
-    assert size > 2 and "another scale" in scaled and "late" not in scaled, scaled
-    assert "steps late" in late and "scale" not in late, late
+    scaled, late = ev.findings["lag"][3], ev.findings["lag"][17]
+    assert scaled.kind == "scale" and scaled.params["size"] > 2, scaled
+    assert late.kind == "delay" and 9 <= late.params["steps"] <= 11 and late.params["named"], late
 
 
 def test_a_camera_that_stopped_delivers_frames_like_its_tasks_and_a_card_does_not():
@@ -1088,8 +1090,9 @@ def test_a_camera_that_stopped_delivers_frames_like_its_tasks_and_a_card_does_no
     task's at the same steps for the stopped camera, and unlike them for the card; so the view gives the stopped
     camera's reason to the frozen picture and keeps the covered one's."""
     from democheck.audit import frames
-    from democheck.audit.ranking import Ranking, explain
-    from democheck.audit.scorers import ranking_config, yields
+    from democheck.audit.ranking import Ranking
+    from democheck.audit.reasons import explain
+    from democheck.audit.scorers import ranking_config
 
     rng = np.random.default_rng(2)
     demos = [_demo(i, rng, np.stack([_moving_square(int(rng.integers(0, 30)) + t) for t in range(T)]))
@@ -1103,9 +1106,12 @@ def test_a_camera_that_stopped_delivers_frames_like_its_tasks_and_a_card_does_no
     assert min(ev.scores["frozen_video"][[5, 9, 13]]) > 0.5
     z = frames.delivered_unlike(ev.behaviour["frozen_video"], ev.groups)
     assert z[5] < modelfree.VIEW_K < min(z[9], z[13]), z[[5, 9, 13]]
+    kinds = [f.kind for f in ev.findings["frozen_video"]]
+    assert (kinds[5], kinds[9], kinds[13]) == ("stopped camera", "still picture", "still picture")
     config = ranking_config(["frozen_video", "view"])
     log_p = np.zeros((20, 2))
     log_p[[5, 9]] = np.log([1e-20, 1e-3])  # both beyond every clean demo
-    words = {name: [f"{name} words"] * 20 for name in config.names}
-    _, first = explain(Ranking(config, log_p, np.ones(20, bool), np.zeros(20)), words, yields=yields(ev))
-    assert (first[5], first[9]) == ("frozen_video", "view")
+    core = np.ones(20, bool)
+    core[[5, 9]] = False
+    told = explain(Ranking(config, log_p, core, np.zeros(20)), ev.findings, 0.01)
+    assert (told.driven_by[5], told.driven_by[9]) == ("frozen_video", "view")

@@ -136,7 +136,8 @@ def test_the_shapes_benchmark_adds_dimensions_that_change_nothing_of_the_ranking
     reasons = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(reasons)
     said = reasons.main([str(tmp_path / "r-data")])
-    assert said["idle"]["first clause names the cause"] == 1.0 and said["random"]["first clause names the cause"] == 1.0
+    assert said["idle"]["lead names the cause"] == 1.0 and said["random"]["lead names the cause"] == 1.0
+    assert said["reasons"]["reference demos called beyond every clean demo"] == 0
     assert said["reasons"]["latent dimension"] == 0 and said["reasons"]["probability under 1e-12"] == 0
 
 
@@ -196,16 +197,16 @@ def test_a_part_left_short_of_where_its_task_piles_is_a_job_done_in_part_not_far
     for _ in range(40):
         add("kettle", 0.0, 0.2 + rng.normal(0, 0.01))
     add("kettle", 0.2, 0.0)  # opened the slide instead
-    score, reasons = outcome(stats, np.array(tasks))
+    score, found = outcome(stats, np.array(tasks))
     assert score[34:40].max() < 5  # a few tenths short: a few units of the job
     assert score[40] > 5 and score[-1] > 15  # never opened it; the other task opened it
-    assert "slide_cabinet" in reasons[-1]
+    assert "slide_cabinet" in found[-1].params["name"]
 
 
 def test_the_outcome_says_whether_the_world_differed_from_the_start_and_what_never_changed():
     """A demo from another scene (its object elsewhere from the first step, never moved) differs at the start and
     its reason says the part held one value; one that pushed its object elsewhere differs by what it did."""
-    from democheck.audit.outcome import OutcomeStats, compare
+    from democheck.audit.outcome import OutcomeStats, outcome
 
     rng = np.random.default_rng(1)
     stats, tasks = OutcomeStats(), []
@@ -223,7 +224,8 @@ def test_the_outcome_says_whether_the_world_differed_from_the_start_and_what_nev
         add(s, s + 0.2 + rng.normal(0, 0.01))
     add(0.9, 0.9)  # another scene: its object elsewhere, never moved
     add(0.3, 0.8)  # pushed it too far
-    _, reasons, where = compare(stats, np.array(tasks))
-    assert where[30].at_start and not where[31].at_start and where[30].columns == [0]
-    assert "state[0] holds one value through the demo (0.9)" in reasons[30], reasons[30]
-    assert "holds one value" not in reasons[31]
+    _, found = outcome(stats, np.array(tasks))
+    assert found[30].kind == "another scene" and found[31].kind == "another job"
+    assert found[30].params["columns"] == [0] and found[30].params["held"]
+    assert "state[0] holds one value through the demo (0.9)" in found[30].words, found[30].words
+    assert "holds one value" not in found[31].words

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from democheck.audit.findings import Finding, Vocabulary
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -37,7 +38,7 @@ class ActionErrors:
                  batch: int = ACTION_BATCH):
         self.ckpt, self.z, self.device, self.steps, self.batch = ckpt, z, device, steps, batch
         self.out = np.full(len(z), np.nan)
-        self.worst: list[str] = [""] * len(z)
+        self.worst: list[Finding] = [ACTION_ERROR("not read")] * len(z)
         self.pending: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.seen = 0
 
@@ -65,13 +66,20 @@ class ActionErrors:
             self.worst[row] = _peak(per_t, t)
         self.pending.clear()
 
-    def finish(self) -> tuple[np.ndarray, list[str]]:
+    def finish(self) -> tuple[np.ndarray, list[Finding]]:
         if self.pending:
             self._flush()
         return self.out, self.worst
 
 
-def _peak(per_t: np.ndarray, t: np.ndarray) -> str:
+ACTION_ERROR = Vocabulary("action_error", {
+    "otherwise": lambda first, last: "the controller, told the task, does otherwise, most at "
+                                     + (f"timestep {first}" if first == last else f"timesteps {first}-{last}"),
+    "not read": "",
+})
+
+
+def _peak(per_t: np.ndarray, t: np.ndarray) -> Finding:
     """Where a demo's action error peaks: the sampled timesteps around its largest error that stay above half of
     it, e.g. '... most at timesteps 55-70'."""
     i = int(np.argmax(per_t))
@@ -81,8 +89,7 @@ def _peak(per_t: np.ndarray, t: np.ndarray) -> str:
         lo -= 1
     while hi < len(per_t) - 1 and high[hi + 1]:
         hi += 1
-    where = f"timestep {int(t[i])}" if lo == hi else f"timesteps {int(t[lo])}-{int(t[hi])}"
-    return f"the controller, told the task, does otherwise, most at {where}"
+    return ACTION_ERROR("otherwise", first=int(t[lo]), last=int(t[hi]))
 
 
 def action_errors(demos, ckpt: Checkpoint, z: np.ndarray, device: Any, steps: int = ACTION_STEPS,

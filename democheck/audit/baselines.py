@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
 from democheck.audit.scores import rank_order, robust_stats, standardise, task_neighbours
 from democheck.data.demo import Demo
@@ -83,18 +84,22 @@ def random_score(n: int, seed: int = 0) -> np.ndarray:
 
 
 # The registry's score functions (``democheck.audit.scorers``): each reads the audit's evidence and returns one
-# number per demo and a reason per demo (or None).
+# number per demo and a finding per demo (or None).
 
-def score_tecnet_knn(ev) -> tuple[np.ndarray, list[str] | None]:
+HEURISTIC = Vocabulary("heuristic", {"largest": "{feature} |z| {z:.3g}"})
+
+
+def score_tecnet_knn(ev) -> tuple[np.ndarray, list[Finding] | None]:
     return knn_same_task(ev.embedding, ev.tasks), None
 
 
-def score_heuristic(ev) -> tuple[np.ndarray, list[str] | None]:
+def score_heuristic(ev) -> tuple[np.ndarray, list[Finding] | None]:
     z = heuristic_z(ev.behaviour["heuristic"])
-    return z.max(axis=1), [f"{HEURISTIC_FEATURES[int(np.argmax(r))]} |z| {r.max():.3g}" for r in z]
+    return z.max(axis=1), [HEURISTIC("largest", feature=HEURISTIC_FEATURES[int(np.argmax(r))], z=float(r.max()))
+                           for r in z]
 
 
-def score_random(ev) -> tuple[np.ndarray, list[str] | None]:
+def score_random(ev) -> tuple[np.ndarray, list[Finding] | None]:
     # Dealt in ranking order (by suspicion), as benches have always done, so their random rows stay comparable.
     draws = random_score(len(ev.episodes), ev.seed)
     out = np.empty(len(draws))

@@ -11,6 +11,7 @@ import warnings
 
 import numpy as np
 
+from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import VIEW_EVERY, VIEW_MIN_DEMOS, PerDemo, task_z
 from democheck.audit.scores import calibrated
 from democheck.data.demo import Demo
@@ -101,7 +102,16 @@ def colour_name(bin_index: int) -> str:
     return f"{name} ({code})"
 
 
-def colours(stats: ColourStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
+COLOURS = Vocabulary("colours", {
+    "changed": lambda more, colour, share, median, z: (
+        f"the view's colours changed: {'more' if more else 'less'} {colour} than its task's other demos: "
+        f"{_percent(share)} of the view against their median {_percent(median)} ({z:.0f} robust SD)"),
+    "like": "coloured like its task's other demos",
+    "no frames": "no frames to compare",
+})
+
+
+def colours(stats: ColourStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """Robust z within its task of how differently the demo's frames are coloured from its task's other demos'
     (RMS over the colours shown of each colour's robust z, ``colour_z``); the reason names the colour that
     differs most and by how much."""
@@ -116,15 +126,13 @@ def colours(stats: ColourStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str
     reasons = []
     for i in range(len(z)):
         if not np.isfinite(z[i]).any():
-            reasons.append("no frames to compare")
+            reasons.append(COLOURS("no frames"))
             continue
         j = int(np.nanargmax(z[i]))
         if z[i, j] < 1:
-            reasons.append("coloured like its task's other demos")
+            reasons.append(COLOURS("like"))
             continue
         more = shares[i, j] > median[i, j]
-        reasons.append(f"the view's colours changed: {'more' if more else 'less'} {colour_name(j)} than its "
-                       "task's other demos: "
-                       f"{_percent(shares[i, j])} of the view against their median {_percent(median[i, j])} "
-                       f"({z[i, j]:.0f} robust SD)")
+        reasons.append(COLOURS("changed", more=bool(more), colour=colour_name(j), share=float(shares[i, j]),
+                               median=float(median[i, j]), z=float(z[i, j])))
     return calibrated(rms, tasks, min_scale=COLOUR_MIN_SCALE), reasons

@@ -30,6 +30,7 @@ from scipy.spatial import cKDTree
 from scipy.special import digamma
 
 from democheck.audit import words
+from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
 from democheck.data.demo import Demo
 
@@ -86,13 +87,20 @@ def _nats(value: float, median: float) -> str:
     return f"{shown[0]} (its task's median {shown[1]})"
 
 
-def coupling(stats: CouplingStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
+COUPLING = Vocabulary("coupling", {
+    "less": lambda value, median: f"its actions go with its state less than its task's others': state-action "
+                                  f"mutual information {_nats(value, median)}",
+    "as much": lambda value, median: f"its actions go with its state as much as its task's others': state-action "
+                                     f"mutual information {_nats(value, median)}",
+    "nothing to relate": "too short, no state, or actions that never change: nothing to relate",
+})
+
+
+def coupling(stats: CouplingStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """Minus each demo's state-action mutual information (see the module docstring), and a reason that compares it
     with its task's median."""
     info = np.asarray(stats.information, np.float64)
     medians = pd.Series(info).groupby(np.asarray(tasks)).transform("median").to_numpy()
-    reasons = [f"its actions go with its state {'less than' if value < median else 'as much as'} its task's "
-               f"others': state-action mutual information {_nats(value, median)}" if np.isfinite(value)
-               else "too short, no state, or actions that never change: nothing to relate"
-               for value, median in zip(info, medians)]
+    reasons = [COUPLING("less" if value < median else "as much", value=float(value), median=float(median))
+               if np.isfinite(value) else COUPLING("nothing to relate") for value, median in zip(info, medians)]
     return -info, reasons

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo, steps_text
 from democheck.data.demo import Demo
 
@@ -196,22 +197,48 @@ class DynamicsFit(PerDemo):
         return self
 
 
-def dynamics(fit: DynamicsFit) -> tuple[np.ndarray, list[str]]:
+DYNAMICS = Vocabulary("dynamics", {
+    "worse": lambda ratio, start, stop, length: f"the state follows the actions {ratio:.2g} x worse than usual; "
+                                                f"worst over {steps_text(start, stop, length)}",
+    "too short": "too short, or a state that never changes",
+    "no state change": "the state never changes, or too short",
+})
+
+
+def dynamics(fit: DynamicsFit) -> tuple[np.ndarray, list[Finding]]:
     """log(each demo's mean squared error of its block's linear prediction of the change of state / the
     demos' median of that), and the stretch of ``DYNAMICS_WINDOW`` steps it is worst over."""
     errors = np.asarray(fit.errors, np.float64)
     ok = np.isfinite(errors)
     if not ok.any():
-        return np.full(len(errors), np.nan), ["the state never changes, or too short"] * len(errors)
+        return np.full(len(errors), np.nan), [DYNAMICS("no state change")] * len(errors)
     typical = max(float(np.median(errors[ok])), 1e-12)
     out = np.where(ok, np.log(np.maximum(errors, 1e-12) / typical), np.nan)
-    reasons = [f"the state follows the actions {e / typical:.2g} x worse than usual; worst over "
-               + steps_text(start, start + width, n + 1) if good else "too short, or a state that never changes"
-               for e, good, (start, width, n) in zip(errors, ok, fit.worst)]
+    reasons = [DYNAMICS("worse", ratio=float(e / typical), start=start, stop=start + width, length=n + 1) if good
+               else DYNAMICS("too short") for e, good, (start, width, n) in zip(errors, ok, fit.worst)]
     return out, reasons
 
 
-def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
+def _shift(steps: int, gain: float, named: bool) -> str:
+    text = f"{abs(steps)} step{'s' if abs(steps) > 1 else ''}"
+    return (f"its states follow its actions best with the actions {text} {'earlier' if steps > 0 else 'later'} "
+            f"({gain:.2g} x less error)" + (f": the actions were recorded {text} {'late' if steps > 0 else 'early'}"
+                                           if named else ""))
+
+
+LAG = Vocabulary("lag", {
+    # the states follow the actions moved in time: named a recording fault (``named``) only where the shift
+    # explains ``LAG_NAMED`` times more
+    "delay": _shift,
+    # one factor on the actions explains them as well, ``SCALE_NAMED`` or more off its group's
+    "scale": "the actions are {size:.2g} x the size its states follow, against its task's demos ({gain:.2g} x less "
+             "error taken so): recorded at another scale",
+    "as recorded": "its actions go with its states as recorded",
+    "too short": "too short, or a state that never changes",
+})
+
+
+def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray, list[Finding]]:
     """How much better each demo's states follow its actions moved in time (``_lag``; see the module docstring),
     and by how many steps -- or, where one factor on the actions explains it as well and lies ``SCALE_NAMED`` or
     more off the median of its group's (``Evidence.groups``; default one group) demos', at what size."""
@@ -228,17 +255,11 @@ def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray,
         sizes = np.where(typical > 0, factors / typical, np.nan)  # a group whose actions fit backwards has no size
     for (gain, k, _, scaled), size in zip(fit.lags, sizes):
         if not np.isfinite(gain):
-            reasons.append("too short, or a state that never changes")
+            reasons.append(LAG("too short"))
         elif k == 0:
-            reasons.append("its actions go with its states as recorded")
+            reasons.append(LAG("as recorded"))
         elif scaled >= max(gain, np.log(LAG_NAMED)) and size > 0 and not 1 / SCALE_NAMED < size < SCALE_NAMED:
-            reasons.append(f"the actions are {1 / size:.2g} x the size its states follow, against its task's "
-                           f"demos ({np.exp(scaled):.2g} x less error taken so): recorded at another scale")
+            reasons.append(LAG("scale", size=float(1 / size), gain=float(np.exp(scaled))))
         else:
-            steps = f"{abs(k)} step{'s' if abs(k) > 1 else ''}"
-            reasons.append(f"its states follow its actions best with the actions {steps} "
-                           f"{'earlier' if k > 0 else 'later'} ({np.exp(gain):.2g} x less error)"
-                           # Named a recording fault only where the shift explains clearly more.
-                           + (f": the actions were recorded {steps} {'late' if k > 0 else 'early'}"
-                              if gain >= np.log(LAG_NAMED) else ""))
+            reasons.append(LAG("delay", steps=int(k), gain=float(np.exp(gain)), named=bool(gain >= np.log(LAG_NAMED))))
     return out, reasons

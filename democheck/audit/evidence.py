@@ -13,6 +13,7 @@ import pandas as pd
 
 from democheck.audit import modelfree, trust
 from democheck.audit.action_error import controller_z
+from democheck.audit.findings import Finding
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -63,18 +64,17 @@ class Evidence:
     embedding: np.ndarray | None = None  # each demo's cue under the TecNets model
     behaviour: dict[str, Any] = field(default_factory=dict)  # results of the decoding pass, by scorer name
     scores: dict[str, np.ndarray] = field(default_factory=dict)  # computed so far, by scorer name
-    reasons: dict[str, list[str]] = field(default_factory=dict)
-    # Per check, what in the record its words name for each demo (the outcome: its record and columns; the frozen
-    # state: the state dimension).
-    named: dict[str, list[Any]] = field(default_factory=dict)
+    findings: dict[str, list[Finding]] = field(default_factory=dict)  # what each check found, by scorer name
+    reasons: dict[str, list[str]] = field(default_factory=dict)  # the findings' words
     seed: int = 0
     frames: bool = True  # the demos have camera frames (False: a dataset that records no camera, ``NO_CAMERA``)
     # Task uncertainty of cut cues and of the same demos' real ones (``trust``), or how to measure it when needed.
     still: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
     _z: np.ndarray | None = field(default=None, repr=False)
-    # The ranking of each set of ranked scores, and each reason, computed once (``scorers.combination``).
+    # The ranking of each set of ranked scores, and the reasons, computed once (``scorers.combination``,
+    # ``scorers.explanation``).
     rankings: dict[tuple, Any] = field(default_factory=dict, repr=False)
-    explained: dict[bool, tuple[list[str], list[str]]] = field(default_factory=dict, repr=False)
+    explained: dict[tuple, Any] = field(default_factory=dict, repr=False)
 
     def task_variables(self) -> np.ndarray:
         """``controller_z`` of every demo (what its actions are judged under), computed once."""
@@ -114,7 +114,7 @@ class Evidence:
                 "many": len(self.episodes) > 1, "frames": self.frames}[need]
 
 
-Scores = tuple[np.ndarray, list[str] | None]  # one number per demo, and a reason per demo (or None)
+Scores = tuple[np.ndarray, list[Finding] | None]  # one number per demo, and what the check found in it (or None)
 
 
 class DemoConsumer(Protocol):

@@ -25,6 +25,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import (STILL, VIEW_EVERY, VIEW_FLOOR, VIEW_K, VIEW_MIN_SCALE, PerDemo,
                                        change_scale, longest_run, steps_text, task_z)
 from democheck.audit.scores import calibrated
@@ -80,26 +81,47 @@ def _frozen(frames: FrameChanges) -> list[np.ndarray]:
     return out
 
 
-def frozen_video(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
+def _stays(start: int, stop: int, length: int, scattered: int) -> str:
+    # A still picture alone cannot tell a camera that stopped from an arm that left its view: both are named.
+    return (f"the picture stays the same while the actions change over {steps_text(start, stop, length)} (the "
+            "camera stopped, or the arm left its view)" + (f"; {scattered} more repeated frames elsewhere"
+                                                          if scattered else ""))
+
+
+FROZEN_VIDEO = Vocabulary("frozen_video", {
+    # for STOPPED_SHARE of the demo or more, and the frames delivered are like its group's at the same steps
+    # (``delivered_unlike``): the camera stopped, and the view's and colours' reading of a changed picture is that
+    "stopped camera": _stays,
+    "still picture": _stays,  # shorter, or the frames delivered differ too (a card over the view)
+    "changes": "frames change while the arm moves",
+    "single frame": "a single frame",
+})
+
+
+def frozen_video(frames: FrameChanges, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """The longest stretch of steps at which the frame repeats while the actions change, as a share of the demo's
     steps, and where it is: a camera that stopped delivering repeats one frame for a stretch, where a video
     codec's or a still scene's repeated frames are scattered (Meta-World's clean demos, AV1: 14% of their steps,
-    but never two in a row)."""
-    out, reasons = np.zeros(len(frames.deltas)), []
+    but never two in a row).  ``stopped camera`` where the stretch is ``STOPPED_SHARE`` of the demo or more and
+    the frames delivered are like its group's (``delivered_unlike`` under ``VIEW_K``)."""
+    out, found = np.zeros(len(frames.deltas)), []
+    delivered = None
     for i, frozen in enumerate(_frozen(frames)):
         n = len(frozen)
         if not n:
-            reasons.append("a single frame")
+            found.append(FROZEN_VIDEO("single frame"))
             continue
         start, length = longest_run(frozen)
         out[i] = length / n
-        scattered = int(frozen.sum()) - length  # repeats elsewhere, outside the longest stretch
-        # A still picture cannot tell a camera that stopped from an arm that left its view: both are named.
-        reasons.append(f"the picture stays the same while the actions change over "
-                       f"{steps_text(start, start + length, n + 1)} (the camera stopped, or the arm left its view)"
-                       + (f"; {scattered} more repeated frames elsewhere" if scattered else "") if length
-                       else "frames change while the arm moves")
-    return out, reasons
+        if not length:
+            found.append(FROZEN_VIDEO("changes"))
+            continue
+        if out[i] >= STOPPED_SHARE and delivered is None:
+            delivered = delivered_unlike(frames, groups)
+        stopped = out[i] >= STOPPED_SHARE and bool(delivered[i] < VIEW_K)
+        found.append(FROZEN_VIDEO("stopped camera" if stopped else "still picture", start=start,
+                                  stop=start + length, length=n + 1, scattered=int(frozen.sum()) - length))
+    return out, found
 
 
 def delivered_unlike(frames: FrameChanges, groups: np.ndarray) -> np.ndarray:
@@ -130,14 +152,21 @@ def delivered_unlike(frames: FrameChanges, groups: np.ndarray) -> np.ndarray:
     return calibrated(share, groups, min_scale=VIEW_MIN_SCALE)
 
 
-def frame_jump(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
+FRAME_JUMP = Vocabulary("frame_jump", {
+    "jump": "the frame jumps between frames {frame} and {next}: {ratio:.1f} x the change around it ({change:.1f} "
+            "grey levels against {usual:.1f})",
+    "too short": "too short",
+})
+
+
+def frame_jump(frames: FrameChanges) -> tuple[np.ndarray, list[Finding]]:
     """log of the largest ratio of a step's frame change to the median change around it (see the module
     docstring), and the step where it is."""
     out, reasons = np.full(len(frames.deltas), np.nan), []
     k = JUMP_NEIGHBOURS
     for i, d in enumerate(frames.deltas):
         if len(d) < 2:
-            reasons.append("too short")
+            reasons.append(FRAME_JUMP("too short"))
             continue
         padded = np.concatenate([np.full(k, np.nan), np.asarray(d, np.float64), np.full(k, np.nan)])
         window = np.lib.stride_tricks.sliding_window_view(padded, 2 * k + 1)
@@ -146,6 +175,6 @@ def frame_jump(frames: FrameChanges) -> tuple[np.ndarray, list[str]]:
         ratio = d / usual
         at = int(np.argmax(ratio))
         out[i] = float(np.log(max(ratio[at], 1.0)))  # no step changes more than around it: 0 (a still camera)
-        reasons.append(f"the frame jumps between frames {at} and {at + 1}: {ratio[at]:.1f} x the change around it "
-                       f"({d[at]:.1f} grey levels against {usual[at]:.1f})")
+        reasons.append(FRAME_JUMP("jump", frame=at, next=at + 1, ratio=float(ratio[at]), change=float(d[at]),
+                                  usual=float(usual[at])))
     return out, reasons

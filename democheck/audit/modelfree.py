@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.scores import calibrated
 from democheck.data.demo import Demo
 
@@ -99,14 +100,15 @@ class ActionTraces(PerDemo):
     fields = ("actions", "digests", "timing", "damaged")
     actions: list[np.ndarray]
     digests: list[str]
-    timing: list[tuple[float, str]]
-    damaged: list[tuple[float, str]]
+    timing: list[tuple[float, Finding]]
+    damaged: list[tuple[float, str, list[tuple[str, str]]]]  # share, in words, (file, why) of unreadable frames
 
     def add(self, demo: Demo) -> None:
         a = np.asarray(demo.actions, np.float32)
         self.actions.append(a)
-        frames = max((n for n, _ in demo.damaged), default=0)
-        self.damaged.append((frames / max(len(a), 1), "; ".join(what for _, what in demo.damaged)))
+        frames = max((d.frames for d in demo.damaged), default=0)
+        self.damaged.append((frames / max(len(a), 1), "; ".join(d.what for d in demo.damaged),
+                             [(d.file, d.why) for d in demo.damaged if d.file]))
         self.timing.append(_timing_of(demo.extra.get("timestamp"), demo.extra.get("fps")))
         h = hashlib.blake2b(digest_size=16)
         for x in (a, np.asarray(demo.state, np.float32), demo.frames):
@@ -121,61 +123,72 @@ def still_steps(traces: ActionTraces) -> list[np.ndarray]:
     return [(c / scale).mean(1) < STILL if len(c) else np.zeros(0, bool) for c in changes]
 
 
-def idle(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
-    """Share of each demo's steps at which the actions hardly change, and its longest still stretch."""
-    out, reasons = np.zeros(len(traces.actions)), []
+def _still_words(share: float, start: int, stop: int, length: int, longest: float) -> str:
+    return f"the arm stands still at {100 * share:.0f}% of steps, longest {steps_text(start, stop, length)}"
+
+
+IDLE = Vocabulary("idle", {
+    "still": _still_words,  # it stops and stands to the end, or never moves
+    "paused": _still_words,  # it began late or paused, then moved on: how the demo differs, not what went wrong
+    "never still": "never still",
+    "single frame": "a single frame",
+})
+
+
+def idle(traces: ActionTraces) -> tuple[np.ndarray, list[Finding]]:
+    """Share of each demo's steps at which the actions hardly change, and its longest still stretch (``longest``,
+    a share of the steps): ``paused``
+    where the arm stands still for less than half the demo and moves again after that stretch (it began late or
+    paused), else ``still``."""
+    out, found = np.zeros(len(traces.actions)), []
     for i, still in enumerate(still_steps(traces)):
         if not len(still):
-            reasons.append("a single frame")
+            found.append(IDLE("single frame"))
             continue
         out[i] = float(still.mean())
         start, n = longest_run(still)
-        reasons.append(f"the arm stands still at {100 * out[i]:.0f}% of steps, longest "
-                       f"{steps_text(start, start + n, len(still) + 1)}" if n else "never still")
-    return out, reasons
+        if not n:
+            found.append(IDLE("never still"))
+            continue
+        kind = "paused" if start + n < len(still) and out[i] < 0.5 else "still"
+        found.append(IDLE(kind, share=out[i], start=start, stop=start + n, length=len(still) + 1,
+                          longest=n / len(still)))
+    return out, found
 
 
-def longest_still(traces: ActionTraces) -> np.ndarray:
-    """[N] each demo's longest still stretch (``still_steps``) as a share of its steps."""
-    return np.array([longest_run(still)[1] / len(still) if len(still) else 0.0 for still in still_steps(traces)])
+BROKEN = Vocabulary("broken", {"damaged": "{what}", "intact": ""})
 
 
-def paused(traces: ActionTraces) -> np.ndarray:
-    """bool [N]: the arm stands still for less than half the demo and moves again after its longest still stretch
-    -- it began late or paused, which says how the demo differs but not what went wrong (an arm that stopped, or
-    never moved, stands still to the end or throughout)."""
-    out = []
-    for still in still_steps(traces):
-        start, n = longest_run(still)
-        out.append(bool(len(still) and n and start + n < len(still) and still.mean() < 0.5))
-    return np.array(out, bool)
-
-
-def broken(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
+def broken(traces: ActionTraces) -> tuple[np.ndarray, list[Finding]]:
     """The share of the demo's frames that could not be decoded (the reader gave black frames instead) or whose
     state or actions held NaN or infinite values (repaired by ``data.demo.repair_non_finite``), the most damaged
     of these, and where: the readers make every demo readable so that every check can run.  A recording that is
     broken so ranks first whatever its other scores, is flagged, and is no reference for the others
-    (``scorers.broken_rows``, ``flagging.flagged_regardless``)."""
-    return np.array([share for share, _ in traces.damaged], np.float64), [what for _, what in traces.damaged]
+    (``scorers.broken_rows``, ``flagging.flagged_regardless``).  A damaged demo's finding names the files whose
+    frames could not be read (``files``)."""
+    found = [BROKEN("damaged", what=what, files=files) if share > 0 else BROKEN("intact")
+             for share, what, files in traces.damaged]
+    return np.array([share for share, _, _ in traces.damaged], np.float64), found
 
 
 JUMP_STEPS = 3  # a demo's jerk is one jump when its largest this many steps hold
 JUMP_SHARE = 0.5  # ... this share of it: an arm stopped (or started) at once, not a shaking command
 
 
-def jerk(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
+JERK = Vocabulary("jerk", {
+    "shakes": "the actions shake, most at frame {frame}",
+    "jumps": "the actions jump at frame {frame}",  # one jump: an arm stopped or started at once
+    "too short": "too short",
+})
+
+
+def jerk(traces: ActionTraces) -> tuple[np.ndarray, list[Finding]]:
     """log mean |third difference of actions| in median-change units, and where it is largest: the actions shake,
-    or jump once (``jerk_jumps``)."""
+    or jump once (``JUMP_SHARE`` of it in ``JUMP_STEPS`` steps)."""
     out, peak, jumps = _jerk_parts(traces)
-    reasons = ["too short" if k < 0 else f"the actions jump at frame {k}" if j else
-               f"the actions shake, most at frame {k}" for k, j in zip(peak, jumps)]
-    return out, reasons
-
-
-def jerk_jumps(traces: ActionTraces) -> np.ndarray:
-    """[N] bool: the demo's jerk is one jump (``JUMP_SHARE`` of it in ``JUMP_STEPS`` steps), not shaking."""
-    return _jerk_parts(traces)[2]
+    found = [JERK("too short") if k < 0 else JERK("jumps" if j else "shakes", frame=int(k))
+             for k, j in zip(peak, jumps)]
+    return out, found
 
 
 def _jerk_parts(traces: ActionTraces) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -193,7 +206,13 @@ def _jerk_parts(traces: ActionTraces) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return out, peak, jumps
 
 
-def saturation(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
+SATURATION = Vocabulary("saturation", {
+    "at a limit": lambda share, dims: f"{100 * share:.0f}% of steps at a limit"
+    + (f" (dimension {', '.join(map(str, dims[:3]))})" if len(dims) else ""),
+})
+
+
+def saturation(traces: ActionTraces) -> tuple[np.ndarray, list[Finding]]:
     """Share of steps at which some action dimension sits at its limit over all the demos."""
     if not traces.actions:
         return np.zeros(0), []
@@ -206,16 +225,22 @@ def saturation(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
         hit = at.any(1) if at.size else np.zeros(len(a), bool)
         out[i] = float(hit.mean()) if len(a) else 0.0
         dims = np.flatnonzero(moving)[at.any(0)] if at.size else []
-        reasons.append(f"{100 * out[i]:.0f}% of steps at a limit" + (f" (dimension {', '.join(map(str, dims[:3]))})"
-                                                                    if len(dims) else ""))
+        reasons.append(SATURATION("at a limit", share=out[i], dims=[int(d) for d in dims]))
     return out, reasons
 
 
-def duplicate(traces: ActionTraces, episode_index: np.ndarray) -> tuple[np.ndarray, list[str]]:
+DUPLICATE = Vocabulary("duplicate", {
+    "exact copy": "an exact copy of episode {episode} (actions, state and frames)",
+    "nearest": "nearest episode {episode}, {ratio:.2g} x the usual distance",
+    "alone": "",
+})
+
+
+def duplicate(traces: ActionTraces, episode_index: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """How much nearer than usual the demo's nearest other demo is (log ratio), and which demo that is; an exact
     copy of another demo scores ``inf``."""
     n = len(traces.actions)
-    out, reasons = np.full(n, np.nan), [""] * n
+    out, reasons = np.full(n, np.nan), [DUPLICATE("alone")] * n
     if n < 2:
         return out, reasons
     dims = traces.actions[0].shape[1]
@@ -240,37 +265,52 @@ def duplicate(traces: ActionTraces, episode_index: np.ndarray) -> tuple[np.ndarr
         j = first.setdefault(digest, i)
         if j != i:
             out[i] = np.inf
-            reasons[i] = f"an exact copy of episode {int(episode_index[j])} (actions, state and frames)"
+            reasons[i] = DUPLICATE("exact copy", episode=int(episode_index[j]))
         else:
-            reasons[i] = (f"nearest episode {int(episode_index[other[i]])}, {near[i] / max(typical, 1e-12):.2g} x the "
-                          "usual distance")
+            reasons[i] = DUPLICATE("nearest", episode=int(episode_index[other[i]]),
+                                   ratio=float(near[i] / max(typical, 1e-12)))
     return out, reasons
 
 
-def _timing_of(t: np.ndarray | None, fps: float | None) -> tuple[float, str]:
+def _off_period(share: float, period: float, first: int, first_dt: float, worst: int, worst_dt: float,
+                back: int | None) -> str:
+    return (f"{100 * share:.0f}% of time steps off the frame period ({period:.3g} s), first at frame {first}: "
+            f"{first_dt:.3g} s; the worst at frame {worst}: {worst_dt:.3g} s"
+            + (f"; time stands still or goes back at frame {back}" if back is not None else ""))
+
+
+TIMING = Vocabulary("timing", {
+    "off the period": _off_period,
+    "regular": "regular time steps",
+    "no timestamps": "no timestamps",
+    "timestamps missing": "timestamps missing at some frames",
+    "single frame": "a single frame",
+})
+
+
+def _timing_of(t: np.ndarray | None, fps: float | None) -> tuple[float, Finding]:
     """``timing`` of one demo: how far its worst time step is off the frame period (see the module docstring)."""
     if t is None or not fps:
-        return np.nan, "no timestamps"
+        return np.nan, TIMING("no timestamps")
     if not np.isfinite(t).all():
-        return np.nan, "timestamps missing at some frames"
+        return np.nan, TIMING("timestamps missing")
     if len(t) < 2:
-        return 0.0, "a single frame"
+        return 0.0, TIMING("single frame")
     period = 1.0 / float(fps)
     dt = np.diff(np.asarray(t, np.float64))
     # A step that stands still or goes back is at least a period off, however small |dt - period| is.
     error = np.where(dt > 0, np.abs(dt - period), period + np.abs(dt)) / period
     off = error > TIMING_TOLERANCE
     if not off.any():
-        return 0.0, "regular time steps"
+        return 0.0, TIMING("regular")
     first, worst = int(np.argmax(off)), int(np.argmax(error))
     back = np.flatnonzero(dt <= 0)
-    return float(np.log1p(error[worst])), (
-        f"{100 * off.mean():.0f}% of time steps off the frame period ({period:.3g} s), first at frame {first + 1}: "
-        f"{dt[first]:.3g} s; the worst at frame {worst + 1}: {dt[worst]:.3g} s"
-        + (f"; time stands still or goes back at frame {int(back[0]) + 1}" if len(back) else ""))
+    return float(np.log1p(error[worst])), TIMING(
+        "off the period", share=float(off.mean()), period=period, first=first + 1, first_dt=float(dt[first]),
+        worst=worst + 1, worst_dt=float(dt[worst]), back=int(back[0]) + 1 if len(back) else None)
 
 
-def timing(traces: ActionTraces) -> tuple[np.ndarray, list[str]]:
+def timing(traces: ActionTraces) -> tuple[np.ndarray, list[Finding]]:
     """How far each demo's worst time step is off the frame period (see the module docstring), and where."""
     return np.array([v for v, _ in traces.timing], np.float64), [r for _, r in traces.timing]
 
@@ -322,23 +362,27 @@ MOTION_FEATURES = ("mean |action|", "mean |change of action|")
 HARDLY_MOVES = 0.2  # under this share of its task's median motion, a reason says the arm hardly moves
 
 
-def _moves(ratio: float) -> str:
+MOTION = Vocabulary("motion", {
+    "hardly": "the arm hardly moves: {feature} {ratio:.2g} x its task's median",
+    # within a factor 1 / HARDLY_MOVES of its task's median: another task, or a careful or hurried operator
+    "less": "the arm moves less than its task's demos: {feature} {ratio:.2g} x its task's median",
+    "more": "the actions move more than its task's demos: {feature} {ratio:.2g} x its task's median",
+    "flails": "the actions move more than its task's demos: {feature} {ratio:.2g} x its task's median",
+})
+
+
+def _motion_kind(ratio: float) -> str:
     """What a demo's motion, as a multiple of its task's median, says of the arm."""
     if ratio < HARDLY_MOVES:
-        return "the arm hardly moves"
-    return "the arm moves less than its task's demos" if ratio < 1 else "the actions move more than its task's demos"
+        return "hardly"
+    return "less" if ratio < 1 else "more" if ratio <= 1 / HARDLY_MOVES else "flails"
 
 
-def motion(features: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
+def motion(features: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """The larger robust |z| within its task of a demo's two ``MotionStats`` features on a log scale, and which."""
     z, pick, ratio = _motion_parts(features, tasks)
-    reasons = [f"{_moves(r)}: {MOTION_FEATURES[j]} {r:.2g} x its task's median" for j, r in zip(pick, ratio)]
-    return z, reasons
-
-
-def motion_ratio(features: np.ndarray, tasks: np.ndarray) -> np.ndarray:
-    """[N]: the ``MotionStats`` feature ``motion`` names, as a multiple of its task's median."""
-    return _motion_parts(features, tasks)[2]
+    found = [MOTION(_motion_kind(r), feature=MOTION_FEATURES[j], ratio=float(r)) for j, r in zip(pick, ratio)]
+    return z, found
 
 
 def _motion_parts(features: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -418,7 +462,14 @@ def view_unlike(thumbs: np.ndarray, tasks: np.ndarray, k: float = VIEW_K, floor:
     return z.max(axis=-1) > k
 
 
-def view(thumbs: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
+VIEW = Vocabulary("view", {
+    "changed": lambda share, place: f"the view is covered or changed: {100 * share:.0f}% of it unlike its task's "
+                                    f"other demos' (mostly {place})",
+    "like": "the view is like its task's other demos'",
+})
+
+
+def view(thumbs: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """Robust z within its task of the share of a demo's average picture that is unlike its task's other demos'
     (``view_unlike``): a covered, moved or blinded camera, or another scene.  The reason says where in the view."""
     unlike = view_unlike(thumbs, tasks)
@@ -427,12 +478,11 @@ def view(thumbs: np.ndarray, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
     reasons = []
     for u, f in zip(unlike, share):
         if not u.any():
-            reasons.append("the view is like its task's other demos'")
+            reasons.append(VIEW("like"))
             continue
         rows, cols = np.nonzero(u)
         where = [_PLACES[0][min(int(3 * rows.mean() / u.shape[0]), 2)],
                  _PLACES[1][min(int(3 * cols.mean() / u.shape[1]), 2)]]
         place = "the centre" if where == ["middle", "centre"] else f"the {' '.join(where)}"
-        reasons.append(f"the view is covered or changed: {100 * f:.0f}% of it unlike its task's other demos' "
-                       f"(mostly {place})")
+        reasons.append(VIEW("changed", share=float(f), place=place))
     return z, reasons

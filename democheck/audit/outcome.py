@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from democheck.audit import words
+from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
 from democheck.data.demo import Demo
 
@@ -260,29 +261,46 @@ def task_floors(feature: Feature, moves: np.ndarray, tasks: np.ndarray) -> np.nd
     return np.where(rng >= floors, floors, 0.0)
 
 
-@dataclass
-class Differs:
-    """Where a demo's world differs most from its task's: the record (``"state"`` or ``"environment state"``), the
-    columns of the feature, and whether the feature already differed at the demo's first step (by ``ALREADY`` of
-    the difference or more: another scene, not what the demo did to it)."""
+def _world_words(name: str, form: str, part: str, value: float, ref: float, z: float, **_) -> str:
+    """The words for the feature that differs most (``form``: value, rotation or angle): what it read at the end
+    or how it changed, against its task's demos."""
+    if form == "rotation":
+        what = f"{name} at the end" if part == "at the end" else f"how {name} changed"
+        return f"left the world unlike its task's other demos: {what} differs from theirs ({_robust_sd_text(z)})"
+    what = f"{name} at the end" if part == "at the end" else f"the change of {name}"
+    if form == "angle":
+        what += " (cosine and sine)"
+    value_text, ref_text = words.pair(value, ref, 3)
+    return (f"left the world unlike its task's other demos: {what} {value_text} where its task's demos reach "
+            f"{ref_text} ({_robust_sd_text(z)})")
 
-    source: str
-    columns: list[int]
-    at_start: bool
+
+def _held_words(name: str, part: str, value: float, ref: float, z: float, **_) -> str:
+    """The demo's record of the feature never changed (a part it never moved, or a sensor that read one value)."""
+    value_text, ref_text = words.pair(value, ref, 3)
+    theirs = f"reach {ref_text}" if part == "at the end" else f"change it by {ref_text}"
+    return (f"left the world unlike its task's other demos: {name} holds one value through the demo "
+            f"({value_text}) where its task's demos {theirs} ({_robust_sd_text(z)})")
 
 
-def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str]]:
+OUTCOME = Vocabulary("outcome", {
+    "another job": _world_words,  # the world the demo left differs from its task's: the wrong object, a job half done
+    "held": _held_words,  # the part that differs most never changed in the demo
+    # the part that differs most already differed, by ``ALREADY`` of the difference or more, at the first step:
+    # another scene, not what the demo did to it
+    "another scene": lambda held, **p: (_held_words if held else _world_words)(**p),
+    "too few demos": "no task of enough demos to compare with",
+    "nothing moves": "no part of the {source} moves in any demo",
+    "not recorded": "no {source} recorded",
+})
+
+
+def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """How differently from its task's other demos each demo left the world (see the module docstring), and the
-    feature that differs most, in words."""
-    out, reasons, _ = compare(stats, tasks)
-    return out, reasons
-
-
-def compare(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[str], list[Differs]]:
-    """``outcome``'s scores and words, and where each demo differs most (``Differs``)."""
+    feature that differs most (its record, ``source``; its ``columns``): ``another scene`` where that feature
+    already differed at the demo's first step, ``held`` where the demo never changed it, else ``another job``."""
     n = len(stats.ends)
-    out, reasons = np.full(n, np.nan), ["no task of enough demos to compare with"] * n
-    where = [Differs("", [], False)] * n
+    out, found = np.full(n, np.nan), [OUTCOME("too few demos")] * n
     tasks = np.asarray(tasks)
     for source in sorted(set(stats.sources)):
         rows = np.flatnonzero(np.asarray(stats.sources) == source)
@@ -313,7 +331,7 @@ def compare(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[st
                 held.append((moves[:, 0, f.columns] == 0).all(axis=1) & (f.kind == "value"))
         if not z_cols:
             for i in rows:
-                reasons[i] = f"no part of the {source} moves in any demo"
+                found[i] = OUTCOME("nothing moves", source=source)
             continue
         z = np.column_stack(z_cols)
         with warnings.catch_warnings():
@@ -322,36 +340,23 @@ def compare(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[st
         for k, i in enumerate(rows):
             if not np.isfinite(z[k]).any():
                 if not np.isfinite(last[k]).any():
-                    reasons[i] = f"no {source} recorded"
+                    found[i] = OUTCOME("not recorded", source=source)
                 continue
             j = int(np.nanargmax(z[k]))
-            reasons[i] = _reason(*what[j], values[j][k], refs[j][k], z[k, j], bool(held[j][k]))
-            where[i] = Differs(source, list(what[j][0].columns), bool(before[j][k] >= ALREADY * z[k, j]))
-    return out, reasons, where
+            feature, part = what[j]
+            still = bool(held[j][k])
+            params = dict(name=feature.name, form=feature.kind, part=part, value=float(values[j][k]),
+                          ref=float(refs[j][k]), z=float(z[k, j]), source=source, columns=list(feature.columns))
+            if before[j][k] >= ALREADY * z[k, j]:
+                found[i] = OUTCOME("another scene", held=still, **params)
+            else:
+                found[i] = OUTCOME("held" if still else "another job", **params)
+    return out, found
 
 
 def _robust_sd_text(z: float) -> str:
     """A distance in robust SD as a reader takes it: past 100 the number says no more than 'far'."""
     return f"{z:.2g} robust SD" if z < 100 else "over 100 robust SD"
-
-
-def _reason(feature: Feature, part: str, value: float, ref: float, z: float, held: bool = False) -> str:
-    """The words for the feature that differs most; ``held``: the demo's record of it never changed (a part it
-    never moved, or a sensor that read one value)."""
-    if held:
-        value_text, ref_text = words.pair(value, ref, 3)
-        theirs = f"reach {ref_text}" if part == "at the end" else f"change it by {ref_text}"
-        return (f"left the world unlike its task's other demos: {feature.name} holds one value through the demo "
-                f"({value_text}) where its task's demos {theirs} ({_robust_sd_text(z)})")
-    if feature.kind == "rotation":
-        what = f"{feature.name} at the end" if part == "at the end" else f"how {feature.name} changed"
-        return f"left the world unlike its task's other demos: {what} differs from theirs ({_robust_sd_text(z)})"
-    what = f"{feature.name} at the end" if part == "at the end" else f"the change of {feature.name}"
-    if feature.kind == "angle":
-        what += " (cosine and sine)"
-    value_text, ref_text = words.pair(value, ref, 3)
-    return (f"left the world unlike its task's other demos: {what} {value_text} where its task's demos reach "
-            f"{ref_text} ({_robust_sd_text(z)})")
 
 
 def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor: float,

@@ -3,19 +3,19 @@
 
 Each score in robust standard deviations within the group its demo is judged in (``ranking_z``), a tail
 probability fitted on the audited demos' robust core, and those combined (Fisher-Brown, the recording faults
-beside the rest, the scores of one look merged -- ``scores`` holds the arithmetic): ``rank``.  ``explain`` turns a
-``Ranking`` and the checks' own words into reasons.  The registry (``democheck.audit.scorers``) builds the config
-from its scorers (``scorers.ranking_config``); this module knows no check by name.
+beside the rest, the scores of one look merged -- ``scores`` holds the arithmetic): ``rank``.  The config also
+holds which finding leads a reason (``Precedence``), which ``democheck.audit.reasons`` reads.  The registry
+(``democheck.audit.scorers``) builds the config from the ranking recipe; this module knows no check by name.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
 
-from democheck.audit.flagging import DEFAULT_FPR, conformal_p
+from democheck.audit.flagging import conformal_p
 from democheck.audit.scores import calibrated, combined_log10, merge_looks, robust_tails
 
 
@@ -30,20 +30,51 @@ class ScoreSpec:
     tail: str = "exponential"  # the family of its clean right tail: "exponential" or "normal"
     alone: bool = False  # a recording fault: beside the others' sum, by its Sidak minimum
     look: str = ""  # scores of one look (one piece of evidence) are merged first; "" = its own look
-    lead: int = 0  # where its words stand in a reason beyond every clean demo: lower leads
-    behaviour: bool = False  # its words say what the demo did (the arm, the world it left, what the camera saw)
+    lead: int = 0  # where its finding stands in a reason's precedence (``Precedence.order``): lower leads
+
+
+@dataclass(frozen=True)
+class Rule:
+    """An exception to the precedence's order: where the lead would be ``over`` (each 'check' or 'check:kind')
+    and ``first`` is rare too, ``first`` leads -- where every finding of ``when`` is rare too and none of
+    ``unless`` is named in the reason (a rule applies on clear evidence; any evidence against it stops it)."""
+
+    first: str
+    over: tuple[str, ...]
+    when: tuple[str, ...] = ()
+    unless: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Precedence:
+    """Which finding leads a reason, as data (the ranking recipe's ``[reasons]``): the checks in the order a
+    reason names them of equally strong evidence (``order``; the others after, recording faults first, the
+    model's readings last: ``ScoreSpec.lead``), the kinds that say how a demo differs but not what went wrong
+    (``demoted``: they lead only where no other finding is rare), the exceptions (``rules``) and the checks whose
+    findings say what the demo did (``behaviour``: where the lead is a reading, one of these leads instead)."""
+
+    order: tuple[str, ...] = ()
+    demoted: tuple[str, ...] = ()
+    rules: tuple[Rule, ...] = ()
+    behaviour: tuple[str, ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> Precedence:
+        return cls(**{k: tuple(Rule(**{**r, **{f: tuple(r.get(f, ())) for f in ("over", "when", "unless")}})
+                               for r in v) if k == "rules" else tuple(v) for k, v in d.items()})
 
 
 @dataclass(frozen=True)
 class RankingConfig:
-    """Every ranked score's ``ScoreSpec`` and the settings of the combination, as data (``summary.json`` records
-    it; ``benchmarks/ranking`` varies it)."""
+    """Every ranked score's ``ScoreSpec``, the settings of the combination and the reasons' ``Precedence``, as
+    data (``summary.json`` records it; ``benchmarks/ranking`` varies it)."""
 
     specs: tuple[ScoreSpec, ...]
     # A demo whose combined probability is at most this leaves the robust core: higher leaves clean demos out of
     # the core (and so flagged); lower keeps weakly seen bad demos in, where they take the flags' budget.
     core_p: float
     reason_p: float  # a score this surprising (tail probability) is named in a reason beside the first
+    precedence: Precedence = Precedence()
 
     @property
     def names(self) -> list[str]:
@@ -65,7 +96,11 @@ class RankingConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping) -> RankingConfig:
-        return cls(**{**d, "specs": tuple(ScoreSpec(**s) for s in d.get("specs", ()))})
+        """The config ``to_dict`` wrote; keys a spec no longer has (an older audit's) are left out."""
+        keys = {f.name for f in fields(ScoreSpec)}
+        return cls(**{**d, "specs": tuple(ScoreSpec(**{k: v for k, v in s.items() if k in keys})
+                                          for s in d.get("specs", ())),
+                      "precedence": Precedence.from_dict(d.get("precedence", {}))})
 
 
 @dataclass
@@ -98,12 +133,13 @@ class Ranking:
 
     def per_check(self, fpr: float) -> dict[str, np.ndarray]:
         """``p_<name>``: each ranked score's tail probability, comparable across scores; ``is_<name>``: whether
-        that score alone puts the demo among the ``fpr`` most surprising of the core (conformal, as the flag)."""
+        that score alone puts the demo among the ``fpr`` most surprising of the core (conformal, as the flag, on
+        -log10 of the probability, the suspicion's scale)."""
         out = {}
         for k, name in enumerate(self.config.names):
             lp = self.log_p[:, k]
             out[f"p_{name}"] = np.exp(lp)
-            surprise = np.where(np.isnan(lp), -np.inf, -lp)
+            surprise = np.where(np.isnan(lp), -np.inf, -lp / np.log(10.0))
             out[f"is_{name}"] = ~np.isnan(lp) & (conformal_p(surprise, self.core) <= fpr)
         return out
 
@@ -137,100 +173,3 @@ def rank(values: Mapping[str, np.ndarray], groups: np.ndarray, config: RankingCo
                                alone=alone, outside=broken, looks=looks)
     suspicion = -combined_log10(log_p, alone, looks)
     return Ranking(config, log_p, core, np.where(broken, np.inf, suspicion), broken)
-
-
-def beyond_every_clean(log_p: np.ndarray | float, references: int) -> np.ndarray | bool:
-    """Whether a tail probability (its natural log) lies beyond what ``references`` demos believed clean can
-    support: rarer than one in ``references + 1``."""
-    return np.exp(log_p) * (references + 1) < 1
-
-
-def explain(ranking: Ranking, words: Mapping[str, list[str]], broken_words: list[str] | None = None,
-            demoted: Mapping[str, np.ndarray] | None = None,
-            yields: Iterable[tuple[str, str, np.ndarray]] = ()) -> tuple[list[str], list[str]]:
-    """Each demo's reason and the check it names first: what the checks saw in their own ``words`` (by name, one
-    per demo), in the order ``clauses`` gives, each with which check and how rare; a broken recording's
-    ``broken_words``.  ``demoted`` (by name, bool per demo): where a check's words say how the demo differs but
-    not what went wrong, so that they lead a reason only where nothing else can.  ``yields`` ((check, other, bool
-    per demo), the first that holds counts): where a check gives the lead to the other when both are beyond every
-    clean demo."""
-    names, n = ranking.config.names, len(ranking.suspicion)
-    references = int(np.asarray(ranking.core, bool).sum())
-    weak = np.column_stack([np.asarray((demoted or {}).get(k, np.zeros(n, bool)), bool) for k in names]
-                           ) if names else np.zeros((n, 0), bool)
-    after = [(names.index(a), names.index(b), np.asarray(mask, bool)) for a, b, mask in yields
-             if a in names and b in names]
-    reasons, first = [], []
-    for i, row in enumerate(np.nan_to_num(ranking.look_odds(), nan=0.0)):  # no score: nothing to name
-        if ranking.broken.size and ranking.broken[i]:
-            reasons.append(f"broken: {(broken_words or [''] * n)[i]}")
-            first.append("broken")
-            continue
-        order = clauses(ranking.config, row, references, weak[i], [(a, b) for a, b, mask in after if mask[i]])
-        parts = []
-        for j in order:  # what the check saw in its own words first, then which check and how rare
-            own = (words.get(names[j]) or [""] * n)[i]
-            odds = _odds(float(row[j]), references)
-            parts.append(f"{own} ({names[j]}, {odds})" if own else f"{names[j]}: {odds}")
-        reasons.append("; also ".join(parts))
-        first.append(names[order[0]] if order else "")
-    return reasons, first
-
-
-def clauses(config: RankingConfig, row: np.ndarray, references: int, demoted: np.ndarray | None = None,
-            yields: list[tuple[int, int]] = ()) -> list[int]:
-    """The looks a demo's reason names (``row``: their log tail probabilities), in the order it names them: up to
-    three, the smallest probability and those under ``reason_p``.  First, of those beyond every clean demo (or the
-    smallest alone), the one whose spec leads (what the demo did before how it was recorded before the model's
-    reading of it -- a reviewer acts on the behaviour; a ``demoted`` one only where no other is beyond); where
-    that is a reading (neither behaviour nor a recording fault), a behaviour under ``reason_p`` leads instead: by
-    its spec's order among those beyond every clean demo, else among those that would flag the demo alone
-    (``DEFAULT_FPR``), else the rarest -- a look barely under ``reason_p`` does not lead one that is clearly
-    unusual; a look that ``yields`` to another (pairs of columns) where both are beyond gives it the lead.  Then
-    by probability."""
-    if not len(row):
-        return []
-    specs = config.specs
-    demoted = np.zeros(len(row), bool) if demoted is None else np.asarray(demoted, bool)
-    order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(config.reason_p)]
-    beyond = [j for j in order if beyond_every_clean(row[j], references)]
-
-    def first(among: list[int]) -> int:
-        def key(j: int) -> tuple:
-            tier = 0 if j in beyond else 1 if row[j] <= np.log(DEFAULT_FPR) else 2
-            return tier, specs[j].lead if tier < 2 else 0, row[j]
-
-        return min([j for j in among if not demoted[j]] or among, key=key)
-
-    lead = first(beyond or order[:1])
-    lead = next((b for a, b in yields if a == lead and b in beyond), lead)
-    if not (specs[lead].behaviour or specs[lead].alone):  # a reading (the coupling, the model): what the demo did
-        plain = [j for j in order if specs[j].behaviour]
-        lead = first(plain) if plain else lead
-    return [lead, *[j for j in order if j != lead]][:3]
-
-
-REASON_CHARS = 160  # a reason keeps the driving check's clause and adds the others' while it stays this short
-
-
-def brief(reason: str) -> str:
-    """A reason as the table's ``reason`` holds it: the driving check's clause whole, then the others' while the
-    whole stays within ``REASON_CHARS`` (all of them are in ``details``)."""
-    parts = str(reason).split("; also ")
-    out = parts[0]
-    for part in parts[1:]:
-        if len(out) + len("; also ") + len(part) > REASON_CHARS:
-            break
-        out += "; also " + part
-    return out
-
-
-def _odds(log_p: float, references: int) -> str:
-    """'as unusual as 1 clean demo in 3,400' for a tail probability (given as its natural log), to two
-    significant figures; past what ``references`` demos believed clean can support, 'beyond every clean demo'."""
-    p = float(np.exp(log_p))
-    if p >= 0.5:
-        return "typical"
-    if beyond_every_clean(log_p, references):
-        return "beyond every clean demo"
-    return f"as unusual as 1 clean demo in {float(f'{1 / p:.2g}'):,.0f}"

@@ -11,7 +11,6 @@ run, its table and its summary read the same evidence, and stay together.
 from __future__ import annotations
 
 import functools
-import re
 
 import time
 from pathlib import Path
@@ -21,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from democheck import pool
-from democheck.audit import ranking, scorers as registry, shards, trust
+from democheck.audit import reasons, scorers as registry, shards, trust
 from democheck.audit.evidence import GROUP_MIN_DEMOS, Evidence, Scorer, small_tasks
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.flagging import (DEFAULT_FPR, broken_recordings, conformal_p, exact_copies, expected_false_flags,
@@ -198,19 +197,15 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
     ranked = registry.combination(ev) if "suspicion" in ev.scores else None
     table["reference"] = ranked.core if ranked is not None else np.zeros(len(table), bool)
     table["p_reference"] = conformal_p(suspicion, table["reference"].to_numpy())
-    table["details"] = ev.reasons.get("suspicion", [""] * len(table))
-    table["driven_by"] = (registry.explanation(ev)[1] if ranked is not None and ranked.config.specs
-                          else [""] * len(table))
+    told = registry.explanation(ev, fpr) if ranked is not None else None
+    table["details"] = told.details if told else ""
+    table["driven_by"] = told.driven_by if told else ""
+    table["finding"] = told.lead if told else ""
     if ranked is not None:  # each ranked check's own tail probability and flag: columns that compare
         for name, values in ranked.per_check(fpr).items():
             table[name] = values
-    copies = exact_copies(table)
     table["is_anomaly"] = flags(table["p_reference"].to_numpy(), fpr, flagged_regardless(table))
-    if copies is not None and copies.any():
-        dup = ev.reasons["duplicate"]
-        table["details"] = [dup[i] if copies[i] else r for i, r in enumerate(table["details"])]
-        table["driven_by"] = ["duplicate" if copies[i] else d for i, d in enumerate(table["driven_by"])]
-    table["reason"] = [ranking.brief(r) for r in table["details"]]
+    table["reason"] = [reasons.brief(r) for r in table["details"]]
     if ev.posterior is not None:
         ref = (ev.model.meta.get("reference") or {}).get("ocsvm") if ev.model is not None else None
         sigma = ev.posterior.sigma
@@ -286,6 +281,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
                       "stays short",
             "details": "the reason whole: up to three checks' words, each with how rare",
             "driven_by": "the check the reason names first (broken, duplicate: flagged regardless)",
+            "finding": "what that check found, as check:kind (the kinds: each check's vocabulary)",
             "reference": "in the robust core the ranking's tails were fitted on: the demos believed clean, which "
                          "the flags are calibrated on",
             "p_reference": "the share of the reference demos at least as suspect (conformal; beyond the most "
@@ -306,27 +302,21 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         summary["no_model"] = why_no_model or "audited with the model-free checks alone (--no-model)"
     if "label" in table:
         summary["labels"] = table["label"].value_counts().to_dict()
-    summary["warnings"] = (unreadable_files(ev.episodes["episode_index"].to_numpy(), ev.reasons.get("broken"))
+    summary["warnings"] = (unreadable_files(ev.episodes["episode_index"].to_numpy(), ev.findings.get("broken"))
                            + warnings(table, ckpt, ev.untrusted, fpr))
     if "suspicion" in ev.scores:  # how the ranking was made, as data (``ranking.RankingConfig``)
         summary["ranking"] = registry.combination(ev).config.to_dict()
     return table, summary
 
 
-_UNREADABLE = re.compile(r"unreadable frames \((?P<file>[^()]+?): (?P<why>.*)\)$")
-
-
-def unreadable_files(episodes: np.ndarray, reasons: list[str] | None) -> list[str]:
-    """One line per file whose frames cannot be read, with the episodes it takes down (``reasons``: the broken
-    check's, in ``episodes``' order): a truncated video is one fault, not one suspect per episode it holds."""
-    if not reasons:
-        return []
+def unreadable_files(episodes: np.ndarray, findings: list | None) -> list[str]:
+    """One line per file whose frames cannot be read, with the episodes it takes down (``findings``: the broken
+    check's, in ``episodes``' order, naming the files): a truncated video is one fault, not one suspect per episode
+    it holds."""
     files: dict[str, tuple[list[int], str]] = {}
-    for episode, reason in zip(episodes, reasons):
-        for part in (reason or "").split("; "):
-            m = _UNREADABLE.match(part)
-            if m:
-                files.setdefault(m["file"], ([], m["why"]))[0].append(int(episode))
+    for episode, finding in zip(episodes, findings or []):
+        for path, why in finding.params.get("files", []):
+            files.setdefault(path, ([], why))[0].append(int(episode))
     return [f"{path} cannot be read ({why}): {len(eps)} episode{'s' * (len(eps) > 1)} ({spans(eps)}) flagged as "
             "broken recordings" for path, (eps, why) in files.items()]
 

@@ -12,7 +12,9 @@ report all read ``SCORERS``; adding a scorer is one entry here plus its test
 Scorers that need every frame (``needs`` has ``demos``) also give a
 ``decode`` function: it returns a consumer fed each decoded demo of one
 dataset once, in order, so all of them share one decoding pass per dataset;
-what the consumers return lands in ``Evidence.behaviour``.
+what the consumers return lands in ``Evidence.behaviour``.  What a check found
+in each demo is a ``findings.Finding`` (a kind of the check's vocabulary and
+its parameters); ``democheck.audit.reasons`` builds the reasons from them.
 """
 
 from __future__ import annotations
@@ -24,11 +26,12 @@ import numpy as np
 import pandas as pd
 
 from democheck import resources
-from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, sensors
+from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, reasons, sensors
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit.evidence import Evidence, Scorer, Scores
-from democheck.audit.flagging import is_broken
+from democheck.audit.findings import VOCABULARIES, Vocabulary, known
+from democheck.audit.flagging import DEFAULT_FPR, is_broken
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.scores import CONSISTENCY_K, consistency_parts
 from democheck.errors import RecipeError
@@ -37,16 +40,28 @@ from democheck.errors import RecipeError
 # PETNet's scores
 # ---------------------------------------------------------------------------
 
-def _against_task(values: np.ndarray, groups: np.ndarray, words: str) -> list[str]:
-    """'<words> (k x its task's median)' for each demo, in the terms of its comparison group."""
+def _against_task(vocabulary: Vocabulary, values: np.ndarray, groups: np.ndarray) -> list:
+    """Each demo's finding of a model's reading: its value as a multiple of its comparison group's median."""
     median = pd.Series(values).groupby(np.asarray(groups)).transform("median").to_numpy()
-    return [f"{words} ({v / m:.2g} x its task's median)" if np.isfinite(v) and m > 0 else words
+    return [vocabulary("against its task", ratio=float(v / m)) if np.isfinite(v) and m > 0 else vocabulary("read")
             for v, m in zip(values, median)]
+
+
+TASK_UNCERTAINTY = Vocabulary("task_uncertainty", {
+    "against its task": "the model cannot tell the task from its first and last frames ({ratio:.2g} x its task's "
+                        "median)",
+    "read": "the model cannot tell the task from its first and last frames",
+})
+CONSISTENCY = Vocabulary("consistency", {
+    "against its task": "its first and last frames read as another task than its task's other demos ({ratio:.2g} "
+                        "x its task's median)",
+    "read": "its first and last frames read as another task than its task's other demos",
+})
 
 
 def _task_uncertainty(ev: Evidence) -> Scores:
     values = ev.posterior.task_uncertainty()
-    return values, _against_task(values, ev.groups, "the model cannot tell the task from its first and last frames")
+    return values, _against_task(TASK_UNCERTAINTY, values, ev.groups)
 
 
 def _task_uncertainty_head(ev: Evidence) -> Scores:
@@ -60,8 +75,7 @@ def _novelty(ev: Evidence) -> Scores:
 
 def _consistency(ev: Evidence) -> Scores:
     value, _ = consistency_parts(ev.posterior, ev.tasks)
-    return value, _against_task(value, ev.groups, "its first and last frames read as another task than its "
-                                                  "task's other demos")
+    return value, _against_task(CONSISTENCY, value, ev.groups)
 
 
 def _action_error(ev: Evidence) -> Scores:
@@ -75,8 +89,7 @@ def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors
 
 
 def _suspicion(ev: Evidence, model_free: bool = False) -> Scores:
-    r = combination(ev, model_free)
-    return (r.suspicion, explanation(ev, model_free)[0]) if r.config.specs else (r.suspicion, None)
+    return combination(ev, model_free).suspicion, None
 
 
 def _model_free(ev: Evidence) -> Scores:
@@ -124,7 +137,7 @@ def _timing(ev: Evidence) -> Scores:
 
 
 def _frozen_video(ev: Evidence) -> Scores:
-    return frames.frozen_video(ev.behaviour["frozen_video"])
+    return frames.frozen_video(ev.behaviour["frozen_video"], ev.groups)
 
 
 def _frame_jump(ev: Evidence) -> Scores:
@@ -136,13 +149,16 @@ def _lag(ev: Evidence) -> Scores:
 
 
 def _frozen_state(ev: Evidence) -> Scores:
-    values, reasons, ev.named["frozen_state"] = sensors.frozen_state(ev.behaviour["frozen_state"], ev.groups)
-    return values, reasons
+    # The arm's longest still stretch (the idle check's finding) tells a sensor that stopped from a state held
+    # while the arm rested.
+    still = None
+    if "idle" in ev.findings:
+        still = np.array([f.params.get("longest", 0.0) for f in ev.findings["idle"]], np.float64)
+    return sensors.frozen_state(ev.behaviour["frozen_state"], ev.groups, still=still)
 
 
 def _outcome(ev: Evidence) -> Scores:
-    values, reasons, ev.named["outcome"] = outcome.compare(ev.behaviour["outcome"], ev.groups)
-    return values, reasons
+    return outcome.outcome(ev.behaviour["outcome"], ev.groups)
 
 
 def _coupling(ev: Evidence) -> Scores:
@@ -255,25 +271,41 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
 TAILS = ("exponential", "normal")  # the families a score's clean right tail may be given (``scores.tail_probabilities``)
 RANKING_KEYS = {"log": bool, "in_robust_sd": bool, "floor": float, "tail": str, "alone": bool, "look": str,
                 "single_task": bool}
+REASON_KEYS = {"order", "demoted", "behaviour", "rules"}
+RULE_KEYS = {"first", "over", "when", "unless"}
+
+
+def _precedence_errors(reasons: dict, scores: dict) -> list[str]:
+    """What is wrong with a ranking recipe's ``[reasons]``: unknown keys, names that are no ranked check, kinds
+    that no check's vocabulary declares."""
+    bad = [f"reasons.{k}" for k in sorted(set(reasons) - REASON_KEYS)]
+    names = [*reasons.get("order", []), *reasons.get("demoted", []), *reasons.get("behaviour", [])]
+    for r in reasons.get("rules", []):
+        bad += [f"reasons.rules.{k}" for k in sorted(set(r) - RULE_KEYS)]
+        names += [r.get("first", "")] + [n for k in ("over", "when", "unless") for n in r.get(k, [])]
+    bad += [f"reasons: {n!r}" for n in names if not known(n) or n.partition(":")[0] not in scores]
+    return bad
 
 
 @functools.lru_cache(maxsize=None)
 def ranking_recipe(name_or_path: str = "default") -> dict[str, Any]:
-    """How the scores enter the ranking, as data: ``democheck/recipes/ranking/<name>.toml`` (or a path) read and
-    checked -- the ranked scores in order with their keys (``RANKING_KEYS``), ``core_p``, ``reason_p``, the checks
-    whose words say what the demo did (``behaviour``) and the order a reason prefers of equal evidence (``lead``)."""
+    """How the scores enter the ranking and which finding leads a reason, as data:
+    ``democheck/recipes/ranking/<name>.toml`` (or a path) read and checked -- the ranked scores in order with
+    their keys (``RANKING_KEYS``), ``core_p``, ``reason_p``, and ``[reasons]`` (``ranking.Precedence``: every
+    name a ranked check, every kind one its vocabulary declares)."""
     path, doc = resources.read_recipe("ranking", name_or_path, "ranking")
-    unknown = sorted(set(doc) - {"name", "core_p", "reason_p", "behaviour", "lead", "scores"})
+    unknown = sorted(set(doc) - {"name", "core_p", "reason_p", "reasons", "scores"})
     scores = doc.get("scores", {})
     bad = sorted(set(scores) - set(SCORERS)) + sorted(
         f"{n}.{k}" for n, keys in scores.items() for k, v in keys.items()
         if k not in RANKING_KEYS or not isinstance(v, (RANKING_KEYS[k], int) if RANKING_KEYS[k] is float
                                                    else RANKING_KEYS[k]))
-    bad += sorted((set(doc.get("lead", [])) | set(doc.get("behaviour", []))) - set(scores))
+    bad += _precedence_errors(doc.get("reasons", {}), scores)
     bad += sorted(f"{n}.tail" for n, keys in scores.items() if keys.get("tail", "exponential") not in TAILS)
     if unknown or bad or not isinstance(doc.get("core_p"), float) or not isinstance(doc.get("reason_p"), float):
         raise RecipeError(f"{path}: unknown or ill-typed {', '.join(unknown + bad) or 'core_p or reason_p'} (a "
-                          f"ranked score takes {', '.join(RANKING_KEYS)}; scores: {', '.join(SCORERS)})")
+                          f"ranked score takes {', '.join(RANKING_KEYS)}; scores: {', '.join(SCORERS)}; kinds: "
+                          f"{'; '.join(f'{c}: {chr(44).join(v.kinds)}' for c, v in VOCABULARIES.items())})")
     return {**doc, "scores": {n: dict(keys) for n, keys in scores.items()}}
 
 
@@ -295,11 +327,12 @@ def ranked(available, tasks: np.ndarray, model_free: bool = False, untrusted=())
 
 
 def ranking_config(names: list[str]) -> ranking.RankingConfig:
-    """How the scores ``names`` enter the ranking (``ranking.ScoreSpec`` each), from the ranking recipe; of
-    evidence equally strong, a reason names the recipe's ``lead`` first, then the other recording faults, the
-    other model-free checks, the model's readings."""
+    """How the scores ``names`` enter the ranking (``ranking.ScoreSpec`` each) and the reasons' precedence, from
+    the ranking recipe; of evidence equally strong, a reason names the recipe's ``order`` first, then the other
+    recording faults, the other model-free checks, the model's readings."""
     recipe = ranking_recipe()
-    order = recipe["lead"]
+    precedence = ranking.Precedence.from_dict(recipe.get("reasons", {}))
+    order = precedence.order
 
     def spec(n: str) -> ranking.ScoreSpec:
         keys = recipe["scores"][n]
@@ -307,11 +340,10 @@ def ranking_config(names: list[str]) -> ranking.RankingConfig:
         lead = order.index(n) if n in order else len(order) + (0 if alone else 1 if SCORERS[n].model_free else 2)
         return ranking.ScoreSpec(n, log=keys.get("log", False), in_robust_sd=keys.get("in_robust_sd", False),
                                  floor=float(keys.get("floor", 0.0)), tail=keys.get("tail", "exponential"),
-                                 alone=alone, look=keys.get("look", ""), lead=lead,
-                                 behaviour=n in recipe["behaviour"])
+                                 alone=alone, look=keys.get("look", ""), lead=lead)
 
     return ranking.RankingConfig(tuple(spec(n) for n in names), core_p=recipe["core_p"],
-                                 reason_p=recipe["reason_p"])
+                                 reason_p=recipe["reason_p"], precedence=precedence)
 
 
 def combination(ev: Evidence, model_free: bool = False) -> ranking.Ranking:
@@ -325,77 +357,16 @@ def combination(ev: Evidence, model_free: bool = False) -> ranking.Ranking:
     return ev.rankings[key]
 
 
-def explanation(ev: Evidence, model_free: bool = False) -> tuple[list[str], list[str]]:
-    """Each demo's reason (every clause) and the check it names first (``ranking.explain``), once."""
-    if model_free not in ev.explained:
-        combined, weak = combination(ev, model_free), demoted(ev)
-        ev.explained[model_free] = ranking.explain(combined, ev.reasons, ev.reasons.get("broken"), weak,
-                                                   yields(ev, combined, weak))
-    return ev.explained[model_free]
-
-
-def demoted(ev: Evidence) -> dict[str, np.ndarray]:
-    """Per check, the demos whose words say how the demo differs but not what went wrong, so that what went wrong
-    leads its reason: an arm that moves somewhat less or more than its task's demos (within a factor of
-    1 / ``HARDLY_MOVES`` of their median: another task and a careful or hurried operator alike; not one that
-    hardly moves or flails), actions that jump once (an arm stopped at once: that it then stands still, or left the
-    world unfinished, is the news), an arm that began late or paused (``modelfree.paused``), a part of the state at
-    rest (``sensors.at_rest``)."""
-    out = {}
-    if "motion" in ev.behaviour:
-        ratio = modelfree.motion_ratio(np.asarray(ev.behaviour["motion"]), ev.groups)
-        out["motion"] = (ratio >= modelfree.HARDLY_MOVES) & (ratio <= 1 / modelfree.HARDLY_MOVES)
-    if "actions" in ev.behaviour:
-        out["jerk"] = modelfree.jerk_jumps(ev.behaviour["actions"])
-        out["idle"] = modelfree.paused(ev.behaviour["actions"])
-    if "frozen_state" in ev.named:
-        out["frozen_state"] = sensors.at_rest(ev.behaviour["frozen_state"], ev.named["frozen_state"])
-    return out
-
-
-def yields(ev: Evidence, combined: ranking.Ranking | None = None, weak: dict[str, np.ndarray] | None = None
-           ) -> list[tuple[str, str, np.ndarray]]:
-    """(check, another whose words lead before its own where both are beyond every clean demo, the demos where it
-    does), the first that holds counts.  ``weak``: ``demoted(ev)``, where it is at hand (its one jump and part at
-    rest are read here too).
-
-    - Where the world the outcome reads already differed at the demo's first step, the demo is of another scene,
-      and that is the news: before what its arm did (another task's motion) and before the parts that hold still
-      because it never moves them (elsewhere a frozen state explains the end read from it).
-    - Where the demo's actions do not shake (the jerk is no surprise in ``combined``, or one jump), an arm that
-      moved unlike its task's followed a purpose, and the world it left is the news (another task's job done);
-      a flailing or shaking arm is the news itself.
-    - Where the actions shake but the arm moved within its task's range and the camera too saw another picture
-      (beyond every clean demo), the shaking is how another task's policy moves and the world it left is the news;
-      an operator who shakes at the demo's own task leaves its task's world and picture.
-    - Where a part of the state held while the arm was driven for longer than the arm ever stood still, the
-      sensor is the news, not the arm's rest (a demo that finished and waited).
-    - Where the picture stayed the same while the arm moved for at least ``frames.STOPPED_SHARE`` of the demo and
-      the frames delivered and the repeated one were like its task's at the same steps (``frames.delivered_unlike``
-      under ``VIEW_K``), the camera stopped: the picture the view and colour checks read changed because it
-      stopped.  A card over the view shows in those frames."""
-    weak = demoted(ev) if weak is None else weak
-    out = []
-    if "outcome" in ev.named:
-        scene = np.array([d.at_start for d in ev.named["outcome"]], bool)
-        out += [(name, "outcome", scene) for name in ("idle", "motion", "frozen_state")]
-    names = combined.config.names if combined is not None else []
-    if "jerk" in names and "jerk" in weak:
-        with np.errstate(invalid="ignore"):
-            shakes = (combined.log_p[:, names.index("jerk")] < np.log(combined.config.reason_p)) & ~weak["jerk"]
-        out.append(("motion", "outcome", ~shakes))
-    if "view" in names and "motion" in weak:
-        seen = ranking.beyond_every_clean(combined.log_p[:, names.index("view")], int(combined.core.sum()))
-        out.append(("jerk", "outcome", seen & weak["motion"]))
-    if "frozen_video" in ev.behaviour and "frozen_video" in ev.scores:
-        with np.errstate(invalid="ignore"):
-            stopped = (frames.delivered_unlike(ev.behaviour["frozen_video"], ev.groups) < modelfree.VIEW_K) \
-                & (np.asarray(ev.scores["frozen_video"], np.float64) >= frames.STOPPED_SHARE)
-        out += [(name, "frozen_video", stopped) for name in ("view", "colours")]
-    if "actions" in ev.behaviour and "frozen_state" in weak:
-        held = np.asarray(ev.scores["frozen_state"], np.float64) > modelfree.longest_still(ev.behaviour["actions"])
-        out.append(("idle", "frozen_state", held & ~weak["frozen_state"]))
-    return out
+def explanation(ev: Evidence, fpr: float = DEFAULT_FPR, model_free: bool = False) -> reasons.Explained:
+    """Each demo's reason (``reasons.explain`` of the ranking and the checks' findings at ``fpr``), once."""
+    key = (model_free, fpr)
+    if key not in ev.explained:
+        copies = None
+        if "duplicate" in ev.findings:
+            copies = np.array([f.kind == "exact copy" for f in ev.findings["duplicate"]], bool)
+        ev.explained[key] = reasons.explain(combination(ev, model_free), ev.findings, fpr,
+                                            broken_rows(ev), copies)
+    return ev.explained[key]
 
 
 def broken_rows(ev: Evidence) -> np.ndarray:
@@ -416,12 +387,13 @@ def select(names: list[str] | None = None, audit: bool = True) -> list[Scorer]:
 
 def compute(ev: Evidence, scorers: list[Scorer]) -> Evidence:
     """Run ``scorers`` (whose decoding pass, if any, has filled ``ev.behaviour``) in the registry's order, each
-    that the evidence can feed; fills ``ev.scores`` and ``ev.reasons``."""
+    that the evidence can feed; fills ``ev.scores``, ``ev.findings`` and their words, ``ev.reasons``."""
     for s in scorers:
         if not s.can_run(ev):
             continue
-        values, reasons = s.score(ev)
+        values, found = s.score(ev)
         ev.scores[s.name] = values  # as computed: float32 where the network's output is, float64 elsewhere
-        if reasons is not None:
-            ev.reasons[s.name] = reasons
+        if found is not None:
+            ev.findings[s.name] = found
+            ev.reasons[s.name] = [f.words for f in found]
     return ev

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo, longest_run, steps_text
 from democheck.data.demo import Demo
 
@@ -66,36 +67,50 @@ class StateRepeats(PerDemo):
             for j, (s, k) in enumerate(runs)], bool))
 
 
-def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = None
-                 ) -> tuple[np.ndarray, list[str], np.ndarray]:
+def _holds(what: str, start: int, stop: int, length: int) -> str:
+    return f"{what} holds one value while the arm is driven over {steps_text(start, stop, length)}, where its " \
+           "task's demos rarely do"
+
+
+FROZEN_STATE = Vocabulary("frozen_state", {
+    # held while the arm was driven for longer than the arm ever stood still: a sensor that stopped updating
+    "stopped": _holds,
+    "held": _holds,  # held no longer than the arm stood still at some point: it may have rested with the arm
+    # it moves again after the hold, or holds with other moving dimensions while the rest of the state changes:
+    # a part at rest (an object left alone), which says how the demo differs, not that a sensor failed
+    "at rest": _holds,
+    "moves": "every state dimension that moves in its task's demos moves",
+    "no state": "no state",
+    "single frame": "a single frame",
+})
+
+
+def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = None,
+                 still: np.ndarray | None = None) -> tuple[np.ndarray, list[Finding]]:
     """The longest frozen stretch's share (see the module docstring) of the state dimensions live in the demo's
     task (those whose share's ``FROZEN_STATE_QUANTILE`` over the task's demos is at most ``live``), the largest;
-    where, in words; and the dimension named ([N] int; -1 where no live dimension holds)."""
+    and which dimension held where (``at rest``: a part at rest, ``StateRepeats.rests``; ``stopped``: held longer
+    than the arm's longest still stretch, ``still`` [N] as a share of the steps, where given; else ``held``)."""
     if not stats.shares:
-        return np.zeros(0), [], np.zeros(0, int)
+        return np.zeros(0), []
     seen = _live_shares(stats, tasks, live)
-    out, reasons, dims = np.zeros(len(seen)), [], np.full(len(seen), -1)
+    out, found = np.zeros(len(seen)), []
     for i in range(len(seen)):
         if not seen.shape[1] or not stats.steps[i]:
-            reasons.append("no state" if not seen.shape[1] else "a single frame")
+            found.append(FROZEN_STATE("no state" if not seen.shape[1] else "single frame"))
             continue
         j = int(np.argmax(seen[i]))
         out[i] = float(seen[i, j])
-        dims[i] = j if out[i] > 0 else -1
+        if out[i] <= 0:
+            found.append(FROZEN_STATE("moves"))
+            continue
         start, length = int(stats.starts[i][j]), int(stats.lengths[i][j])
         names = stats.names[i] if i < len(stats.names) else None
-        what = names[j] if names and j < len(names) else f"state[{j}]"
-        reasons.append(f"{what} holds one value while the arm is driven over "
-                       f"{steps_text(start, start + length, stats.steps[i] + 1)}, where its task's demos rarely "
-                       "do" if out[i] > 0 else "every state dimension that moves in its task's demos moves")
-    return out, reasons, dims
-
-
-def at_rest(stats: StateRepeats, dims: np.ndarray) -> np.ndarray:
-    """bool [N]: the frozen state named in each demo's words (``dims``, from ``frozen_state``) is a part at rest
-    (``StateRepeats.rests``: it moves again later, or holds with others of its kind, while the rest of the state
-    changes), which says how the demo differs (an object left alone), not that a sensor failed."""
-    return np.array([j >= 0 and bool(stats.rests[i][j]) for i, j in enumerate(dims)], bool)
+        kind = ("at rest" if stats.rests[i][j] else "stopped" if still is not None and out[i] > still[i]
+                else "held")
+        found.append(FROZEN_STATE(kind, what=names[j] if names and j < len(names) else f"state[{j}]", dim=j,
+                                  start=start, stop=start + length, length=stats.steps[i] + 1))
+    return out, found
 
 
 def _live_shares(stats: StateRepeats, tasks: np.ndarray, live: float | None = None) -> np.ndarray:

@@ -108,7 +108,7 @@ def build_cache(ds: DemoSet, cache_dir: Path | None = None,
                     raise DatasetError(f"{ds.root}: episode {e} has {len(demo.frames)} frames, {len(demo.state)} "
                                        f"states, {len(demo.actions)} actions; its metadata says {n}")
                 if demo.damaged:
-                    raise DatasetError(f"{ds.root}: episode {e} holds {demo.damaged[0][1]}: a model must not learn "
+                    raise DatasetError(f"{ds.root}: episode {e} holds {demo.damaged[0].what}: a model must not learn "
                                        "from it (democheck audit --no-model flags every such episode; for a "
                                        "LeRobot v3.0 dataset democheck clean then writes it without them)")
                 frames[o:o + n] = demo.frames

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Protocol
+from typing import Any, Callable, Iterator, NamedTuple, Protocol
 
 import cv2
 import numpy as np
@@ -29,6 +29,16 @@ def no_frames(n: int) -> np.ndarray:
     return np.zeros((n, *NO_CAMERA), np.uint8)
 
 
+class Damage(NamedTuple):
+    """What a reader found broken in one stream of a recording: the frames affected, what and where in words, and
+    for frames that could not be decoded the file and why."""
+
+    frames: int
+    what: str
+    file: str = ""
+    why: str = ""
+
+
 @dataclass
 class Demo:
     """One demonstration: frames uint8 [T,H,W,3] ([T,0,0,3] where no camera is recorded: ``NO_CAMERA``), state
@@ -46,27 +56,29 @@ class Demo:
     env_state: np.ndarray | None = None
     source_episode: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
-    # What the reader found broken in the recording and repaired so that it can be read: (frames affected, what
-    # and where, in words), one entry per broken stream -- the state's or the actions' NaN or infinite values
-    # (``repair_non_finite``), frames that could not be decoded (given as black).
-    damaged: list[tuple[int, str]] = field(default_factory=list)
+    # What the reader found broken in the recording and repaired so that it can be read, one ``Damage`` per broken
+    # stream -- the state's or the actions' NaN or infinite values (``repair_non_finite``), frames that could not
+    # be decoded (given as black).
+    damaged: list[Damage] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.actions)
 
 
-def readable_frames(read: Callable[[], np.ndarray], n: int, shape: tuple[int, int, int], strict: bool
-                    ) -> tuple[np.ndarray, list[tuple[int, str]]]:
+def readable_frames(read: Callable[[], np.ndarray], n: int, shape: tuple[int, int, int], strict: bool,
+                    file: str | Path = "") -> tuple[np.ndarray, list[Damage]]:
     """The frames ``read`` decodes, or -- where they cannot be decoded (``read`` raises ``DatasetError``: a
     truncated or corrupt file, a missing one, frames that do not match the steps) -- ``n`` black frames of
-    ``shape`` and what went wrong (a ``Demo.damaged`` entry): a broken demo the audit reports
-    (``modelfree.broken``), not a dataset it refuses; ``strict`` (``DemoSet.strict``): the error."""
+    ``shape`` and what went wrong (a ``Demo.damaged`` entry, naming ``file``, the file ``read`` reads): a broken
+    demo the audit reports (``modelfree.broken``), not a dataset it refuses; ``strict`` (``DemoSet.strict``): the
+    error."""
     try:
         return read(), []
     except DatasetError as exc:
         if strict:
             raise
-        return np.zeros((n, *shape), np.uint8), [(n, f"unreadable frames ({exc})")]
+        why = str(exc).removeprefix(f"{file}: ") if file else str(exc)
+        return np.zeros((n, *shape), np.uint8), [Damage(n, f"unreadable frames ({exc})", str(file), why)]
 
 
 def check_arrays(where: str | Path, key: str, x: np.ndarray, dim: int) -> None:
@@ -77,7 +89,7 @@ def check_arrays(where: str | Path, key: str, x: np.ndarray, dim: int) -> None:
 
 
 def repair_non_finite(x: np.ndarray, key: str, episode: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, dict[int, tuple[int, str]]]:
+                      ) -> tuple[np.ndarray, dict[int, Damage]]:
     """A recording with NaN or infinite values is a broken demo to report, not a dataset to refuse: ``x`` [T, D]
     (its rows grouped by ``episode``, each episode's in frame order; one episode 0 when None) with every such
     value replaced by the last finite value of its column before it in the same episode (the first after it
@@ -99,7 +111,7 @@ def repair_non_finite(x: np.ndarray, key: str, episode: np.ndarray | None = None
         span = (f"{at[0]}" if len(at) == 1 else f"{at[0]}-{at[-1]}" if at[-1] - at[0] + 1 == len(at)
                 else f"between {at[0]} and {at[-1]}")
         of = int(length[np.argmax(episode == e)])
-        found[int(e)] = (len(at), f"NaN or infinite values in {key!r} at {len(at)} of {of} frames, {span}")
+        found[int(e)] = Damage(len(at), f"NaN or infinite values in {key!r} at {len(at)} of {of} frames, {span}")
     return filled, found
 
 

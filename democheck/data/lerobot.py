@@ -31,7 +31,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import democheck.data.video as video
-from democheck.data.demo import (NO_CAMERA, Demo, check_arrays, check_episodes, no_frames, readable_frames,
+from democheck.data.demo import (NO_CAMERA, Damage, Demo, check_arrays, check_episodes, no_frames, readable_frames,
                                  repair_non_finite)
 from democheck.errors import DatasetError
 
@@ -255,17 +255,17 @@ class LeRobotBase:
         actions = _column_matrix(table, self.action_key, path)[order]
         check_arrays(path, self.state_key, state, self.state_dim)
         check_arrays(path, self.action_key, actions, self.action_dim)
-        damaged: dict[int, list[tuple[int, str]]] = {}
+        damaged: dict[int, list[Damage]] = {}
         # The environment state may be NaN where an object is not in the scene (democheck's no-objects probes):
         # only the robot's state and actions are repaired (``repair_non_finite``) and reported.
         for key, x in ((self.state_key, state), (self.action_key, actions)):
             filled, found = repair_non_finite(x, key, eps[order])
             if found and self.strict:
-                e, (_, what) = next(iter(found.items()))
-                raise DatasetError(f"{path}: episode {e} holds {what}")
+                e, damage = next(iter(found.items()))
+                raise DatasetError(f"{path}: episode {e} holds {damage.what}")
             x[:] = filled
-            for e, what in found.items():
-                damaged.setdefault(e, []).append(what)
+            for e, damage in found.items():
+                damaged.setdefault(e, []).append(damage)
         entry = {
             "state": state,
             "actions": actions,
@@ -316,19 +316,20 @@ class LeRobotBase:
                 raise DatasetError(f"{path}: unreadable image in {self.camera!r} ({exc})") from None
         return np.stack(out)
 
-    def _readable(self, read: Callable[[], np.ndarray], n: int) -> tuple[np.ndarray, list[tuple[int, str]]]:
-        """``demo.readable_frames`` with this reader's frame shape and strictness."""
-        return readable_frames(read, n, self.image_shape, self.strict)
+    def _readable(self, read: Callable[[], np.ndarray], n: int, file: Path) -> tuple[np.ndarray, list[Damage]]:
+        """``demo.readable_frames`` of ``file`` with this reader's frame shape and strictness."""
+        return readable_frames(read, n, self.image_shape, self.strict, file)
 
     def _image_cues(self, episode_index: int) -> np.ndarray:
         """First and last frame of an episode stored as images (not video), black where they cannot be read."""
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
         return self._readable(lambda: np.stack([self._decode_images(entry, s, s + 1, path)[0],
-                                                 self._decode_images(entry, e - 1, e, path)[0]]), 2)[0]
+                                                 self._decode_images(entry, e - 1, e, path)[0]]), 2,
+                              path)[0]
 
     def _make_demo(self, episode_index: int, frames: np.ndarray, entry: dict[str, Any], s: int, e: int,
-                   unreadable: list[tuple[int, str]] | None = None) -> Demo:
+                   unreadable: list[Damage] | None = None) -> Demo:
         row = self.episodes.loc[episode_index]
         sim = row.get("sim") if "sim" in row else None
         src = row.get("source_episode") if "source_episode" in row else None
@@ -405,9 +406,9 @@ class LeRobotV3(LeRobotBase):
             frames, unreadable = no_frames(e - s), []
         elif self.camera_dtype == "video":
             vpath, start, stop = self._video_span(episode_index)
-            frames, unreadable = self._readable(lambda: video.read_range(vpath, start, stop, self.fps), e - s)
+            frames, unreadable = self._readable(lambda: video.read_range(vpath, start, stop, self.fps), e - s, vpath)
         else:
-            frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s)
+            frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s, path)
         return self._make_demo(episode_index, frames, entry, s, e, unreadable)
 
     def cues(self, episode_indices: list[int], at: float = 1.0) -> np.ndarray:
@@ -430,7 +431,7 @@ class LeRobotV3(LeRobotBase):
                 frames = dict(zip(wanted, video.read_frames(vpath, wanted, self.fps)))
             except DatasetError:  # a file that cannot be read whole: each episode's own, black where it fails
                 for i, a, b in items:
-                    out[i] = self._readable(lambda: video.read_frames(vpath, [a, b], self.fps), 2)[0]
+                    out[i] = self._readable(lambda: video.read_frames(vpath, [a, b], self.fps), 2, vpath)[0]
                 continue
             for i, a, b in items:
                 out[i, 0], out[i, 1] = frames[a], frames[b]
@@ -441,6 +442,6 @@ class LeRobotV3(LeRobotBase):
             return no_frames(2)
         if self.camera_dtype == "video":
             vpath, start, stop = self._video_span(episode_index)
-            return self._readable(lambda: video.read_frames(vpath, [start, stop - 1], self.fps), 2)[0]
+            return self._readable(lambda: video.read_frames(vpath, [start, stop - 1], self.fps), 2, vpath)[0]
         return self._image_cues(episode_index)
 

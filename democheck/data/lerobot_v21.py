@@ -57,9 +57,9 @@ class LeRobotV21(LeRobotBase):
             frames, unreadable = no_frames(e - s), []
         elif self.camera_dtype == "video":
             vpath = self._path("video_path", episode_index)
-            frames, unreadable = self._readable(lambda: video.read_range(vpath, 0, e - s, self.fps), e - s)
+            frames, unreadable = self._readable(lambda: video.read_range(vpath, 0, e - s, self.fps), e - s, vpath)
         else:
-            frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s)
+            frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s, path)
         return self._make_demo(episode_index, frames, entry, s, e, unreadable)
 
     def cue_frames(self, episode_index: int) -> np.ndarray:
@@ -68,7 +68,7 @@ class LeRobotV21(LeRobotBase):
             return no_frames(2)
         if self.camera_dtype == "video":
             vpath = self._path("video_path", episode_index)
-            return self._readable(lambda: video.read_frames(vpath, [0, n - 1], self.fps), 2)[0]
+            return self._readable(lambda: video.read_frames(vpath, [0, n - 1], self.fps), 2, vpath)[0]
         return self._image_cues(episode_index)
 
 

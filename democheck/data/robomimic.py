@@ -153,7 +153,7 @@ class Robomimic:
                                    f"{frames.shape[0]} of {frames.shape[1:]} for {n} of {self.image_shape}")
             return frames
 
-        return readable_frames(lambda: self._camera(g, whole), n, self.image_shape, self.strict)
+        return readable_frames(lambda: self._camera(g, whole), n, self.image_shape, self.strict, self.root)
 
     def _state_group(self, g):
         """Where a demo's state keys are: its obs group, or the demo itself in a raw file (its ``states``)."""
@@ -202,4 +202,4 @@ class Robomimic:
                 return np.stack([img[0], img[img.shape[0] - 1]]).astype(np.uint8)
 
             # Black where unreadable: the decoding pass reports it (``_frames``).
-            return readable_frames(lambda: self._camera(g, ends), 2, self.image_shape, self.strict)[0]
+            return readable_frames(lambda: self._camera(g, ends), 2, self.image_shape, self.strict, self.root)[0]

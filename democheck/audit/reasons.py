@@ -1,0 +1,190 @@
+"""Reasons: why a demo ranks where it does, in words, from the checks' findings -- one pure function, ``explain``,
+of the ranking, the findings and ``--fpr``.  This is the only place that picks the lead, orders the clauses and
+words the odds.
+
+Which finding leads is the ranking recipe's declared precedence (``ranking.Precedence``): of the checks rare
+beyond what the reference can support, the first in the recipe's order, a demoted kind only where no other is, an
+exception of the recipe where it applies; where that is a reading of the demo (the model's, the coupling's), the
+behaviour the reading follows from.  Every clause then says what the check found, which check, and how unusual
+the demo is on it, counted against the reference demos (``odds``): "beyond every clean demo" only where the
+count says so.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from democheck.audit.findings import Finding
+from democheck.audit.ranking import Ranking, RankingConfig
+from democheck.audit.scores import merge_looks
+
+REASON_CHARS = 160  # a reason keeps the lead's clause and adds the others' while it stays this short
+CLAUSES = 3  # a reason names at most this many checks
+
+
+@dataclass(frozen=True)
+class Explained:
+    """Each demo's reason (every clause, ``details``), its check and finding named first (``driven_by``,
+    ``lead``: 'check:kind')."""
+
+    details: list[str]
+    driven_by: list[str]
+    lead: list[str]
+
+
+def rare(log_p: np.ndarray, references: int) -> np.ndarray:
+    """Whether a tail probability (natural log) is rarer than the reference of ``references`` demos believed clean
+    can support, one in ``references + 1``: the first tier of the lead."""
+    return np.exp(log_p) * (references + 1) < 1
+
+
+def look_columns(ranking: Ranking) -> np.ndarray:
+    """[N, K] ``ranking.log_p`` with the scores of one look (``RankingConfig.looks``) each carrying the look's
+    merged tail probability (what the ranking counted)."""
+    looks = ranking.config.looks()
+    out = np.array(ranking.log_p, np.float64, copy=True)
+    for look in np.unique(looks):
+        cols = np.flatnonzero(looks == look)
+        if len(cols) > 1:
+            merged, _ = merge_looks(ranking.log_p[:, cols], np.zeros(len(cols), int))
+            out[:, cols] = merged[:, :1]
+    return out
+
+
+def counts(log_p: np.ndarray, core: np.ndarray) -> tuple[np.ndarray, int]:
+    """Per demo and column ([N, K]): how many reference demos (the ``core``, the demo itself left out) are at
+    least as unusual on that column -- its tail probability, which each check's value became within the demo's
+    comparison group, so that demos of every task compare -- and how many reference demos there are.  NaN
+    counts as not unusual."""
+    core = np.asarray(core, bool)
+    x = np.nan_to_num(np.asarray(log_p, np.float64), nan=0.0)
+    refs = np.sort(x[core], axis=0)  # ascending: the most unusual first
+    at_least = np.column_stack([np.searchsorted(refs[:, j], x[:, j], side="right") for j in range(x.shape[1])]
+                               ) if x.shape[1] else np.zeros((len(x), 0), int)
+    at_least[core] -= 1  # a reference demo is not compared with itself
+    return at_least, int(core.sum())
+
+
+def odds(at_least: int, references: int, reference: bool) -> str:
+    """How unusual a demo is on one check, counted against the ``references`` demos believed clean: 'beyond every
+    clean demo' where none is as unusual and the demo is not one of them (``reference``), else 'as unusual as 1
+    clean demo in N' (N = (clean demos + 1) / (those at least as unusual + 1), to two figures, the demo itself
+    among them where it is one), 'typical' from one in two."""
+    of = references - reference
+    if at_least == 0 and of > 0 and not reference:
+        return "beyond every clean demo"
+    n = (of + 1) / (at_least + 1)
+    return "typical" if n <= 2 else f"as unusual as 1 clean demo in {float(f'{n:.2g}'):,.0f}"
+
+
+def _matches(finding: Finding | None, name: str, check: str) -> bool:
+    """Whether the finding of ``check`` is what ``name`` ('check' or 'check:kind') names."""
+    want, _, kind = name.partition(":")
+    return want == check and (not kind or (finding is not None and finding.kind == kind))
+
+
+def lead_of(config: RankingConfig, row: np.ndarray, references: int, found: list[Finding | None],
+            fpr: float) -> list[int]:
+    """The looks a demo's reason names (``row``: each column's log tail probability, NaN where a look of several
+    is named by another column), in the order it names them: up to ``CLAUSES``, the smallest probability and
+    those under ``reason_p``; first the lead the recipe's precedence picks (see the module docstring), then by
+    probability.  ``found``: each column's finding for this demo."""
+    row = np.nan_to_num(row, nan=0.0)
+    if not len(row):
+        return []
+    specs, pre = config.specs, config.precedence
+    names = config.names
+    order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(config.reason_p)]
+    beyond = [j for j in order if rare(row[j], references)]
+    demoted = [any(_matches(found[j], d, names[j]) for d in pre.demoted) for j in range(len(row))]
+
+    def first(among: list[int]) -> int:
+        def key(j: int) -> tuple:
+            tier = 0 if j in beyond else 1 if row[j] <= np.log(fpr) else 2
+            return tier, specs[j].lead if tier < 2 else 0, row[j]
+
+        return min([j for j in among if not demoted[j]] or among, key=key)
+
+    def holds(name: str, among: list[int]) -> bool:
+        return any(_matches(found[j], name, names[j]) for j in among)
+
+    lead = first(beyond or order[:1])
+    for rule in pre.rules:  # a rule applies on rare evidence, and any evidence named stops it
+        if not any(_matches(found[lead], o, names[lead]) for o in rule.over):
+            continue
+        if not all(holds(c, beyond) for c in rule.when) or any(holds(c, order) for c in rule.unless):
+            continue
+        other = next((j for j in beyond if _matches(found[j], rule.first, names[j])), None)
+        if other is not None:
+            lead = other
+            break
+    if names[lead] not in pre.behaviour and not specs[lead].alone:  # a reading: what the demo did leads
+        plain = [j for j in order if names[j] in pre.behaviour]
+        lead = first(plain) if plain else lead
+    return [lead, *[j for j in order if j != lead]][:CLAUSES]
+
+
+def explain(ranking: Ranking, findings: Mapping[str, list[Finding]], fpr: float, broken: np.ndarray | None = None,
+            copies: np.ndarray | None = None) -> Explained:
+    """Every demo's reason: a ``broken`` recording's (bool [N]) the broken check's words, an exact copy's
+    (``copies``) the duplicate check's, else the clauses ``lead_of`` picks at ``fpr``, each "<what the check
+    found> (<check>, <odds>)" with the odds counted against the reference demos (``counts``, ``odds``)."""
+    names, n = ranking.config.names, len(ranking.suspicion)
+    broken = np.zeros(n, bool) if broken is None else np.asarray(broken, bool)
+    copies = np.zeros(n, bool) if copies is None else np.asarray(copies, bool)
+    shown = ranking.look_odds()
+    core = np.asarray(ranking.core, bool)
+    at_least, references = counts(look_columns(ranking), core)
+    details, driven, leads = [], [], []
+    for i in range(n):
+        special = "broken" if broken[i] else "duplicate" if copies[i] else ""
+        if special:
+            f = findings[special][i]
+            details.append(f"broken: {f.words}" if special == "broken" else f.words)
+            driven.append(special)
+            leads.append(f.key)
+            continue
+        found = [(findings.get(name) or [None] * n)[i] for name in names]
+        picked = lead_of(ranking.config, shown[i], references, found, fpr)
+        parts = []
+        for j in picked:  # what the check saw in its own words first, then which check and how unusual
+            words = found[j].words if found[j] is not None else ""
+            rate = odds(int(at_least[i, j]), references, bool(core[i]))
+            parts.append(f"{words} ({names[j]}, {rate})" if words else f"{names[j]}: {rate}")
+        details.append("; also ".join(parts))
+        driven.append(names[picked[0]] if picked else "")
+        leads.append(found[picked[0]].key if picked and found[picked[0]] is not None else driven[-1])
+    return Explained(details, driven, leads)
+
+
+def brief(reason: str) -> str:
+    """A reason as the table's ``reason`` holds it: the lead's clause whole, then the others' while the whole
+    stays within ``REASON_CHARS`` (all of them are in ``details``)."""
+    parts = str(reason).split("; also ")
+    out = parts[0]
+    for part in parts[1:]:
+        if len(out) + len("; also ") + len(part) > REASON_CHARS:
+            break
+        out += "; also " + part
+    return out
+
+
+def precedence_table(config: RankingConfig, kinds: Mapping[str, tuple[str, ...]]) -> str:
+    """The precedence a config declares, as ``docs/columns.md`` shows it (markdown): the order, the demoted kinds,
+    the rules, and each check's ``kinds`` (by check, its vocabulary)."""
+    pre = config.precedence
+    lines = ["| | |", "|---|---|",
+             f"| order | {', '.join(pre.order)}; then the other recording faults, the other model-free checks, the "
+             "model's readings |",
+             f"| demoted (lead only where nothing else is rare) | {', '.join(pre.demoted)} |",
+             f"| what the demo did (lead over a reading) | {', '.join(pre.behaviour)} |"]
+    for rule in pre.rules:
+        when = f"; when {', '.join(rule.when)} is rare too" if rule.when else ""
+        unless = f"; unless {', '.join(rule.unless)} is named" if rule.unless else ""
+        lines.append(f"| rule | {rule.first} leads over {', '.join(rule.over)}{when}{unless} |")
+    lines += ["", "| check | kinds |", "|---|---|"]
+    lines += [f"| `{check}` | {', '.join(found)} |" for check, found in kinds.items()]
+    return "\n".join(lines) + "\n"
