@@ -229,3 +229,33 @@ def test_the_outcome_says_whether_the_world_differed_from_the_start_and_what_nev
     assert found[30].params["columns"] == [0] and found[30].params["held"]
     assert "state[0] holds one value through the demo (0.9)" in found[30].words, found[30].words
     assert "holds one value" not in found[31].words
+
+
+def test_a_fault_a_few_of_one_tasks_demos_share_is_no_outcome_of_the_task_but_a_toggle_is():
+    """Three of a task's twelve demos pushed the other object to the goal too (it began where the others' did):
+    in a dataset of several tasks they are far out, not an outcome of their own.  A button that ends on where it
+    began off, and off where it began on, ends two ways because it began two ways: both are outcomes."""
+    from democheck.audit.outcome import OutcomeStats, explained, outcome
+
+    rng = np.random.default_rng(4)
+    stats, tasks = OutcomeStats(), []
+
+    def add(task: str, first: list[float], last: list[float]) -> None:
+        first, last = np.array(first), np.array(last)
+        stats.ends.append(np.stack([first, last]))
+        stats.sources.append("environment state")
+        stats.names.append(["target.x", "distractor.x", "button"])
+        stats.moves.append(np.stack([np.abs(last - first) + 1e-9, np.full(3, 1e-6)]))
+        tasks.append(task)
+
+    for task in ("a", "b", "c"):
+        for i in range(12):
+            t0, d0, on = rng.uniform(0.3, 0.5), rng.uniform(0.3, 0.5), float(rng.random() < 0.5)
+            both = task == "a" and i < 3
+            add(task, [t0, d0, on], [0.7 + rng.normal(0, 0.003), 0.62 if both else d0, 1 - on])
+    score, found = outcome(stats, np.array(tasks))
+    assert score[:3].min() > 10 * np.median(score[3:]), score[:12]
+    assert all(f.params["name"] == "distractor.x" for f in found[:3])
+    assert score[3:].max() < 5, np.sort(score)[-5:]  # the button ends two ways in every task: no demo far out
+    began = np.array([0.0] * 6 + [1.0] * 6)
+    assert explained(1 - began, began, 0.01) and not explained(began, rng.uniform(0, 1, 12), 0.01)

@@ -180,16 +180,12 @@ def modes(r: np.ndarray, floor: float, depth: int = 2, piles: bool = True) -> np
     least = max(2, int(np.ceil(MODE_SHARE * m)))
     if depth == 0 or m < 2 * least:
         return label
+    if piles:
+        label = piled(r, floor)
+        if label.any():
+            return label
     order = np.argsort(r, kind="stable")
     v = r[order]
-    half = (m + 1) // 2
-    i = int(np.argmin(v[half - 1:] - v[:m - half + 1]))  # the shortest run of half the values
-    centre, reach = np.median(v[i:i + half]), MODE_GAP * max(_sd(v[i:i + half]), floor)
-    for side in (r < centre - reach, r > centre + reach) if piles and half >= PILE_MIN else ():
-        if side.sum() >= least and _sd(r[side]) > reach:
-            label[side] = label.max() + 1
-    if label.any():
-        return label
     cuts = np.arange(least, m - least + 1)  # the split before position c
     gaps = v[cuts] - v[cuts - 1]
     c = int(cuts[np.argmax(gaps)])
@@ -200,6 +196,38 @@ def modes(r: np.ndarray, floor: float, depth: int = 2, piles: bool = True) -> np
     label[low] = modes(r[low], floor, depth - 1, piles)
     label[high] = modes(r[high], floor, depth - 1, piles) + label[low].max() + 1
     return label
+
+
+def piled(r: np.ndarray, floor: float) -> np.ndarray:
+    """[m] ``modes``' pile rule alone: 0 for the pile and the values near it, 1 and 2 for a side beside it that
+    spreads ``MODE_GAP`` times wider and holds ``MODE_SHARE`` of the values; all 0 where there is no pile."""
+    m = len(r)
+    label = np.zeros(m, int)
+    least = max(2, int(np.ceil(MODE_SHARE * m)))
+    half = (m + 1) // 2
+    if m < 2 * least or half < PILE_MIN:
+        return label
+    v = np.sort(r)
+    i = int(np.argmin(v[half - 1:] - v[:m - half + 1]))  # the shortest run of half the values
+    centre, reach = np.median(v[i:i + half]), MODE_GAP * max(_sd(v[i:i + half]), floor)
+    for side in (r < centre - reach, r > centre + reach):
+        if side.sum() >= least and _sd(r[side]) > reach:
+            label[side] = label.max() + 1
+    return label
+
+
+def explained(label: np.ndarray, began: np.ndarray, floor: float) -> bool:
+    """Whether a task's outcomes (``label``) follow from where its demos began (``began``, the same feature at
+    their first step): each outcome's demos started ``MODE_GAP`` robust SD (at least ``floor``) away from the
+    others' -- a button that toggles ends on where it began off.  A fault shared by a few of one task's demos (the
+    other object pushed too) began where the others did."""
+    if not np.isfinite(began).all():
+        return False
+    for k in np.unique(label):
+        mine, rest = began[label == k], began[label != k]
+        if abs(np.median(mine) - np.median(rest)) <= MODE_GAP * max(_sd(mine), _sd(rest), floor):
+            return False
+    return True
 
 
 def _several(label: np.ndarray) -> bool:
@@ -317,9 +345,10 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Fi
             own = task_floors(f, moves, tasks[rows])
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                at_start = np.nanmax(_task_gaps(start, None, tasks[rows], u)[0], axis=1, initial=-np.inf)
+                at_start = np.nanmax(_task_gaps(start, None, tasks[rows], u, began=start)[0], axis=1,
+                                     initial=-np.inf)
             for part, x, sided in (("at the end", end, True), ("change", end - start, False)):
-                z, ref = _task_gaps(x, start if sided else None, tasks[rows], u, own)
+                z, ref = _task_gaps(x, start if sided else None, tasks[rows], u, own, began=start)
                 best = np.nanargmax(np.where(np.isnan(z), -np.inf, z), axis=1)
                 with warnings.catch_warnings():  # a demo of a task too small to compare has only NaN
                     warnings.simplefilter("ignore", RuntimeWarning)
@@ -360,7 +389,7 @@ def _robust_sd_text(z: float) -> str:
 
 
 def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor: float,
-               own: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               own: np.ndarray | None = None, began: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """[N, m] robust z of each value against its task's demos and the value it was measured against.
 
     A column whose values over the whole dataset fall into several outcomes (``modes``: a switch on or off, a drawer
@@ -369,10 +398,12 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
     only one of its task).  Otherwise against the median of its task's demos -- with ``start``, of those that
     started on the same side of the task's median value, where at least ``OUTCOME_MIN_SIDE`` and ``MODE_SHARE`` of
     the task's did -- and, where the task's own values fall into several outcomes, of those that reached the same
-    one.  The unit: the task's robust SD about those medians, at least ``floor``, each demo's own floor in ``own``
+    one: a spread beside a pile (``piled``), or, in a dataset of several tasks, outcomes that follow from where
+    the demos began (``explained``, by ``began``: the feature at the first step); in a dataset of one task, any.  The unit: the task's robust SD about those medians, at least ``floor``, each demo's own floor in ``own``
     and ``POOLED_SCALE`` of the typical task's (a task of a few demos that happen to agree is not that precise)."""
     own = np.zeros(len(x)) if own is None else own
     z, ref = np.full(x.shape, np.nan), np.full(x.shape, np.nan)
+    several_tasks = len(np.unique(tasks)) > 1
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for c in range(x.shape[1]):
@@ -405,6 +436,9 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
                             if on.sum() >= max(OUTCOME_MIN_SIDE, MODE_SHARE * len(v)):
                                 centre[on] = np.median(v[on])
                     label = modes(v - centre, floor)
+                    if several_tasks and label.any() and not piled(v - centre, floor).any() and (
+                            began is None or not explained(label, began[rows[ok], c], floor)):
+                        label[:] = 0  # a few of one task's demos that agree: a fault they share
                     for k in np.unique(label):
                         mine = label == k
                         centre[mine] += np.median((v - centre)[mine])
