@@ -127,13 +127,17 @@ def test_suspicion_reason_names_the_score_that_ranks_each_demo(evidence):
         assert not r or f"({d}, " in r.split("; also ")[0] or r.startswith(f"{d}: "), (d, r)
 
 
-def test_a_ranking_recipe_with_an_unknown_score_key_or_tail_is_one_clear_error(tmp_path):
+def test_a_ranking_recipe_with_an_unknown_score_key_tail_or_kind_is_one_clear_error(tmp_path):
     from democheck.audit.scorers import ranking_recipe
     from democheck.errors import RecipeError
 
     shipped = (Path(__file__).resolve().parents[1] / "democheck/recipes/ranking/default.toml").read_text()
     for bad, words in (('tail = "normal"', 'tail = "Normal"'), ("[scores.outcome]", "[scores.outcom]"),
-                       ("floor = 0.05  # a share", "flor = 0.05  # a share")):
+                       ("floor = 0.05  # a share", "flor = 0.05  # a share"),
+                       # the reasons' precedence: a kind no check declares, a check not ranked, an unknown key
+                       ('demoted = ["motion:less"', 'demoted = ["motion:lesser"'),
+                       ('first = "outcome"', 'first = "outcom"'),
+                       ('over = ["view", "colours"]', 'over = ["view", "colours"]\nafter = 1')):
         path = tmp_path / "r.toml"
         path.write_text(shipped.replace(bad, words, 1))
         with pytest.raises(RecipeError, match="unknown or ill-typed"):
