@@ -566,6 +566,13 @@ def test_a_reference_too_small_for_the_rate_asked_for_is_said():
         return pd.DataFrame({"task": ["push"] * 250, "reference": np.arange(250) < n_ref})
 
     said = [w for w in warnings(table(40), None, fpr=0.01) if "the reference holds 40 demos" in w]
-    assert len(said) == 1 and "1 in 41" in said[0]
+    assert len(said) == 1 and "0.39 or more above" in said[0] and "--fpr 0.024 flags" in said[0], said
+    assert "99 demos or more" in said[0]
+    # ... and what it says is so: 0.39 above the most suspect reference demo is flagged at 0.01, 0.38 is not.
+    from democheck.audit.flagging import conformal_p
+
+    suspicion = np.r_[np.linspace(0, 2, 40), 2.39, 2.38]
+    core = np.r_[np.ones(40, bool), False, False]
+    assert (conformal_p(suspicion, core)[40:] <= 0.01).tolist() == [True, False]
     assert not [w for w in warnings(table(200), None, fpr=0.01) if "reference holds" in w]
     assert not [w for w in warnings(table(40), None, fpr=0.05) if "reference holds" in w]

@@ -267,3 +267,16 @@ def test_synth_and_probe_on_ray_write_the_local_engines_files(tmp_path):
     assert local == on_ray and any(k.endswith(".mp4") for k in local)
     probes, probes_on_ray = digests(tmp_path / "probes-local"), digests(tmp_path / "probes-ray")
     assert probes == probes_on_ray and any(k.endswith(".mp4") for k in probes)
+
+
+def test_dimension_names_are_read_in_every_form_lerobot_writes_them():
+    from democheck.data.lerobot import feature_names
+
+    assert feature_names({"names": ["a", "b"]}, 2) == ["a", "b"]
+    assert feature_names({"names": [["a", "b"]]}, 2) == ["a", "b"]  # a list nested in a list
+    assert feature_names({"names": {"motors": ["a", "b"]}}, 2) == ["a", "b"]
+    assert feature_names({"names": {"axes": ["x", "y", "z"]}}, 3) == ["x", "y", "z"]
+    assert feature_names({"names": {"left": ["j1", "j2"], "right": ["j1", "j2"]}}, 4) == \
+        ["left.j1", "left.j2", "right.j1", "right.j2"]  # parts together, told apart where they name alike
+    assert feature_names({"names": {"arm": ["a"], "gripper": ["g"]}}, 2) == ["a", "g"]
+    assert feature_names({"names": None}, 2) is None and feature_names({"names": ["a"]}, 2) is None

@@ -177,7 +177,7 @@ def test_every_template_of_every_check_renders_its_words():
                   place="the top left", what="state[1]", dim=1, dims=[0, 2], episode=4, period=0.05, first=2,
                   first_dt=0.1, worst=5, worst_dt=0.2, back=None, scattered=2, next=8, change=9.5, usual=1.5,
                   more=False, colour="grey (#a0a0a0)", median=0.5, z=12.0, value=0.25, steps=3, gain=1.6,
-                  named=True, size=3.5, last=30, name="target.x", part="at the end", ref=0.7, source="state",
+                  named=True, size=3.5, last=30, name="target.x", part="at the end", ref=0.7, source="environment state",
                   columns=[0], held=False, files=[], form="value")
     words = {f"{check}:{kind}": vocabulary(kind, **params).words
              for check, vocabulary in VOCABULARIES.items() for kind in vocabulary.kinds}
@@ -187,6 +187,9 @@ def test_every_template_of_every_check_renders_its_words():
     assert words["outcome:another job"] == ("left the world unlike its task's other demos: target.x at the end 0.25 "
                                             "where its task's demos reach 0.7 (12 robust SD)")
     assert words["outcome:held"].startswith("left the world unlike its task's other demos: target.x holds one value")
+    # The state alone may be the robot's own joints: never called the world.
+    assert VOCABULARIES["outcome"]("another job", **{**params, "source": "state"}).words.startswith(
+        "ended unlike its task's other demos: target.x at the end")
     assert words["frozen_video:stopped camera"].startswith("the picture stays the same while the actions change")
     assert words["frozen_state:stopped"].startswith("state[1] holds one value while the arm is driven over frames")
     assert words["lag:delay"] == ("its states follow its actions best with the actions 3 steps earlier (1.6 x less "

@@ -289,26 +289,32 @@ def task_floors(feature: Feature, moves: np.ndarray, tasks: np.ndarray) -> np.nd
     return np.where(rng >= floors, floors, 0.0)
 
 
-def _world_words(name: str, form: str, part: str, value: float, ref: float, z: float, **_) -> str:
+def _left(source: str) -> str:
+    """What a demo did, by the record read: the world where one is recorded; the state alone may be the robot's
+    own joints, never called the world."""
+    return ("left the world unlike its task's other demos" if source == "environment state"
+            else "ended unlike its task's other demos")
+
+
+def _world_words(name: str, form: str, part: str, value: float, ref: float, z: float, source: str, **_) -> str:
     """The words for the feature that differs most (``form``: value, rotation or angle): what it read at the end
     or how it changed, against its task's demos."""
     if form == "rotation":
         what = f"{name} at the end" if part == "at the end" else f"how {name} changed"
-        return f"left the world unlike its task's other demos: {what} differs from theirs ({_robust_sd_text(z)})"
+        return f"{_left(source)}: {what} differs from theirs ({_robust_sd_text(z)})"
     what = f"{name} at the end" if part == "at the end" else f"the change of {name}"
     if form == "angle":
         what += " (cosine and sine)"
     value_text, ref_text = words.pair(value, ref, 3)
-    return (f"left the world unlike its task's other demos: {what} {value_text} where its task's demos reach "
-            f"{ref_text} ({_robust_sd_text(z)})")
+    return f"{_left(source)}: {what} {value_text} where its task's demos reach {ref_text} ({_robust_sd_text(z)})"
 
 
-def _held_words(name: str, part: str, value: float, ref: float, z: float, **_) -> str:
+def _held_words(name: str, part: str, value: float, ref: float, z: float, source: str, **_) -> str:
     """The demo's record of the feature never changed (a part it never moved, or a sensor that read one value)."""
     value_text, ref_text = words.pair(value, ref, 3)
     theirs = f"reach {ref_text}" if part == "at the end" else f"change it by {ref_text}"
-    return (f"left the world unlike its task's other demos: {name} holds one value through the demo "
-            f"({value_text}) where its task's demos {theirs} ({_robust_sd_text(z)})")
+    return (f"{_left(source)}: {name} holds one value through the demo ({value_text}) where its task's demos "
+            f"{theirs} ({_robust_sd_text(z)})")
 
 
 OUTCOME = Vocabulary("outcome", {

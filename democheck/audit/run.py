@@ -346,6 +346,7 @@ def flag_summary(table: pd.DataFrame, fpr: float, untrusted=()) -> dict[str, Any
                             "infinite states or actions)",
         # If the reference demos are clean and the others like them, about fpr of them are flagged.
         "expected_false_flags": round(expected_false_flags(reference, fpr), 2),
+        "too_small": small_reference(int(reference.sum()), fpr) if 1 / (reference.sum() + 1) > fpr else None,
         "p_value_at_level": flag_level(table, fpr),
         "exact_copies": 0 if copies is None else int(copies.sum()),
         "broken_recordings": 0 if broken is None else int(broken.sum()),
@@ -372,6 +373,16 @@ def flag_summary(table: pd.DataFrame, fpr: float, untrusted=()) -> dict[str, Any
     return out
 
 
+def small_reference(reference: int, fpr: float) -> str:
+    """What a reference of ``reference`` demos lets ``fpr`` flag, where it is too small for a share of it to be as
+    small as ``fpr``."""
+    beyond = np.log10(1 / ((reference + 1) * fpr))
+    return (f"the reference holds {reference} demos, too few for --fpr {fpr:g}: a demo is flagged only where its "
+            f"suspicion is {beyond:.2g} or more above the most suspect of them (beyond it the fitted tails, not a "
+            f"count, set the level); --fpr {1 / (reference + 1):.2g} flags every demo more suspect than all of them, "
+            f"and a reference of {int(np.ceil(1 / fpr)) - 1} demos or more lets --fpr {fpr:g} count")
+
+
 def warnings(table: pd.DataFrame, ckpt: Checkpoint | None, untrusted: dict[str, str] | None = None,
              fpr: float = DEFAULT_FPR) -> list[str]:
     """What makes this audit's scores less trustworthy, in a sentence each: a reference too small to calibrate
@@ -390,10 +401,7 @@ def warnings(table: pd.DataFrame, ckpt: Checkpoint | None, untrusted: dict[str, 
                    "suspects, and a demo of the wrong task cannot be told apart")
     reference = int(table["reference"].sum()) if "reference" in table else 0
     if reference and 1 / (reference + 1) > fpr:
-        out.append(f"the reference holds {reference} demos: a share of them cannot be as small as --fpr {fpr:g} "
-                   f"(the least is 1 in {reference + 1}), so every flag lies beyond all of them, where the fitted "
-                   f"tails, not the reference, set how many clean demos are flagged; expect more false flags than "
-                   f"the {fpr * reference:.2g} the summary counts")
+        out.append(small_reference(reference, fpr))
     if ckpt is None:
         return out
     left_out = trust.untrusted(ckpt.meta) if untrusted is None else untrusted

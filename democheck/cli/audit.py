@@ -94,7 +94,8 @@ def print_audit(summary: dict, out: Path) -> None:
                   + "".join(f"{n} {what}, " for what, n in apart.items() if n)
                   + f"{scored} by their scores"
                   + (f" (on this data: a p_value at most {level:.3g})" if level is not None else "")
-                  + f"; about {flag['expected_false_flags']:.1f} false flags expected among those", highlight=False)
+                  + (f"; about {flag['expected_false_flags']:.1f} false flags expected among those"
+                     if not flag.get("too_small") else ""), highlight=False)
     if flag.get("one_task"):
         console.print(flag["one_task"], highlight=False)
     for w in summary.get("warnings", []):

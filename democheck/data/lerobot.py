@@ -97,14 +97,31 @@ def _frame(path: Path) -> pd.DataFrame:
 
 
 def feature_names(feature: dict[str, Any], dim: int) -> list[str] | None:
-    """A vector feature's per-dimension names from ``info.json`` (a list, or LeRobot's older ``{"motors": [...]}``),
-    or None when it names none or not one per dimension."""
+    """A vector feature's per-dimension names from ``info.json``, in every form LeRobot datasets write them: a list,
+    a list nested in lists (``[["j1", "j2"]]``), LeRobot's older ``{"motors": [...]}``, or a dict of parts whose
+    lists together name every dimension (``{"left_arm": [...], "right_arm": [...]}``: 'left_arm.j1' where two
+    parts name a dimension alike).  None when it names none or not one per dimension."""
     names = feature.get("names")
     if isinstance(names, dict):
-        names = next((v for v in names.values() if isinstance(v, list)), None)
+        parts = {k: _flat(v) for k, v in names.items() if isinstance(v, (list, tuple))}
+        whole = next((v for v in parts.values() if len(v) == dim), None)
+        if whole is None:
+            joined = [n for v in parts.values() for n in v]
+            clash = len(set(joined)) < len(joined)
+            whole = [f"{k}.{n}" if clash else n for k, v in parts.items() for n in v]
+        names = whole
+    elif isinstance(names, (list, tuple)):
+        names = _flat(names)
     if isinstance(names, list) and len(names) == dim and all(isinstance(n, str) for n in names):
-        return list(names)
+        return names
     return None
+
+
+def _flat(names: Any) -> list:
+    """Names nested in lists, in order."""
+    if isinstance(names, (list, tuple)):
+        return [n for part in names for n in _flat(part)]
+    return [names]
 
 
 def path_template(info: dict[str, Any], key: str, default: str | None, root: Path, **fields: Any) -> str:
