@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -280,3 +281,40 @@ def test_dimension_names_are_read_in_every_form_lerobot_writes_them():
         ["left.j1", "left.j2", "right.j1", "right.j2"]  # parts together, told apart where they name alike
     assert feature_names({"names": {"arm": ["a"], "gripper": ["g"]}}, 2) == ["a", "g"]
     assert feature_names({"names": None}, 2) is None and feature_names({"names": ["a"]}, 2) is None
+
+
+def test_a_dataset_is_found_by_its_hub_id_offline_in_lerobots_home_and_in_the_hubs_cache(tmp_path, monkeypatch):
+    """``ORG/NAME`` reads LeRobot's copy under HF_LEROBOT_HOME, else the hub's snapshot cache (a revision picks its
+    snapshot), with no network; a missing id is one line saying what to do."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from democheck.cli import app
+    from democheck.data.hub import resolve
+    from democheck.errors import DatasetError
+
+    tiny = Path(__file__).parent / "data" / "mw-tiny"
+    home, cache = tmp_path / "lerobot", tmp_path / "hub"
+    shutil.copytree(tiny, home / "someone" / "tiny")
+    snapshot = cache / "datasets--someone--other" / "snapshots" / ("a" * 40)
+    shutil.copytree(tiny, snapshot)
+    (cache / "datasets--someone--other" / "refs").mkdir()
+    (cache / "datasets--someone--other" / "refs" / "main").write_text("a" * 40)
+    (cache / "datasets--someone--other" / "refs" / "v1.0").write_text("a" * 40)
+    monkeypatch.setenv("HF_LEROBOT_HOME", str(home))
+    monkeypatch.setenv("HF_HUB_CACHE", str(cache))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    import huggingface_hub.constants as constants
+
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(cache))
+    monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
+    assert resolve("someone/tiny") == home / "someone" / "tiny"
+    assert resolve("someone/other") == snapshot and resolve("someone/other", revision="v1.0") == snapshot
+    assert resolve(tiny) == tiny  # a path is itself
+    with pytest.raises(DatasetError, match="not on this machine.*huggingface-cli download --repo-type dataset"):
+        resolve("someone/missing")
+    res = CliRunner().invoke(app, ["info", "someone/other"])
+    assert res.exit_code == 0 and "lerobot-v3.0" in res.output, res.output
+    res = CliRunner().invoke(app, ["audit", "someone/missing", "--out", str(tmp_path / "r"), "--no-model"])
+    assert res.exit_code == 2 and "someone/missing: not on this machine" in " ".join(res.output.split())

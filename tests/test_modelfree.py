@@ -568,10 +568,11 @@ def test_audit_without_a_model_on_data_the_shipped_model_cannot_read(tmp_path):
 def test_sensor_faults_planted_in_a_dataset_lerobot_wrote_are_found(tmp_path):
     """benchmarks/foreign/plant_faults.py on the Meta-World set LeRobot's writer made: a NaN stretch ranks first
     as a broken recording, a state stream frozen from a step on reads frozen longer than any clean demo, and both
-    are flagged (the model-free audit).  The dead encoder lands on a dimension (state[21]) that ends within 0.002
-    of where its task's demos end it, a fifth of a percent of the range the drawer task moves it, and that rests bit
-    for bit in its task's clean demos: nothing can tell it from a joint the demo did not use, and it is not
-    flagged."""
+    are flagged (the model-free audit).  The dead encoder lands on a dimension (state[21]) that rests bit for bit in
+    its task's clean demos while they are still, so the frozen-state check cannot tell it from a joint the demo did
+    not use; but the task's demos move it from 1 to 0.29 and it holds 1: its outcome names it, and it is flagged
+    (three of the task's twelve demos end near 1 -- it, an idle and a wrong-task demo --, a fault they share, not
+    an outcome of the task)."""
     import json
     import subprocess
     import sys
@@ -599,7 +600,8 @@ def test_sensor_faults_planted_in_a_dataset_lerobot_wrote_are_found(tmp_path):
     assert "holds one value while the arm is driven" in table.loc[frozen, "details"]
     assert table["is_anomaly"][np.isin(kind, ["frozen-state", "sensor-nan"])].all()
     dead = table.index[kind == "dead-dim"][0]
-    assert not table.loc[dead, "is_anomaly"] and table.loc[dead, "frozen_state"] == 0
+    assert table.loc[dead, "is_anomaly"] and table.loc[dead, "frozen_state"] == 0
+    assert table.loc[dead, "finding"] == "outcome:held" and "state[21] holds one value" in table.loc[dead, "reason"]
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert summary["flag"]["broken_recordings"] == 1
 

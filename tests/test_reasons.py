@@ -14,7 +14,7 @@ from democheck.audit.findings import VOCABULARIES, Finding
 from democheck.audit.flagging import conformal_p
 from democheck.audit.modelfree import ActionTraces, idle, motion
 from democheck.audit.ranking import Ranking
-from democheck.audit.reasons import counts, explain, lead_of, odds
+from democheck.audit.reasons import counts, explain, lead_of, odds, rare, tiers
 from democheck.audit.scorers import compute, ranking_config, ranking_recipe, select
 from democheck.audit.sensors import StateRepeats, frozen_state
 from democheck.data.demo import Demo, no_frames
@@ -22,10 +22,15 @@ from democheck.data.demo import Demo, no_frames
 
 def _lead(names: list[str], p: list[float], kinds: dict[str, str] | None = None, refs: int = 160,
           fpr: float = 0.01) -> str:
-    """The check whose finding leads a demo's reason, given each check's tail probability and finding's kind."""
+    """The check whose finding leads a demo's reason, given each check's tail probability and finding's kind, for
+    a demo outside a reference of ``refs`` demos whose counts agree with the tails (none beyond the demo where its
+    tail is rarer than the reference supports; a share of them as large as its tail probability elsewhere)."""
     config = ranking_config(names)
     found = [Finding(n, (kinds or {}).get(n, "")) for n in config.names]
-    return config.names[lead_of(config, np.log(p), refs, found, fpr)[0]]
+    log_p = np.log(np.array(p, float))[None]
+    at_least = np.where(rare(log_p, refs), 0, np.floor(np.exp(log_p) * (refs + 1))).astype(int)
+    tier = tiers(log_p, at_least, refs, np.zeros(1, bool), fpr)[0]
+    return config.names[lead_of(config, log_p[0], found, tier)[0]]
 
 
 def test_a_reason_leads_with_what_the_demo_did_over_a_reading_of_it():
@@ -316,12 +321,13 @@ def test_the_lead_follows_the_declared_order_and_reasons_change_nothing_they_rea
     told = explain(plain, findings, fpr)
     assert np.array_equal(before[0], ranking.log_p) and np.array_equal(before[1], ranking.core)
     assert before[2] == findings
-    refs = int(ranking.core.sum())
+    at_least, refs = counts(ranking.log_p, ranking.core)
+    tier = tiers(ranking.log_p, at_least, refs, ranking.core, fpr)
     for i, driver in enumerate(told.driven_by):
-        rare = [j for j, lp in enumerate(ranking.log_p[i]) if np.exp(lp) * (refs + 1) < 1
-                and (j == np.argmin(ranking.log_p[i]) or lp < np.log(config.reason_p))]
-        if not rare:
+        beyond = [j for j, lp in enumerate(ranking.log_p[i]) if tier[i, j] == 0
+                  and (j == np.argmin(ranking.log_p[i]) or lp < np.log(config.reason_p))]
+        if not beyond:
             continue
-        first = min(rare, key=lambda j: (config.specs[j].lead, ranking.log_p[i, j]))
+        first = min(beyond, key=lambda j: (config.specs[j].lead, ranking.log_p[i, j]))
         if config.names[first] in config.precedence.behaviour or config.specs[first].alone:
             assert driver == config.names[first], (driver, config.names[first])

@@ -36,8 +36,9 @@ class ScoreSpec:
 @dataclass(frozen=True)
 class Rule:
     """An exception to the precedence's order: where the lead would be ``over`` (each 'check' or 'check:kind')
-    and ``first`` is rare too, ``first`` leads -- where every finding of ``when`` is rare too and none of
-    ``unless`` is named in the reason (a rule applies on clear evidence; any evidence against it stops it)."""
+    and ``first`` is beyond every clean demo too, ``first`` leads -- where every finding of ``when`` is beyond
+    too and none of ``unless`` is named in the reason (a rule applies on clear evidence; any evidence against it
+    stops it)."""
 
     first: str
     over: tuple[str, ...]
@@ -50,7 +51,7 @@ class Precedence:
     """Which finding leads a reason, as data (the ranking recipe's ``[reasons]``): the checks in the order a
     reason names them of equally strong evidence (``order``; the others after, recording faults first, the
     model's readings last: ``ScoreSpec.lead``), the kinds that say how a demo differs but not what went wrong
-    (``demoted``: they lead only where no other finding is rare), the exceptions (``rules``) and the checks whose
+    (``demoted``: they lead only where no other finding is beyond every clean demo), the exceptions (``rules``) and the checks whose
     findings say what the demo did (``behaviour``: where the lead is a reading, one of these leads instead)."""
 
     order: tuple[str, ...] = ()

@@ -2,12 +2,12 @@
 of the ranking, the findings and ``--fpr``.  This is the only place that picks the lead, orders the clauses and
 words the odds.
 
-Which finding leads is the ranking recipe's declared precedence (``ranking.Precedence``): of the checks rare
-beyond what the reference can support, the first in the recipe's order, a demoted kind only where no other is, an
-exception of the recipe where it applies; where that is a reading of the demo (the model's, the coupling's), the
-behaviour the reading follows from.  Every clause then says what the check found, which check, and how unusual
-the demo is on it, counted against the reference demos (``odds``): "beyond every clean demo" only where the
-count says so.
+Which finding leads is the ranking recipe's declared precedence (``ranking.Precedence``): of the checks on which
+the demo is beyond every clean demo (``tiers``: no reference demo as unusual, and a tail rarer than the reference
+can support), the first in the recipe's order, a demoted kind only where no other is, an exception of the recipe
+where it applies; where that is a reading of the demo (the model's, the coupling's), the behaviour the reading
+follows from.  Every clause then says what the check found, which check, and how unusual the demo is on it,
+counted against the reference demos (``odds``): "beyond every clean demo" only where the count says so.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ class Explained:
 
 def rare(log_p: np.ndarray, references: int) -> np.ndarray:
     """Whether a tail probability (natural log) is rarer than the reference of ``references`` demos believed clean
-    can support, one in ``references + 1``: the first tier of the lead."""
+    can support, one in ``references + 1``."""
     return np.exp(log_p) * (references + 1) < 1
 
 
@@ -68,6 +68,17 @@ def counts(log_p: np.ndarray, core: np.ndarray) -> tuple[np.ndarray, int]:
     return at_least, int(core.sum())
 
 
+def tiers(log_p: np.ndarray, at_least: np.ndarray, references: int, core: np.ndarray, fpr: float) -> np.ndarray:
+    """[N, K] how strong each look's evidence is, by the count and by the fitted tail (``log_p``) alike: 0 where no
+    reference demo is as unusual, the demo is none of them, and its tail probability is rarer than the reference
+    can support (``rare``) -- beyond every clean demo --; 1 where both its share of the reference at least as
+    unusual and its tail probability are at most ``fpr`` (the look alone would flag it); 2 otherwise."""
+    share = (at_least + 1) / (references + 1)
+    p = np.nan_to_num(log_p, nan=0.0)
+    beyond = (at_least == 0) & ~np.asarray(core, bool)[:, None] & (references > 0) & rare(p, references)
+    return np.where(beyond, 0, np.where((share <= fpr) & (p <= np.log(fpr)), 1, 2))
+
+
 def odds(at_least: int, references: int, reference: bool) -> str:
     """How unusual a demo is on one check, counted against the ``references`` demos believed clean: 'beyond every
     clean demo' where none is as unusual and the demo is not one of them (``reference``), else 'as unusual as 1
@@ -86,25 +97,24 @@ def _matches(finding: Finding | None, name: str, check: str) -> bool:
     return want == check and (not kind or (finding is not None and finding.kind == kind))
 
 
-def lead_of(config: RankingConfig, row: np.ndarray, references: int, found: list[Finding | None],
-            fpr: float) -> list[int]:
+def lead_of(config: RankingConfig, row: np.ndarray, found: list[Finding | None], tier: np.ndarray) -> list[int]:
     """The looks a demo's reason names (``row``: each column's log tail probability, NaN where a look of several
     is named by another column), in the order it names them: up to ``CLAUSES``, the smallest probability and
     those under ``reason_p``; first the lead the recipe's precedence picks (see the module docstring), then by
-    probability.  ``found``: each column's finding for this demo."""
+    probability.  ``found``: each column's finding for this demo; ``tier``: each column's evidence, 0 beyond every
+    clean demo, 1 unusual enough to flag the demo alone, 2 less (``tiers``)."""
     row = np.nan_to_num(row, nan=0.0)
     if not len(row):
         return []
     specs, pre = config.specs, config.precedence
     names = config.names
     order = [j for j in np.argsort(row, kind="stable") if j == np.argmin(row) or row[j] < np.log(config.reason_p)]
-    beyond = [j for j in order if rare(row[j], references)]
+    beyond = [j for j in order if tier[j] == 0]
     demoted = [any(_matches(found[j], d, names[j]) for d in pre.demoted) for j in range(len(row))]
 
     def first(among: list[int]) -> int:
         def key(j: int) -> tuple:
-            tier = 0 if j in beyond else 1 if row[j] <= np.log(fpr) else 2
-            return tier, specs[j].lead if tier < 2 else 0, row[j]
+            return tier[j], specs[j].lead if tier[j] < 2 else 0, row[j]
 
         return min([j for j in among if not demoted[j]] or among, key=key)
 
@@ -138,6 +148,7 @@ def explain(ranking: Ranking, findings: Mapping[str, list[Finding]], fpr: float,
     shown = ranking.look_odds()
     core = np.asarray(ranking.core, bool)
     at_least, references = counts(look_columns(ranking), core)
+    tier = tiers(look_columns(ranking), at_least, references, core, fpr)
     details, driven, leads = [], [], []
     for i in range(n):
         special = "broken" if broken[i] else "duplicate" if copies[i] else ""
@@ -148,7 +159,7 @@ def explain(ranking: Ranking, findings: Mapping[str, list[Finding]], fpr: float,
             leads.append(f.key)
             continue
         found = [(findings.get(name) or [None] * n)[i] for name in names]
-        picked = lead_of(ranking.config, shown[i], references, found, fpr)
+        picked = lead_of(ranking.config, shown[i], found, tier[i])
         parts = []
         for j in picked:  # what the check saw in its own words first, then which check and how unusual
             words = found[j].words if found[j] is not None else ""
@@ -179,10 +190,10 @@ def precedence_table(config: RankingConfig, kinds: Mapping[str, tuple[str, ...]]
     lines = ["| | |", "|---|---|",
              f"| order | {', '.join(pre.order)}; then the other recording faults, the other model-free checks, the "
              "model's readings |",
-             f"| demoted (lead only where nothing else is rare) | {', '.join(pre.demoted)} |",
+             f"| demoted (lead only where nothing else is beyond) | {', '.join(pre.demoted)} |",
              f"| what the demo did (lead over a reading) | {', '.join(pre.behaviour)} |"]
     for rule in pre.rules:
-        when = f"; when {', '.join(rule.when)} is rare too" if rule.when else ""
+        when = f"; when {', '.join(rule.when)} is beyond too" if rule.when else ""
         unless = f"; unless {', '.join(rule.unless)} is named" if rule.unless else ""
         lines.append(f"| rule | {rule.first} leads over {', '.join(rule.over)}{when}{unless} |")
     lines += ["", "| check | kinds |", "|---|---|"]

@@ -15,7 +15,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from democheck.cli.common import Bar, app, console, err_console, short, user_errors
+from democheck.cli.common import BY_ID, REVISION_HELP, Bar, app, console, err_console, local_dataset, short, user_errors
 from democheck.errors import DemocheckError
 
 MODEL_HELP = "Model folder, or the name of a shipped model (default: petnet-push-v1, shipped with democheck)."
@@ -23,7 +23,7 @@ MODEL_HELP = "Model folder, or the name of a shipped model (default: petnet-push
 
 @app.command()
 def audit(
-    dataset: Annotated[Path, typer.Argument(help="Dataset to audit: LeRobot v3.0/v2.1 folder or robomimic .hdf5 file.")],
+    dataset: Annotated[str, typer.Argument(help="Dataset to audit: LeRobot v3.0/v2.1 folder or robomimic .hdf5 file." + BY_ID)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Report folder: scores.parquet/.csv, summary.json, suspects.txt, report.rrd.")],
     model: Annotated[Optional[Path], typer.Option(help=MODEL_HELP)] = None,
     top: Annotated[int, typer.Option(help="How many top suspects to show and to record with their evidence.")] = 20,
@@ -40,6 +40,7 @@ def audit(
     workers: Annotated[Optional[int], typer.Option(help="Processes for the cue pass and the pass that decodes every demo, started once for both (default: the machine's cores; small datasets stay in one). The scores are the same for any number.")] = None,
     engine: Annotated[str, typer.Option(help="Who reads the cues and decodes the demos: local (worker processes on this machine) or ray (Ray Data actors, one CPU each, --workers of them: a local Ray instance, or the cluster at --ray-address; every node needs democheck and the dataset at the same path). Needs pip install 'democheck\\[ray]'. The scores are the same.")] = "local",
     ray_address: Annotated[Optional[str], typer.Option(help="With --engine ray: the Ray cluster's address (e.g. ray://head:10001 or auto); default: start a local instance.")] = None,
+    revision: Annotated[Optional[str], typer.Option(help=REVISION_HELP)] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:
     """Score every demonstration -- task uncertainty, consistency, action error and model-free checks -- combine
@@ -53,6 +54,7 @@ def audit(
             raise DemocheckError("--ray-address needs --engine ray")
         from democheck.workflows import audit_dataset
 
+        dataset = local_dataset(dataset, revision)
         with Bar("audit", "demos") as bar:
             summary = audit_dataset(dataset, out, model=model, top=top, camera=camera, task=task, device=device,
                                     force=force, on_progress=lambda stage, d, n: bar.update(d, n, stage),
@@ -124,10 +126,11 @@ def print_audit(summary: dict, out: Path) -> None:
 
 @app.command()
 def clean(
-    dataset: Annotated[Path, typer.Argument(help="The LeRobot v3.0 dataset that was audited.")],
+    dataset: Annotated[str, typer.Argument(help="The LeRobot v3.0 dataset that was audited." + BY_ID)],
     report: Annotated[Path, typer.Option("--report", "-r", help="The audit's report folder (democheck audit --out).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the cleaned dataset (LeRobot v3.0).")],
     drop: Annotated[str, typer.Option(help="What to drop: flagged (the report's flags), fpr:X (what the audit would flag at --fpr X), top:K (its K most suspect), or list:FILE (episode indices as [3, 17] or one per line).")] = "flagged",
+    revision: Annotated[Optional[str], typer.Option(help=REVISION_HELP)] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:
     """Write the dataset without the demos the audit flagged (or another choice): episodes re-indexed, meta/
@@ -135,7 +138,7 @@ def clean(
     with user_errors():
         from democheck.workflows import clean_dataset
 
-        got = clean_dataset(dataset, report, out, drop=drop, force=force)
+        got = clean_dataset(local_dataset(dataset, revision), report, out, drop=drop, force=force)
     shown = ", ".join(map(str, got["dropped_episodes"][:12])) + (" ..." if len(got["dropped_episodes"]) > 12 else "")
     console.print(f"{out}: {got['kept']} episodes kept ({got['frames']} frames), {got['dropped']} dropped"
                   + (f" ({shown})" if shown else "") + f"; audit it again: democheck audit {out} --out <report>",

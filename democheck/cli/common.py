@@ -13,6 +13,17 @@ from rich.markup import escape
 
 from democheck.errors import DemocheckError
 
+BY_ID = (" Or a hub repository id (ORG/NAME): LeRobot's copy under HF_LEROBOT_HOME, else the hub's cache, downloading "
+         "what is missing when online (HF_HUB_OFFLINE=1: the cache alone).")
+REVISION_HELP = "With a hub repository id: the branch, tag or commit to read."
+
+
+def local_dataset(dataset, revision: str | None = None):
+    """The folder of a dataset given by path or by hub repository id (``data.hub.resolve``)."""
+    from democheck.data.hub import resolve
+
+    return resolve(dataset, revision)
+
 app = typer.Typer(
     name="democheck",
     help="Audit robot demonstration datasets: find the demos a learner cannot tell the task from.",

@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from democheck.cli.common import Bar, app, console, parse_counts, user_errors
+from democheck.cli.common import BY_ID, REVISION_HELP, Bar, app, console, local_dataset, parse_counts, user_errors
 from democheck.errors import DemocheckError
 
 
@@ -91,10 +91,11 @@ def probe(
 
 @app.command()
 def info(
-    dataset: Annotated[Path, typer.Argument(help="Dataset folder (LeRobot v3.0 or v2.1) or robomimic .hdf5 file.")],
+    dataset: Annotated[str, typer.Argument(help="Dataset folder (LeRobot v3.0 or v2.1) or robomimic .hdf5 file." + BY_ID)],
     camera: Annotated[Optional[str], typer.Option(help="Image feature to use when there are several.")] = None,
     state_key: Annotated[Optional[str], typer.Option(help="Feature holding the robot state (default: observation.state).")] = None,
     action_key: Annotated[Optional[str], typer.Option(help="Feature holding the actions (default: action).")] = None,
+    revision: Annotated[Optional[str], typer.Option(help=REVISION_HELP)] = None,
 ) -> None:
     """Describe a dataset as democheck sees it: format, episodes, tasks and their sizes, episode lengths, every
     recorded stream and what the audit reads it as, splits, labels."""
@@ -104,6 +105,7 @@ def info(
         from democheck.audit.evidence import GROUP_MIN_DEMOS
         from democheck.data import open_dataset
 
+        dataset = local_dataset(dataset, revision)
         ds = open_dataset(dataset, camera=camera, state_key=state_key, action_key=action_key)
         eps = ds.episodes
         table = Table(title=str(dataset), show_header=False)

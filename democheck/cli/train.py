@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from democheck.cli.common import Bar, app, console, user_errors
+from democheck.cli.common import BY_ID, REVISION_HELP, Bar, app, console, local_dataset, user_errors
 
 RECIPE_HELP = ("Training recipe: a shipped name (paper: the paper's loss, the default; your-data: for a dataset of your "
                "own, 64 px, ~15 min on 2 cores; petnet-push-v2: the controller that pushed on a GPU, on push-v2, about "
@@ -21,7 +21,7 @@ SET_HELP = ("Override one recipe key, e.g. --set optim.lr=1e-3 --set regulariser
 
 @app.command()
 def train(
-    dataset: Annotated[Path, typer.Argument(help="Training dataset (LeRobot v3.0/v2.1); tasks need two or more demos.")],
+    dataset: Annotated[str, typer.Argument(help="Training dataset (LeRobot v3.0/v2.1); tasks need two or more demos." + BY_ID)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Model folder to write (config.json, model.safetensors, README.md).")],
     recipe: Annotated[str, typer.Option(help=RECIPE_HELP)] = "paper",
     set_: Annotated[Optional[list[str]], typer.Option("--set", help=SET_HELP)] = None,
@@ -33,6 +33,7 @@ def train(
     force: Annotated[bool, typer.Option("--force", help="Replace --out, or discard an interrupted run and start over.")] = False,
     camera: Annotated[Optional[str], typer.Option(help="Image feature to train on when there are several.")] = None,
     cache_dir: Annotated[Optional[Path], typer.Option(help="Where decoded frames are cached (default ~/.cache/democheck).")] = None,
+    revision: Annotated[Optional[str], typer.Option(help=REVISION_HELP)] = None,
 ) -> None:
     """Train PETNet (or the TecNets baseline) on a dataset from a recipe; writes a safetensors checkpoint with a model card.
 
@@ -41,6 +42,7 @@ def train(
     with user_errors():
         from democheck.workflows import train_from_recipe
 
+        dataset = local_dataset(dataset, revision)
         with Bar("train", info=True) as bar:
             val = {"text": ""}
 
