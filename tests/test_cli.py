@@ -1,6 +1,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -112,3 +113,24 @@ def test_ctrl_c_at_any_moment_prints_one_line_and_leaves_nothing(tmp_path, momen
     ps = subprocess.run(["ps", "-o", "stat=,pid=", "-g", str(proc.pid)], capture_output=True, text=True).stdout
     running = [line for line in ps.splitlines() if line.strip() and not line.strip().startswith("Z")]
     assert not running, f"processes left behind: {running}"  # an exited worker not yet reaped (Z) holds nothing
+
+
+def test_info_says_before_any_long_work_that_the_video_files_are_not_where_the_metadata_says(tmp_path):
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from democheck.cli import app
+
+    data = tmp_path / "d"
+    shutil.copytree(Path(__file__).parent / "data" / "mw-tiny", data)
+    res = CliRunner().invoke(app, ["info", str(data)])
+    assert res.exit_code == 0 and "every one there; a sample decodes" in res.output, res.output
+    (data / "videos").rename(data / "video")  # where info.json does not say they are
+    res = CliRunner().invoke(app, ["info", str(data)])
+    said = " ".join(res.output.split())
+    assert res.exit_code == 0 and "1 problem(s)" in said and "file-000.mp4: missing (21 episodes)" in said, said
+    (data / "video").rename(data / "videos")
+    (data / "videos" / "observation.images.corner" / "chunk-000" / "file-000.mp4").write_bytes(b"not a video")
+    said = " ".join(CliRunner().invoke(app, ["info", str(data)]).output.split())
+    assert "episode 0's first and last frame do not decode" in said, said

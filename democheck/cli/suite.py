@@ -115,6 +115,10 @@ def info(
         h, w, c = ds.image_shape
         table.add_row("camera", f"{ds.camera} ({h}x{w}x{c})" if ds.has_camera else
                       "none (states and actions only: democheck audit --no-model)")
+        n_files, problems = ds.camera_files()
+        if n_files:
+            table.add_row("video files", f"{n_files}, " + ("every one there; a sample decodes" if not problems else
+                                                          f"[red]{len(problems)} problem(s)[/], below"))
         table.add_row("state / action dims", f"{ds.state_dim} / {ds.action_dim}")
         per_task = eps.groupby("task").size()
         few = per_task[per_task < GROUP_MIN_DEMOS]
@@ -129,6 +133,12 @@ def info(
         if "success" in eps and eps["success"].notna().any():
             table.add_row("success", f"{eps['success'].dropna().astype(float).mean():.1%}")
         console.print(table)
+        for problem in problems:
+            console.print(f"[red]video:[/] {escape(problem)}", highlight=False)
+        if problems:
+            console.print("an audit reads the episodes of these files as broken recordings (black frames), and "
+                          "refuses a dataset none of whose frames can be read: fix the files or info.json's "
+                          "video_path first", highlight=False)
         streams = ds.streams()
         if streams:
             recorded = Table(title="what the audit reads", show_header=True)

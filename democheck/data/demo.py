@@ -223,6 +223,30 @@ class DemoSet:
             return self._src.image_shape
         return self.image_size, self.image_size, self._src.image_shape[2]
 
+    def camera_files(self) -> tuple[int, list[str]]:
+        """Before any long work: how many video files the metadata names for the camera, and what is wrong with
+        them -- each file that is missing (with how many episodes it holds), and a sample that does not decode
+        (the first episode's first and last frame, read strictly).  (0, []) for a camera that is not a video."""
+        if not hasattr(self._src, "video_file") or not self.has_camera:
+            return 0, []
+        files: dict[Path, int] = {}
+        for e in self.episodes.index:
+            path = self._src.video_file(int(e))
+            if path is not None:
+                files[path] = files.get(path, 0) + 1
+        problems = [f"{path}: missing ({n} episode{'s' * (n > 1)})" for path, n in files.items() if not path.exists()]
+        present = [e for e in self.episodes.index if (p := self._src.video_file(int(e))) is not None and p.exists()]
+        if present:
+            was = getattr(self._src, "strict", False)
+            self._src.strict = True
+            try:
+                self._src.cue_frames(int(present[0]))
+            except DatasetError as exc:
+                problems.append(f"episode {int(present[0])}'s first and last frame do not decode: {exc}")
+            finally:
+                self._src.strict = was
+        return len(files), problems
+
     def streams(self) -> list[tuple[str, str, str]]:
         """What the dataset records, stream by stream: (name, width or frame shape, what the audit reads it as)."""
         return self._src.streams() if hasattr(self._src, "streams") else []

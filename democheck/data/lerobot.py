@@ -416,6 +416,10 @@ class LeRobotV3(LeRobotBase):
             raise DatasetError(f"{self.root / 'meta/episodes'}: no {exc} for camera {self.camera!r}") from None
         return inside_root(self.root, rel), start, start + int(r["length"])
 
+    def video_file(self, episode_index: int) -> Path | None:
+        """The video file that holds the episode's camera frames (None where the camera is not a video)."""
+        return self._video_span(episode_index)[0] if self.camera is not None and self.camera_dtype == "video" else None
+
     def load(self, episode_index: int) -> Demo:
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)

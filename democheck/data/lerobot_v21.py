@@ -50,6 +50,11 @@ class LeRobotV21(LeRobotBase):
     def _data_path(self, episode_index: int) -> Path:
         return self._path("data_path", episode_index)
 
+    def video_file(self, episode_index: int) -> Path | None:
+        """The video file that holds the episode's camera frames (None where the camera is not a video)."""
+        return self._path("video_path", episode_index) if self.camera is not None and self.camera_dtype == "video" \
+            else None
+
     def load(self, episode_index: int) -> Demo:
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
