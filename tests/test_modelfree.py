@@ -821,6 +821,7 @@ def test_ksg_mutual_information_matches_the_gaussian_formula():
 
 def test_coupling_ranks_the_arm_let_go_of_first_and_is_one_look_with_the_action_error():
     from democheck.audit.ranking import Ranking
+    from democheck.audit.reasons import look_columns
     from democheck.audit.scorers import ranked, ranking_config
 
     demos, bad = _planted("idle")
@@ -859,7 +860,7 @@ def test_coupling_ranks_the_arm_let_go_of_first_and_is_one_look_with_the_action_
     np.testing.assert_allclose(combine(config, log_p), -combined_log10(by_hand), rtol=1e-9)
     # A reason names the look once, by the score that drove it, at the odds the ranking counted.
     three = ranking_config(["motion", "action_error", "coupling"])
-    shown = Ranking(three, np.log([[0.3, 1e-6, 0.5], [0.3, 0.4, 0.01]]), np.ones(2, bool), np.zeros(2)).look_odds()
+    _, shown = look_columns(Ranking(three, np.log([[0.3, 1e-6, 0.5], [0.3, 0.4, 0.01]]), np.ones(2, bool), np.zeros(2)))
     np.testing.assert_allclose(np.exp(shown[:, 0]), [0.3, 0.3])
     np.testing.assert_allclose(np.exp([shown[0, 1], shown[1, 2]]), [2e-6, 1 - 0.99 ** 2], rtol=1e-5)
     assert np.isnan(shown[0, 2]) and np.isnan(shown[1, 1])

@@ -64,11 +64,6 @@ class Vocabulary:
 VOCABULARIES: dict[str, Vocabulary] = {}
 
 
-def words(findings: list[Finding] | None) -> list[str] | None:
-    """Each finding's words (None stays None)."""
-    return None if findings is None else [f.words for f in findings]
-
-
 def known(name: str) -> bool:
     """Whether ``name`` is a registered 'check' or 'check:kind'."""
     check, _, kind = name.partition(":")

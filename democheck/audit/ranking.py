@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 import numpy as np
 
 from democheck.audit.flagging import conformal_p
-from democheck.audit.scores import calibrated, combined_log10, merge_looks, robust_tails
+from democheck.audit.scores import calibrated, combined_log10, robust_tails
 
 
 @dataclass(frozen=True)
@@ -115,22 +115,6 @@ class Ranking:
     core: np.ndarray
     suspicion: np.ndarray
     broken: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-
-    def look_odds(self) -> np.ndarray:
-        """``log_p`` as a reason reads it: in each row, the score of a look of several that drove it carries the
-        look's merged tail probability (what the ranking counted), the look's other scores NaN, so that one look
-        is named once, at its own odds."""
-        looks = self.config.looks()
-        out = np.array(self.log_p, np.float64, copy=True)
-        for look in np.unique(looks):
-            cols = np.flatnonzero(looks == look)
-            if len(cols) < 2:
-                continue
-            merged, _ = merge_looks(self.log_p[:, cols], np.zeros(len(cols), int))
-            first = cols[np.argmin(np.nan_to_num(self.log_p[:, cols], nan=np.inf), axis=1)]
-            out[:, cols] = np.nan
-            out[np.arange(len(out)), first] = merged[:, 0]
-        return out
 
     def per_check(self, fpr: float) -> dict[str, np.ndarray]:
         """``p_<name>``: each ranked score's tail probability, comparable across scores; ``is_<name>``: whether

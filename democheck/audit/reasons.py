@@ -41,17 +41,24 @@ def rare(log_p: np.ndarray, references: int) -> np.ndarray:
     return np.exp(log_p) * (references + 1) < 1
 
 
-def look_columns(ranking: Ranking) -> np.ndarray:
-    """[N, K] ``ranking.log_p`` with the scores of one look (``RankingConfig.looks``) each carrying the look's
-    merged tail probability (what the ranking counted)."""
+def look_columns(ranking: Ranking) -> tuple[np.ndarray, np.ndarray]:
+    """``ranking.log_p`` [N, K] as a reason reads it, twice: with every score of a look of several
+    (``RankingConfig.looks``) carrying the look's merged tail probability (what the ranking counted), and with
+    only the score that drove the look in each row carrying it, the look's others NaN (so a reason names a look
+    once, by that score)."""
     looks = ranking.config.looks()
-    out = np.array(ranking.log_p, np.float64, copy=True)
+    every = np.array(ranking.log_p, np.float64, copy=True)
+    shown = every.copy()
     for look in np.unique(looks):
         cols = np.flatnonzero(looks == look)
-        if len(cols) > 1:
-            merged, _ = merge_looks(ranking.log_p[:, cols], np.zeros(len(cols), int))
-            out[:, cols] = merged[:, :1]
-    return out
+        if len(cols) < 2:
+            continue
+        merged, _ = merge_looks(ranking.log_p[:, cols], np.zeros(len(cols), int))
+        first = cols[np.argmin(np.nan_to_num(ranking.log_p[:, cols], nan=np.inf), axis=1)]
+        every[:, cols] = merged[:, :1]
+        shown[:, cols] = np.nan
+        shown[np.arange(len(shown)), first] = merged[:, 0]
+    return every, shown
 
 
 def counts(log_p: np.ndarray, core: np.ndarray) -> tuple[np.ndarray, int]:
@@ -145,10 +152,10 @@ def explain(ranking: Ranking, findings: Mapping[str, list[Finding]], fpr: float,
     names, n = ranking.config.names, len(ranking.suspicion)
     broken = np.zeros(n, bool) if broken is None else np.asarray(broken, bool)
     copies = np.zeros(n, bool) if copies is None else np.asarray(copies, bool)
-    shown = ranking.look_odds()
+    every, shown = look_columns(ranking)
     core = np.asarray(ranking.core, bool)
-    at_least, references = counts(look_columns(ranking), core)
-    tier = tiers(look_columns(ranking), at_least, references, core, fpr)
+    at_least, references = counts(every, core)
+    tier = tiers(every, at_least, references, core, fpr)
     details, driven, leads = [], [], []
     for i in range(n):
         special = "broken" if broken[i] else "duplicate" if copies[i] else ""
