@@ -170,6 +170,14 @@ def test_lerobot_v21_videos(tmp_path):
         np.testing.assert_allclose(demo.state, state)
         np.testing.assert_array_equal(ds.cue_frames(e), demo.frames[[0, -1]])
         np.testing.assert_array_equal(ds.end_states([e])[0], demo.state[-1])
+    # A v2.1 dataset whose templates name the chunk as later writers do ({chunk_index}) reads the same.
+    info_path = tmp_path / "v21v" / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    for key in ("data_path", "video_path"):
+        info[key] = info[key].replace("{episode_chunk", "{chunk_index")
+    info_path.write_text(json.dumps(info))
+    again = open_dataset(tmp_path / "v21v", camera="observation.images.wrist")
+    np.testing.assert_array_equal(again[0].frames, ds[0].frames)
 
 
 def test_cue_frames_do_not_decode_whole_episodes(tiny_dataset, tmp_path):

@@ -43,8 +43,9 @@ class LeRobotV21(LeRobotBase):
 
     def _path(self, template_key: str, episode_index: int) -> Path:
         chunk = episode_index // self.chunks_size
-        rel = path_template(self.info, template_key, None, self.root, episode_chunk=chunk, episode_index=episode_index,
-                        video_key=self.camera)
+        # The chunk by either of LeRobot's names for it: v2.1's episode_chunk, or chunk_index as later writers put it.
+        rel = path_template(self.info, template_key, None, self.root, episode_chunk=chunk, chunk_index=chunk,
+                            episode_index=episode_index, video_key=self.camera)
         return inside_root(self.root, rel)
 
     def _data_path(self, episode_index: int) -> Path:
