@@ -331,3 +331,39 @@ def test_the_lead_follows_the_declared_order_and_reasons_change_nothing_they_rea
         first = min(beyond, key=lambda j: (config.specs[j].lead, ranking.log_p[i, j]))
         if config.names[first] in config.precedence.behaviour or config.specs[first].alone:
             assert driver == config.names[first], (driver, config.names[first])
+
+
+def test_a_joint_is_judged_against_its_own_command_and_a_joint_at_its_limit_is_no_dead_sensor():
+    """State and actions named alike (positions and commanded positions): a joint whose own command never changes
+    holds its value, and fingers resting open as far as they go while told to open hold theirs -- neither is a
+    sensor that stopped, though the other joints' commands change; an encoder that died while its own command
+    moved is."""
+    from democheck.audit.sensors import StateRepeats, commands
+
+    names = ["shoulder.pos", "elbow.pos", "gripper.pos"]
+    assert commands(names, names[::-1], 3, 3).tolist() == [2, 1, 0]
+    assert commands(None, None, 3, 3).tolist() == [0, 1, 2]
+    assert commands(names, ["torque"] * 3, 3, 3).tolist() == [-1] * 3
+    assert commands(None, None, 7, 4).tolist() == [-1] * 7
+    rng = np.random.default_rng(0)
+    stats = StateRepeats()
+    kinds = ["clean"] * 12 + ["constant command", "open at its limit", "dead encoder"]
+    for kind in kinds:
+        command = np.cumsum(rng.normal(0, 1, (100, 3)), 0)
+        if kind == "constant command":
+            command[:, 1] = 0.5
+        if kind == "open at its limit":
+            command[40:, 2] = command[40:, 2].max() + 5.0  # told to open further than it goes
+        state = np.round(command + rng.normal(0, 0.01, (100, 3)), 6)
+        if kind == "constant command":
+            state[:, 1] = 0.5  # still, as told
+        if kind == "open at its limit":
+            state[40:, 2] = state[:, 2].max()
+        if kind == "dead encoder":
+            state[30:, 0] = state[30, 0]
+        stats.add(Demo(0, "t", no_frames(100), state, command, extra={"state_names": names, "action_names": names}))
+    shares = np.stack(stats.shares)
+    assert shares[12, 1] == 0 and shares[13, 2] == 0, shares[12:]
+    assert shares[14, 0] > 0.6
+    found = frozen_state(stats, np.zeros(len(kinds), int))[1]
+    assert found[14].params["what"] == "shoulder.pos" and found[12].kind == found[13].kind == "moves"

@@ -29,9 +29,23 @@ FROZEN_STATE_QUANTILE = 0.75  # over the task's demos: live means still in hardl
 DRIVEN_SHARE = 0.01  # a step is driven when its action changes by this share of the demo's 90th-percentile change
 
 
+def commands(state_names: list[str] | None, action_names: list[str] | None, s: int, a: int) -> np.ndarray:
+    """[S] the action dimension that commands each state dimension, -1 for none: by name where the dataset names
+    both (a joint's position and its commanded position, 'shoulder_pan.pos' in each), else by position where state
+    and actions are as wide and neither is named otherwise; none where they differ (torques, velocities, a
+    gripper's opening against an arm's pose)."""
+    if state_names and action_names:
+        where = {n: k for k, n in enumerate(action_names)}
+        return np.array([where.get(n, -1) for n in state_names], int)
+    return np.arange(s) if s == a and not (state_names or action_names) else np.full(s, -1)
+
+
 class StateRepeats(PerDemo):
     """Consumer of decoded demos: per state dimension, the longest stretch of steps at which the value repeats
-    while the actions change (by more than ``DRIVEN_SHARE`` of the demo's large changes) (its share of the demo's steps, where it starts, how many steps it lasts)."""
+    while it is driven (its share of the demo's steps, where it starts, how many steps it lasts).  A dimension
+    with a command of its own (``commands``) is driven where that command changes by more than ``DRIVEN_SHARE``
+    of its large changes, and a stretch held at the edge of the demo's range while its command stays there or
+    beyond is a joint at its limit, not a fault; another is driven where any action changes so."""
 
     fields = ("shares", "starts", "lengths", "steps", "names", "rests")
     shares: list[np.ndarray]  # [S]
@@ -47,13 +61,21 @@ class StateRepeats(PerDemo):
     def add(self, demo: Demo) -> None:
         x, a = np.asarray(demo.state), np.asarray(demo.actions)
         n = max(len(x) - 1, 0)
-        change = np.abs(np.diff(a, axis=0)).max(axis=1) if n else np.zeros(0)
+        steps = np.abs(np.diff(a, axis=0)) if n else np.zeros((0, a.shape[1]))
         # Driven: the command changes by more than float noise around a held pose -- a share of the demo's own
         # large changes (a controller holding still at its goal repeats its command to the sixth digit).
-        driven = change > DRIVEN_SHARE * np.quantile(change, 0.9) if n else np.zeros(0, bool)
+        change = steps.max(axis=1) if n else np.zeros(0)
+        driven = np.repeat((change > DRIVEN_SHARE * np.quantile(change, 0.9) if n else np.zeros(0, bool))[:, None],
+                           x.shape[1], axis=1)
+        own = commands(demo.extra.get("state_names"), demo.extra.get("action_names"), x.shape[1], a.shape[1])
+        for j, k in enumerate(own):
+            if k >= 0 and n:
+                driven[:, j] = steps[:, k] > DRIVEN_SHARE * np.quantile(steps[:, k], 0.9)
         changes = x[1:] != x[:-1] if n else np.zeros((0, x.shape[1]), bool)
-        repeats = ~changes & driven[:, None]
+        repeats = ~changes & driven
         runs = [longest_run(repeats[:, j]) for j in range(x.shape[1])]
+        runs = [(0, 0) if own[j] >= 0 and at_limit(x[:, j], a[:, own[j]], s, k) else (s, k)
+                for j, (s, k) in enumerate(runs)]
         starts = np.array([s for s, _ in runs], int)
         lengths = np.array([k for _, k in runs], int)
         self.shares.append(lengths / max(n, 1))
@@ -65,6 +87,19 @@ class StateRepeats(PerDemo):
         self.rests.append(np.array([k > 0 and changes[s:s + k].any() and (
             changes[s + k:, j].any() or (repeats[s:s + k].all(axis=0) & moves).sum() > 1)
             for j, (s, k) in enumerate(runs)], bool))
+
+
+def at_limit(state: np.ndarray, command: np.ndarray, start: int, length: int) -> bool:
+    """Whether a joint held over steps ``start`` .. ``start + length`` sits at the edge of its range in the demo
+    while its own command stays there or beyond (fingers open as far as they go, told to open): held by its stop,
+    not by a dead sensor.  Within 1% of the joint's range of the edge."""
+    if not length:
+        return False
+    held = float(state[start + 1])
+    lo, hi = float(np.min(state)), float(np.max(state))
+    tol = 0.01 * max(hi - lo, 1e-9)
+    asked = command[start + 1:start + length + 1]
+    return bool((held >= hi - tol and (asked >= held - tol).all()) or (held <= lo + tol and (asked <= held + tol).all()))
 
 
 def _holds(what: str, start: int, stop: int, length: int) -> str:

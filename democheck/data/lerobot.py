@@ -362,7 +362,8 @@ class LeRobotBase:
             source_episode=None if src is None or pd.isna(src) or int(src) < 0 else int(src),
             damaged=[*(unreadable or []), *entry["damaged"].get(episode_index, [])],
             extra={**({} if entry["timestamp"] is None else {"timestamp": entry["timestamp"][s:e], "fps": self.fps}),
-                   "state_names": self.state_names, "env_state_names": self.env_state_names},
+                   "state_names": self.state_names, "action_names": self.action_names,
+                   "env_state_names": self.env_state_names},
         )
 
 
