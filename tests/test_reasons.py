@@ -183,7 +183,7 @@ def test_every_template_of_every_check_renders_its_words():
                   first_dt=0.1, worst=5, worst_dt=0.2, back=None, scattered=2, next=8, change=9.5, usual=1.5,
                   more=False, colour="grey (#a0a0a0)", median=0.5, z=12.0, value=0.25, steps=3, gain=1.6,
                   named=True, size=3.5, last=30, name="target.x", part="at the end", ref=0.7, source="environment state",
-                  columns=[0], held=False, files=[], form="value")
+                  columns=[0], held=False, files=[], form="value", level=0.0)
     words = {f"{check}:{kind}": vocabulary(kind, **params).words
              for check, vocabulary in VOCABULARIES.items() for kind in vocabulary.kinds}
     assert words["idle:still"] == "the arm stands still at 25% of steps, longest frames 3-9 (35% of the demo)"
@@ -251,7 +251,7 @@ def tables(draw):
 _PARAMS = dict(share=0.5, start=1, stop=4, length=10, longest=0.4, frame=3, feature="mean |action|", ratio=2.0,
                place="the centre", what="state[0]", dim=0, scattered=0, name="x", form="value", part="at the end",
                value=1.0, ref=0.0, z=8.0, source="state", columns=[0], held=False, more=True,
-               colour="red (#e02020)", median=0.1, files=[])
+               colour="red (#e02020)", median=0.1, files=[], level=0.0)
 
 
 @settings(max_examples=60, deadline=None)
@@ -367,3 +367,24 @@ def test_a_joint_is_judged_against_its_own_command_and_a_joint_at_its_limit_is_n
     assert shares[14, 0] > 0.6
     found = frozen_state(stats, np.zeros(len(kinds), int))[1]
     assert found[14].params["what"] == "shoulder.pos" and found[12].kind == found[13].kind == "moves"
+
+
+def test_a_camera_that_delivered_no_picture_is_named_first():
+    """A demo whose every frame is black (a camera that recorded nothing, as in a real bimanual dataset's first
+    episode) is 'blank', and that leads over the view, the colours and the world it left."""
+    from democheck.audit.frames import FrameChanges, frozen_video
+
+    rng = np.random.default_rng(0)
+    stats = FrameChanges()
+    for i in range(12):
+        frames = rng.integers(0, 255, (40, 16, 16, 3), dtype=np.uint8)
+        if i == 5:
+            frames[:] = 0
+        stats.add(Demo(i, "t", frames, np.zeros((40, 2), np.float32), rng.normal(0, 1, (40, 2)).astype(np.float32)))
+    _, found = frozen_video(stats, np.zeros(12, int))
+    assert found[5].kind == "blank" and found[5].params["share"] == 1.0
+    assert found[5].words == "the camera shows nothing: 100% of the demo's frames are one flat black picture"
+    assert all(f.kind != "blank" for f in found[:5] + found[6:])
+    names = ["outcome", "view", "colours", "frozen_video"]
+    assert _lead(names, [1e-10, 1e-44, 1e-27, 1e-24], {"frozen_video": "blank"}) == "frozen_video"
+    assert _lead(names, [1e-10, 1e-44, 1e-27, 1e-24], {"frozen_video": "still picture"}) == "outcome"

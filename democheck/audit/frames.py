@@ -37,6 +37,7 @@ JUMP_NEIGHBOURS = 5  # steps either side of a frame change that say what the cha
 JUMP_FLOOR = 0.5  # grey levels: the least usual change a jump is measured against (a still scene's sensor noise)
 STEP_THUMB = 8  # pixels: the grey thumbnails of every ``VIEW_EVERY``-th frame ``delivered_unlike`` compares
 STOPPED_SHARE = 0.5  # a frozen stretch this share of the demo or more is most of the picture the view checks average
+BLANK_RANGE = 2.0  # grey levels: a thumbnail whose lightest and darkest pixels are closer shows nothing (flat)
 
 
 class FrameChanges(PerDemo):
@@ -88,7 +89,14 @@ def _stays(start: int, stop: int, length: int, scattered: int) -> str:
                                                           if scattered else ""))
 
 
+def _blank(share: float, level: float) -> str:
+    shade = "black" if level < 16 else "white" if level > 239 else f"grey ({level:.0f} of 255)"
+    return f"the camera shows nothing: {100 * share:.0f}% of the demo's frames are one flat {shade} picture"
+
+
 FROZEN_VIDEO = Vocabulary("frozen_video", {
+    # most of the frames (``STOPPED_SHARE``) flat (``BLANK_RANGE``): a camera that delivered no picture
+    "blank": _blank,
     # for STOPPED_SHARE of the demo or more, and the frames delivered are like its group's at the same steps
     # (``delivered_unlike``): the camera stopped, and the view's and colours' reading of a changed picture is that
     "stopped camera": _stays,
@@ -103,9 +111,11 @@ def frozen_video(frames: FrameChanges, groups: np.ndarray) -> tuple[np.ndarray, 
     steps, and where it is: a camera that stopped delivering repeats one frame for a stretch, where a video
     codec's or a still scene's repeated frames are scattered (Meta-World's clean demos, AV1: 14% of their steps,
     but never two in a row).  ``stopped camera`` where the stretch is ``STOPPED_SHARE`` of the demo or more and
-    the frames delivered are like its group's (``delivered_unlike`` under ``VIEW_K``)."""
+    the frames delivered are like its group's (``delivered_unlike`` under ``VIEW_K``); ``blank`` where that share
+    of its thumbnails or more are flat (``BLANK_RANGE``): a camera that delivered no picture at all."""
     out, found = np.zeros(len(frames.deltas)), []
     delivered = None
+    thumbs = getattr(frames, "thumbs", None) or [np.zeros((0, STEP_THUMB, STEP_THUMB))] * len(frames.deltas)
     for i, frozen in enumerate(_frozen(frames)):
         n = len(frozen)
         if not n:
@@ -113,6 +123,11 @@ def frozen_video(frames: FrameChanges, groups: np.ndarray) -> tuple[np.ndarray, 
             continue
         start, length = longest_run(frozen)
         out[i] = length / n
+        t = np.asarray(thumbs[i], np.float32).reshape(len(thumbs[i]), -1)
+        flat = (t.max(axis=1) - t.min(axis=1)) < BLANK_RANGE if len(t) else np.zeros(0, bool)
+        if len(flat) and flat.mean() >= STOPPED_SHARE:
+            found.append(FROZEN_VIDEO("blank", share=float(flat.mean()), level=float(t[flat].mean())))
+            continue
         if not length:
             found.append(FROZEN_VIDEO("changes"))
             continue
