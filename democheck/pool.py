@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing as mp
+import os
 import queue as queue_mod
 import signal
 from functools import partial
@@ -29,6 +30,20 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from democheck.errors import DemocheckError
+
+def usable_cores(cpu_max: str = "/sys/fs/cgroup/cpu.max") -> int:
+    """The cores this process may use: the machine's, less those its CPU affinity leaves out, less what a
+    container's CPU quota (cgroup v2 ``cpu.max``) allows.  torch's default thread count is the machine's cores,
+    which on a container given two of many runs each step many times slower than one thread per usable core."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        quota, period = open(cpu_max).read().split()[:2]
+        if quota != "max":
+            cores = min(cores, max(1, int(float(quota) / float(period))))
+    except (OSError, ValueError):
+        pass
+    return max(1, cores)
+
 
 # What this process's shards share, set by the ``init`` given to ``run_shards``.
 state: dict[str, Any] = {}

@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from democheck import __version__
+from democheck import __version__, pool
 from democheck.audit.bench import bench, markdown as bench_markdown
 from democheck.audit.metrics import by_label
 from democheck.audit.run import audit, finish_summary, for_model, suspects, write_tables
@@ -68,9 +68,12 @@ def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: b
     suite = Path(dataset) / "meta" / "democheck" / "suite.json"
     if suite.exists():
         data["recipe"] = json.loads(suite.read_text())["recipe"]
+    device = resolve_device(tc.device)
+    if device.type == "cpu":
+        torch.set_num_threads(pool.usable_cores())  # torch's default is the machine's cores, not this process's
     meta = {"data": data, "command": command_line(), "commit": git_commit(Path(__file__).parent),
-            "democheck_version": __version__, "torch_version": torch.__version__,
-            "device": str(resolve_device(tc.device))}
+            "democheck_version": __version__, "torch_version": torch.__version__, "device": str(device),
+            "threads": torch.get_num_threads() if device.type == "cpu" else None}
     if recipe is not None:
         meta["recipe"] = recipe
     return train(arrays, Path(out), tc, resume=resume, force=force, meta=meta, on_progress=on_step,

@@ -507,3 +507,18 @@ def test_the_controller_speed_benchmark_runs_every_controller():
     spec.loader.exec_module(bench)
     for kw in bench.CONTROLLERS.values():
         assert bench.samples_per_s(1, 2, steps=1, warmup=0, **kw) > 0
+
+
+def test_the_cores_a_process_may_use_read_a_containers_quota(tmp_path):
+    """Training sets torch's threads to the cores it may use: a container's CPU quota of 1.5 cores is 1, no quota
+    is the CPU affinity's count."""
+    import os
+
+    from democheck.pool import usable_cores
+
+    quota = tmp_path / "cpu.max"
+    quota.write_text("150000 100000\n")
+    assert usable_cores(str(quota)) == 1
+    quota.write_text("max 100000\n")
+    assert usable_cores(str(quota)) == len(os.sched_getaffinity(0))
+    assert usable_cores(str(tmp_path / "none")) == len(os.sched_getaffinity(0))

@@ -52,6 +52,7 @@ def audit(
             raise DemocheckError("--no-model and --model together: choose one")
         if ray_address and engine != "ray":
             raise DemocheckError("--ray-address needs --engine ray")
+        from democheck.pool import usable_cores
         from democheck.workflows import audit_dataset
 
         dataset = local_dataset(dataset, revision)
@@ -59,7 +60,7 @@ def audit(
             summary = audit_dataset(dataset, out, model=model, top=top, camera=camera, task=task, device=device,
                                     force=force, on_progress=lambda stage, d, n: bar.update(d, n, stage),
                                     actions=actions, fpr=fpr, no_model=no_model, keep_list=keep_list,
-                                    drop_list=drop_list, workers=workers or os.cpu_count() or 1, engine=engine,
+                                    drop_list=drop_list, workers=workers or usable_cores(), engine=engine,
                                     ray_address=ray_address)
     if json_out:
         console.print_json(json.dumps(summary))
