@@ -1118,4 +1118,3 @@ def test_a_camera_that_stopped_delivers_frames_like_its_tasks_and_a_card_does_no
     core[[5, 9]] = False
     told = explain(Ranking(config, log_p, core, np.zeros(20)), ev.findings, 0.01)
     assert (told.driven_by[5], told.driven_by[9]) == ("frozen_video", "view")
-
