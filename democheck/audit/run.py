@@ -268,7 +268,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     summary = {
         "dataset": str(ds.root), "format": ds.format, "camera": ds.camera, "dataset_fingerprint": fingerprint,
         "frames": {"camera": list(ds.native_shape), "model": list(ds.image_shape),
-                   "resized": ds.image_size is not None},
+                   "resized": ds.image_size is not None, "count": int(ds.episodes["length"].sum())},
         "model": str(ckpt.path) if ckpt is not None else None,
         "model_trained_on_this_dataset": fingerprint is not None and fingerprint == trained_on,
         "demos": len(table), "tasks": int(table["task"].nunique()), "flagged": flagged,
@@ -427,8 +427,11 @@ def suspects(table: pd.DataFrame) -> list[int]:
 
 
 def finish_summary(summary: dict[str, Any], timings: dict[str, float]) -> dict[str, Any]:
-    """The summary with its timings rounded and demos per second (of the cue pass; without a model, of the
-    decoding pass), as plain JSON."""
+    """The summary with its timings rounded, and demos and frames per second (of the cue pass; without a model, of
+    the decoding pass), as plain JSON."""
     t = {k: round(v, 3) for k, v in timings.items()}
-    spent = timings["score_s"] if summary.get("model") else timings.get("actions_s", timings["score_s"])
-    return to_json({**summary, "timing": t | {"demos_per_s": round(summary["demos"] / max(spent, 1e-9), 1)}})
+    spent = max(timings["score_s"] if summary.get("model") else timings.get("actions_s", timings["score_s"]), 1e-9)
+    rates = {"demos_per_s": float(f"{summary['demos'] / spent:.3g}")}
+    if summary.get("frames", {}).get("count"):
+        rates["frames_per_s"] = float(f"{summary['frames']['count'] / spent:.3g}")
+    return to_json({**summary, "timing": t | rates})

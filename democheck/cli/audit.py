@@ -112,13 +112,13 @@ def print_audit(summary: dict, out: Path) -> None:
                       f"({100 * observed['clean_share_flagged']:.1f}%); recall "
                       + ", ".join(f"{k} {v:.2f}" for k, v in observed["recall"].items()), highlight=False)
     t = summary["timing"]
+    rate = f"{t['demos_per_s']:.2g} demos/s" + (f", {t['frames_per_s']:,.0f} frames/s" if "frames_per_s" in t else "")
     if summary.get("model"):
-        console.print(f"scored {summary['demos']} demos in {t['score_s']:.1f} s ({t['demos_per_s']:.0f}/s)"
+        console.print(f"scored {summary['demos']} demos in {t['score_s']:.1f} s ({rate})"
                       + (f", their actions in {t['actions_s']:.1f} s" if "actions_s" in t else "")
                       + f"; model load {t['model_load_s']:.1f} s, t-SNE {t['tsne_s']:.1f} s")
     else:
-        console.print(f"checked {summary['demos']} demos without a model in {t.get('actions_s', 0):.1f} s "
-                      f"({t['demos_per_s']:.0f}/s)")
+        console.print(f"checked {summary['demos']} demos without a model in {t.get('actions_s', 0):.1f} s ({rate})")
     if summary.get("no_model") and summary["no_model"] not in summary.get("warnings", []):
         console.print(f"no model: {summary['no_model']}", highlight=False)
     console.print(f"report: {out}/ (scores.parquet, scores.csv, summary.json, suspects.txt)")
