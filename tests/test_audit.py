@@ -386,7 +386,7 @@ def test_audit_mismatch_and_fail_on(tiny_dataset, tiny_model, tmp_path):
                               "--device", "cpu"])
     assert res.exit_code == 0, res.output
     frames = json.loads((tmp_path / "big" / "summary.json").read_text())["frames"]
-    assert frames == {"camera": [32, 32, 3], "model": [16, 16, 3], "resized": True}
+    assert frames == {"camera": [32, 32, 3], "model": [16, 16, 3], "resized": True, "count": 48}
     path = tmp_path / "narrow.hdf5"
     _write_robomimic(path, joints=10)
     res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "r"), "--model", str(tiny_model)])
