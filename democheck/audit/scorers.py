@@ -275,12 +275,12 @@ REASON_KEYS = {"order", "demoted", "behaviour", "rules"}
 RULE_KEYS = {"first", "over", "when", "unless"}
 
 
-def _precedence_errors(reasons: dict, scores: dict) -> list[str]:
-    """What is wrong with a ranking recipe's ``[reasons]``: unknown keys, names that are no ranked check, kinds
-    that no check's vocabulary declares."""
-    bad = [f"reasons.{k}" for k in sorted(set(reasons) - REASON_KEYS)]
-    names = [*reasons.get("order", []), *reasons.get("demoted", []), *reasons.get("behaviour", [])]
-    for r in reasons.get("rules", []):
+def _precedence_errors(section: dict, scores: dict) -> list[str]:
+    """What is wrong with a ranking recipe's ``[reasons]`` ``section``: unknown keys, names that are no ranked
+    check, kinds that no check's vocabulary declares."""
+    bad = [f"reasons.{k}" for k in sorted(set(section) - REASON_KEYS)]
+    names = [*section.get("order", []), *section.get("demoted", []), *section.get("behaviour", [])]
+    for r in section.get("rules", []):
         bad += [f"reasons.rules.{k}" for k in sorted(set(r) - RULE_KEYS)]
         names += [r.get("first", "")] + [n for k in ("over", "when", "unless") for n in r.get(k, [])]
     bad += [f"reasons: {n!r}" for n in names if not known(n) or n.partition(":")[0] not in scores]
@@ -303,9 +303,10 @@ def ranking_recipe(name_or_path: str = "default") -> dict[str, Any]:
     bad += _precedence_errors(doc.get("reasons", {}), scores)
     bad += sorted(f"{n}.tail" for n, keys in scores.items() if keys.get("tail", "exponential") not in TAILS)
     if unknown or bad or not isinstance(doc.get("core_p"), float) or not isinstance(doc.get("reason_p"), float):
+        kinds = "; ".join(f"{check}: {', '.join(v.kinds)}" for check, v in VOCABULARIES.items())
         raise RecipeError(f"{path}: unknown or ill-typed {', '.join(unknown + bad) or 'core_p or reason_p'} (a "
                           f"ranked score takes {', '.join(RANKING_KEYS)}; scores: {', '.join(SCORERS)}; kinds: "
-                          f"{'; '.join(f'{c}: {chr(44).join(v.kinds)}' for c, v in VOCABULARIES.items())})")
+                          f"{kinds})")
     return {**doc, "scores": {n: dict(keys) for n, keys in scores.items()}}
 
 
