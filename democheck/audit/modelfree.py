@@ -123,7 +123,7 @@ def still_steps(traces: ActionTraces) -> list[np.ndarray]:
     return [(c / scale).mean(1) < STILL if len(c) else np.zeros(0, bool) for c in changes]
 
 
-def _still_words(share: float, start: int, stop: int, length: int, longest: float) -> str:
+def _still_words(share: float, start: int, stop: int, length: int) -> str:
     return f"the arm stands still at {100 * share:.0f}% of steps, longest {steps_text(start, stop, length)}"
 
 
@@ -137,9 +137,8 @@ IDLE = Vocabulary("idle", {
 
 def idle(traces: ActionTraces) -> tuple[np.ndarray, list[Finding]]:
     """Share of each demo's steps at which the actions hardly change, and its longest still stretch (``longest``,
-    a share of the steps): ``paused``
-    where the arm stands still for less than half the demo and moves again after that stretch (it began late or
-    paused), else ``still``."""
+    a share of the steps): ``paused`` where the arm stands still for less than half the demo and moves again after
+    that stretch (it began late or paused), else ``still``."""
     out, found = np.zeros(len(traces.actions)), []
     for i, still in enumerate(still_steps(traces)):
         if not len(still):
