@@ -9,7 +9,8 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
   from): a demo's value is measured against the median of its task's demos that started on the same side and
   reached the same outcome (``modes``: an outcome a share ``MODE_SHARE`` of the task reaches, well apart from the
   others; a side, that share of the task too), not against the whole task's median, so the minority's outcome is
-  not an anomaly.  Values piled at one place (a kettle most demos leave where it stands, a slide against its stop)
+  not an anomaly -- where the dataset holds several tasks, only an outcome that follows from where the demos began
+  (``explained``: a toggle) or a spread beside a pile: a fault a few of one task's demos share is no outcome.  Values piled at one place (a kettle most demos leave where it stands, a slide against its stop)
   beside a spread of others are two outcomes too, each measured in its own spread, once the spread holds that
   share.
 - **Rotations are compared as rotations**: a quaternion (four consecutive dimensions named ``*w/x/y/z`` or
