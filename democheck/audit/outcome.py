@@ -10,9 +10,9 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
   reached the same outcome (``modes``: an outcome a share ``MODE_SHARE`` of the task reaches, well apart from the
   others; a side, that share of the task too), not against the whole task's median, so the minority's outcome is
   not an anomaly -- where the dataset holds several tasks, only an outcome that follows from where the demos began
-  (``explained``: a toggle) or a spread beside a pile: a fault a few of one task's demos share is no outcome.  Values piled at one place (a kettle most demos leave where it stands, a slide against its stop)
-  beside a spread of others are two outcomes too, each measured in its own spread, once the spread holds that
-  share.
+  (``explained``: a toggle) or a spread beside a pile: a fault a few of one task's demos share is no outcome.
+  Values piled at one place (a kettle most demos leave where it stands, a slide against its stop) beside a
+  spread of others are two outcomes too, each measured in its own spread, once the spread holds that share.
 - **Rotations are compared as rotations**: a quaternion (four consecutive dimensions named ``*w/x/y/z`` or
   ``*quat*``, or of unit norm throughout) as its outer product ``q q^T``, the same for ``q`` and ``-q``; an angle
   named so (``yaw``, ``angle``, ...) as its cosine and sine, so that +pi and -pi are one angle.
