@@ -350,7 +350,7 @@ def test_train_at_another_image_size_and_audit_reads_the_same_way(tiny_dataset, 
     import json
 
     frames = json.loads((tmp_path / "r" / "summary.json").read_text())["frames"]
-    assert frames == {"camera": [16, 16, 3], "model": [8, 8, 3], "resized": True}
+    assert frames == {"camera": [16, 16, 3], "model": [8, 8, 3], "resized": True, "count": frames["count"]}
 
 
 def test_resize_frames_averages_areas():
