@@ -226,23 +226,25 @@ class DemoSet:
     def camera_files(self) -> tuple[int, list[str]]:
         """Before any long work: how many video files the metadata names for the camera, and what is wrong with
         them -- each file that is missing (with how many episodes it holds), and a sample that does not decode
-        (the first episode's first and last frame, read strictly).  (0, []) for a camera that is not a video."""
+        (the first and last frame of the first episode in a file that is there, read strictly).  (0, []) for a camera that is not a video."""
         if not hasattr(self._src, "video_file") or not self.has_camera:
             return 0, []
-        files: dict[Path, int] = {}
+        files: dict[Path, list[int]] = {}  # each file and the episodes it holds
         for e in self.episodes.index:
             path = self._src.video_file(int(e))
             if path is not None:
-                files[path] = files.get(path, 0) + 1
-        problems = [f"{path}: missing ({n} episode{'s' * (n > 1)})" for path, n in files.items() if not path.exists()]
-        present = [e for e in self.episodes.index if (p := self._src.video_file(int(e))) is not None and p.exists()]
+                files.setdefault(path, []).append(int(e))
+        there = {path: path.exists() for path in files}
+        problems = [f"{path}: missing ({len(eps)} episode{'s' * (len(eps) > 1)})" for path, eps in files.items()
+                    if not there[path]]
+        present = [eps[0] for path, eps in files.items() if there[path]]
         if present:
             was = getattr(self._src, "strict", False)
             self._src.strict = True
             try:
-                self._src.cue_frames(int(present[0]))
+                self._src.cue_frames(present[0])
             except DatasetError as exc:
-                problems.append(f"episode {int(present[0])}'s first and last frame do not decode: {exc}")
+                problems.append(f"episode {present[0]}'s first and last frame do not decode: {exc}")
             finally:
                 self._src.strict = was
         return len(files), problems
