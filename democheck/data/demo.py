@@ -226,7 +226,8 @@ class DemoSet:
     def camera_files(self) -> tuple[int, list[str]]:
         """Before any long work: how many video files the metadata names for the camera, and what is wrong with
         them -- each file that is missing (with how many episodes it holds), and a sample that does not decode
-        (the first and last frame of the first episode in a file that is there, read strictly).  (0, []) for a camera that is not a video."""
+        (the first and last frame of the first episode in a file that is there, read strictly).  (0, []) for a
+        camera that is not a video."""
         if not hasattr(self._src, "video_file") or not self.has_camera:
             return 0, []
         files: dict[Path, list[int]] = {}  # each file and the episodes it holds
