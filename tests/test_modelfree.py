@@ -1092,7 +1092,7 @@ def test_a_camera_that_stopped_delivers_frames_like_its_tasks_and_a_card_does_no
     moving square a grey card covers all along, one whose card was put down at frame 33.  The frames each delivered (but for the repeats) are like the
     task's at the same steps for the stopped camera, and unlike them for the card; so the view gives the stopped
     camera's reason to the frozen picture and keeps the covered one's."""
-    from democheck.audit import frames
+    from democheck.audit import frames, view
     from democheck.audit.ranking import Ranking
     from democheck.audit.reasons import explain
     from democheck.audit.scorers import ranking_config
@@ -1108,7 +1108,7 @@ def test_a_camera_that_stopped_delivers_frames_like_its_tasks_and_a_card_does_no
     ev = _evidence(demos, ["frozen_video", "view"])
     assert min(ev.scores["frozen_video"][[5, 9, 13]]) > 0.5
     z = frames.delivered_unlike(ev.behaviour["frozen_video"], ev.groups)
-    assert z[5] < modelfree.VIEW_K < min(z[9], z[13]), z[[5, 9, 13]]
+    assert z[5] < view.VIEW_K < min(z[9], z[13]), z[[5, 9, 13]]
     kinds = [f.kind for f in ev.findings["frozen_video"]]
     assert (kinds[5], kinds[9], kinds[13]) == ("stopped camera", "still picture", "still picture")
     config = ranking_config(["frozen_video", "view"])

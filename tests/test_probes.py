@@ -284,7 +284,7 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     assert list(doc["scorers"]) == ["task_uncertainty", "task_uncertainty_head", "novelty", "consistency",
                                     "action_error", "motion", "idle", "broken", "jerk", "saturation", "duplicate",
                                     "dynamics", "lag", "timing", "frozen_video", "frame_jump", "frozen_state", "view", "colours",
-                                    "outcome", "coupling",
+                                    "outcome", "start", "end", "path", "coupling",
                                     "suspicion",
                                     "model_free",
                                     "ocsvm_flag", "tecnet_knn", "heuristic", "random"]

@@ -183,7 +183,7 @@ def test_every_template_of_every_check_renders_its_words():
                   first_dt=0.1, worst=5, worst_dt=0.2, back=None, scattered=2, next=8, change=9.5, usual=1.5,
                   more=False, colour="grey (#a0a0a0)", median=0.5, z=12.0, value=0.25, steps=3, gain=1.6,
                   named=True, size=3.5, last=30, name="target.x", part="at the end", ref=0.7, source="environment state",
-                  columns=[0], held=False, files=[], form="value", level=0.0)
+                  columns=[0], held=False, files=[], form="value", level=0.0, at=0.5)
     words = {f"{check}:{kind}": vocabulary(kind, **params).words
              for check, vocabulary in VOCABULARIES.items() for kind in vocabulary.kinds}
     assert words["idle:still"] == "the arm stands still at 25% of steps, longest frames 3-9 (35% of the demo)"
@@ -202,6 +202,13 @@ def test_every_template_of_every_check_renders_its_words():
     assert words["lag:scale"].startswith("the actions are 3.5 x the size its states follow")
     assert words["view:changed"] == ("the view is covered or changed: 25% of it unlike its task's other demos' "
                                      "(mostly the top left)")
+    assert words["end:where they begin"] == ("ends where its task's demos begin: done backwards (a reset recorded as "
+                                             "a demo?)")
+    assert words["end:view"] == ("ends unlike its task's demos: 25% of its last picture differs from its nearest "
+                                 "task-mates' (mostly the top left)")
+    assert words["path:state"] == "its path strays from its task's, most in [0, 2], 50% of the way through"
+    assert VOCABULARIES["path"]("backwards", part="state").words == (
+        "its path runs opposite to its task's: its state, played backwards, is nearer its task's demos than forwards")
     assert all(isinstance(w, str) for w in words.values())
 
 

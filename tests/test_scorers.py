@@ -42,9 +42,10 @@ MEANT_FOR = {
 CONTROLS = {"random"}
 # Checked on demos made for them in tests/test_modelfree.py: nothing in the pushing suite freezes its camera,
 # copies a demo, records its actions against another demo's state or out of step, drops frames, records NaN,
-# freezes a sensor or lets go of the arm half-way (the coupling's kind; of an idle arm it says nothing).
+# freezes a sensor or lets go of the arm half-way (the coupling's kind; of an idle arm it says nothing); in
+# tests/test_timeline.py, demos played backwards, an object knocked over at the end and a detour.
 ELSEWHERE = {"frozen_video", "frame_jump", "duplicate", "dynamics", "lag", "timing", "broken", "frozen_state",
-             "coupling"}
+             "coupling", "start", "end", "path"}
 
 
 @pytest.fixture(scope="module")
@@ -137,7 +138,7 @@ def test_a_ranking_recipe_with_an_unknown_score_key_tail_or_kind_is_one_clear_er
                        # the reasons' precedence: a kind no check declares, a check not ranked, an unknown key
                        ('demoted = ["motion:less"', 'demoted = ["motion:lesser"'),
                        ('first = "outcome"', 'first = "outcom"'),
-                       ('over = ["view", "colours"]', 'over = ["view", "colours"]\nafter = 1')):
+                       ('over = ["view", "colours", "end", "path"]', 'over = ["view", "colours", "end", "path"]\nafter = 1')):
         path = tmp_path / "r.toml"
         path.write_text(shipped.replace(bad, words, 1))
         with pytest.raises(RecipeError, match="unknown or ill-typed"):

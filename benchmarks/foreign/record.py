@@ -19,6 +19,9 @@ from pathlib import Path
 import numpy as np
 
 KINDS = ("idle", "random", "wrong-task", "gave-up", "occluded", "jerky")
+# On request (--kinds): a clean demo recorded backwards (a reset recorded as a demo) or with a pause put in, as
+# ``democheck.data.reorder`` makes them (velocities negated by their names).
+TIME_KINDS = ("reversed", "hesitates")
 
 
 def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
@@ -26,7 +29,8 @@ def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
     ap.add_argument("out", type=Path)
     ap.add_argument("--demos", type=int, default=demos, help="clean demos per task")
     ap.add_argument("--plant", type=int, default=6, help="bad demos of each kind, in all")
-    ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated, of {', '.join(KINDS)}")
+    ap.add_argument("--kinds", default=",".join(KINDS),
+                    help=f"comma-separated, of {', '.join(KINDS + TIME_KINDS)} (default: {', '.join(KINDS)})")
     ap.add_argument("--size", default=size, help="camera image size in pixels: N (square) or HxW, e.g. 480x640")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
@@ -41,9 +45,9 @@ def options(args: argparse.Namespace) -> tuple[tuple[str, ...], tuple[int, int]]
             raise SystemExit(f"{args.out}: exists (--force replaces it)")
         shutil.rmtree(args.out)
     kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
-    unknown = sorted(set(kinds) - set(KINDS))
+    unknown = sorted(set(kinds) - set(KINDS + TIME_KINDS))
     if unknown:
-        raise SystemExit(f"unknown kind {', '.join(unknown)}; kinds: {', '.join(KINDS)}")
+        raise SystemExit(f"unknown kind {', '.join(unknown)}; kinds: {', '.join(KINDS + TIME_KINDS)}")
     h, _, w = args.size.partition("x")
     return kinds, (int(h), int(w or h))
 
@@ -103,10 +107,11 @@ def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min
             if rec["success"]:
                 continue
         else:
-            rec = rollout(other if kind == "wrong-task" else task, task, kind, rng, layout)
-            if kind in ("clean", "occluded", "wrong-task") and rec["success"] != (kind != "wrong-task"):
+            led = "clean" if kind in TIME_KINDS else kind  # recorded as a clean demo, reordered when written
+            rec = rollout(other if kind == "wrong-task" else task, task, led, rng, layout)
+            if led in ("clean", "occluded", "wrong-task") and rec["success"] != (led != "wrong-task"):
                 continue
-            if kind in ("clean", "occluded") and (rec["first_success"] or 0) < min_first:
+            if led in ("clean", "occluded") and (rec["first_success"] or 0) < min_first:
                 continue
         break
     else:
@@ -115,6 +120,19 @@ def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min
         rec["frames"] = cover(rec["frames"], rng)
     return {"index": index, "task": words[task], "label": kind,
             **{k: rec[k] for k in ("frames", "state", "env_state", "actions")}}
+
+
+def reordered(ep: dict, names: dict[str, list[str] | None], seed: int) -> dict:
+    """A ``reversed`` or ``hesitates`` episode's streams in their planted order (the others as they are)."""
+    from democheck.data import reorder
+
+    keys = ("frames", "state", "env_state", "actions")
+    if ep["label"] == "reversed":
+        return {**ep, **{k: reorder.reverse(ep[k], names[k]) for k in keys}}
+    if ep["label"] == "hesitates":
+        at, n = reorder.pause(len(ep["actions"]), seed)
+        return {**ep, **{k: reorder.hold(ep[k], at, n, names[k]) for k in keys}}
+    return ep
 
 
 def features(camera: str, size: tuple[int, int], state: list[str], env: list[str], action: list[str]) -> dict:
@@ -147,11 +165,14 @@ def record(out: Path, jobs: list[tuple], episode: Callable[[tuple], dict], worke
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     camera = next(k for k, f in features.items() if f["dtype"] == "video")
+    streams = {"frames": camera, "state": "observation.state", "env_state": "observation.environment_state",
+               "actions": "action"}
     ds = LeRobotDataset.create(repo_id=f"local/{out.name}", fps=fps, features=features, root=out,
                                robot_type=robot_type, use_videos=True)
     t0, labels = time.perf_counter(), []
     with mp.get_context("spawn").Pool(workers, initializer=init, initargs=initargs) as pool:
-        for ep in pool.imap(episode, jobs):
+        for job, ep in zip(jobs, pool.imap(episode, jobs)):
+            ep = reordered(ep, {k: features[key].get("names") for k, key in streams.items()}, job[-1] + job[0])
             for t in range(len(ep["actions"])):
                 ds.add_frame({camera: ep["frames"][t], "observation.state": ep["state"][t],
                               "observation.environment_state": ep["env_state"][t], "action": ep["actions"][t],

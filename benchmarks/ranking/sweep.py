@@ -5,7 +5,7 @@
 Each AUDIT is a ``democheck audit`` folder (its ``scores.parquet``; labels from a ``label`` column there or from
 ``--labels``, one csv of ``episode_index,label`` per audit in order).  Each variant is a change to the config the
 audit recorded in ``summary.json`` (``ranking``): the table is ranked again with it and scored per planted kind
-(AUROC of the suspicion against the clean demos) and by the clean demos it flags at the audit's ``--fpr``.  The
+(AUROC of the suspicion against the clean demos, and how many of the kind it flags) and by the clean demos it flags at the audit's ``--fpr``.  The
 ``shipped`` variant reproduces the audit's own suspicion (checked).  ``VARIANTS`` lists the others; add one there.
 """
 
@@ -27,6 +27,7 @@ from democheck.audit.ranking import RankingConfig, rank
 from democheck.audit.evidence import comparison_groups
 
 RECORDING_FAULTS = ("jerk", "lag", "timing", "frozen_video", "frame_jump", "frozen_state")
+TIME_ALIGNED = ("start", "end", "path")
 
 # Each: a config -> a config.  The questions the ranking's choices answered (see README.md here).
 VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
@@ -39,6 +40,9 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "core-1e-6": lambda c: replace(c, core_p=1e-6),
     "without-outcome": lambda c: c.without("outcome"),
     "without-faults": lambda c: c.without(*RECORDING_FAULTS),
+    "without-time": lambda c: c.without(*TIME_ALIGNED),
+    "time-one-look": lambda c: replace(c, specs=tuple(replace(s, look="in time") if s.name in TIME_ALIGNED else s
+                                                      for s in c.specs)),
 }
 
 
@@ -56,7 +60,8 @@ def evaluate(table: pd.DataFrame, suspicion: np.ndarray, flagged: np.ndarray) ->
     for kind in sorted(set(labels) - {"clean"}):
         bad = labels == kind
         y = np.r_[np.ones(bad.sum(), bool), np.zeros(clean.sum(), bool)]
-        out[kind] = round(detection(y, np.r_[suspicion[bad], suspicion[clean]])["auroc"], 4)
+        auroc = detection(y, np.r_[suspicion[bad], suspicion[clean]])["auroc"]
+        out[kind] = f"{auroc:.3f} (flagged {int(flagged[bad].sum())}/{int(bad.sum())})"
     out["clean flagged"] = f"{int(flagged[clean].sum())} of {int(clean.sum())}"
     return out
 

@@ -12,7 +12,8 @@ import warnings
 import numpy as np
 
 from democheck.audit.findings import Finding, Vocabulary
-from democheck.audit.modelfree import VIEW_EVERY, VIEW_MIN_DEMOS, PerDemo, task_z
+from democheck.audit.modelfree import PerDemo
+from democheck.audit.view import VIEW_EVERY, VIEW_MIN_DEMOS, task_z
 from democheck.audit.scores import calibrated
 from democheck.data.demo import Demo
 

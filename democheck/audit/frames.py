@@ -26,8 +26,8 @@ import cv2
 import numpy as np
 
 from democheck.audit.findings import Finding, Vocabulary
-from democheck.audit.modelfree import (STILL, VIEW_EVERY, VIEW_FLOOR, VIEW_K, VIEW_MIN_SCALE, PerDemo,
-                                       change_scale, longest_run, steps_text, task_z)
+from democheck.audit.modelfree import STILL, PerDemo, change_scale, longest_run, steps_text
+from democheck.audit.view import VIEW_EVERY, VIEW_FLOOR, VIEW_K, VIEW_MIN_SCALE, task_z
 from democheck.audit.scores import calibrated
 from democheck.data.demo import Demo
 

@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 
 from democheck import resources
-from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, reasons, sensors
+from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, reasons, sensors, timeline, view
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit.evidence import Evidence, Scorer, Scores
@@ -101,7 +101,7 @@ def _motion(ev: Evidence) -> Scores:
 
 
 def _view(ev: Evidence) -> Scores:
-    return modelfree.view(ev.behaviour["view"], ev.groups)
+    return view.view(ev.behaviour["view"], ev.groups)
 
 
 def _colours(ev: Evidence) -> Scores:
@@ -159,6 +159,22 @@ def _frozen_state(ev: Evidence) -> Scores:
 
 def _outcome(ev: Evidence) -> Scores:
     return outcome.outcome(ev.behaviour["outcome"], ev.groups)
+
+
+def _start(ev: Evidence) -> Scores:
+    return timeline.start(ev.behaviour["timeline"], ev.groups)
+
+
+def _end(ev: Evidence) -> Scores:
+    return timeline.end(ev.behaviour["timeline"], ev.groups)
+
+
+def _path(ev: Evidence) -> Scores:
+    return timeline.path(ev.behaviour["timeline"], ev.groups)
+
+
+def _timeline(ev: Evidence, rows: slice, device: Any) -> timeline.Timeline:
+    return timeline.Timeline()
 
 
 def _coupling(ev: Evidence) -> Scores:
@@ -229,11 +245,11 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "in hardly any of its task's demos): a sensor that stopped updating", ("demos",), _frozen_state,
            decode=lambda ev, rows, device: sensors.StateRepeats(), short="frz.st"),
     Scorer("view", "model-free: share of the demo's average picture (16x16) unlike its task's other demos' there "
-           f"(over {modelfree.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
+           f"(over {view.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
            "robust z within its task", ("demos", "frames"), _view,
-           decode=lambda ev, rows, device: modelfree.ViewStats(), short="view"),
+           decode=lambda ev, rows, device: view.ViewStats(), short="view"),
     Scorer("colours", "model-free: how differently from its task's other demos the frames are coloured, wherever "
-           f"the colours are in the view (every {modelfree.VIEW_EVERY}th frame's pixels in "
+           f"the colours are in the view (every {view.VIEW_EVERY}th frame's pixels in "
            f"{colours.COLOUR_LEVELS ** 3} colour bins, each bin's log share in robust SD within its task, RMS "
            "over the colours shown): an object missing or another one, a covered camera; robust z within its "
            "task", ("demos", "frames"), _colours,
@@ -242,19 +258,31 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "
            "z within its task)", ("demos",), _outcome,
            decode=lambda ev, rows, device: outcome.OutcomeStats(), short="outc."),
+    Scorer("start", "model-free: how unlike its nearest task-mates' the demo's first picture (share of it "
+           f"over {timeline.UNLIKE:g} robust SD from theirs) and first state (RMS distance) are, the larger robust z "
+           "within its task: a demo that begins elsewhere, or where its task's demos end (done backwards)",
+           ("demos",), _start, behaviour="timeline", decode=_timeline, short="start"),
+    Scorer("end", "model-free: how unlike its nearest task-mates' the demo's last picture and last state are, as "
+           "the start's: a failed place, a knocked-over object, a demo that ends where its task's demos begin",
+           ("demos",), _end, behaviour="timeline", decode=_timeline, short="end"),
+    Scorer("path", f"model-free: how far the demo's path ({timeline.PATH_POINTS} points in normalised time, of its "
+           "state and of its camera's grey thumbnail) lies from its nearest task-mates' (RMS distance, log, the "
+           "larger robust z within its task): a detour, a regrasp, a path run backwards",
+           ("demos",), _path, behaviour="timeline", decode=_timeline, short="path"),
     Scorer("coupling", "model-free: how little the demo's actions go with its state (minus their mutual "
            "information over its steps, KSG estimate, nats); one look with the action error in the ranking",
            ("demos",), _coupling,
            decode=lambda ev, rows, device: coupling.CouplingStats(), short="coupl."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
-           "consistency, motion, idle, view, colours, outcome and whether the actions are explained (the action "
-           "error (log) and the coupling, one look: the Sidak minimum of the two) (one task: without the first "
-           "two), each in robust standard deviations within its task, the "
+           "consistency, motion, idle, view, colours, outcome, how the demo began, ended and went (start, end and "
+           "path, one look) and whether the actions are explained (the action error (log) and the coupling, one "
+           "look: the Sidak minimum of the two) (one task: without the first two), each in robust standard deviations within its task, the "
            "tails fitted on the robust core; beside that, the smallest of the recording faults' (timing, frozen "
            "video, frame jump, frozen state, lag, jerk) (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
-           "view, colours, outcome, coupling, and the recording faults): what democheck says with no model",
+           "view, colours, outcome, start, end, path, coupling, and the recording faults): what democheck says with "
+           "no model",
            ("scores",), _model_free,
            in_audit=False, short="no-model"),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "

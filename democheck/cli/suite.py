@@ -64,7 +64,7 @@ def synth(
 def probe(
     dataset: Annotated[Path, typer.Argument(help="Source dataset; probes re-simulate its demos from their sim records.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder for the probe dataset (LeRobot v3, label = kind).")],
-    kinds: Annotated[Optional[str], typer.Option(help="Comma-separated: no-action (arm still), random (random torques), no-objects (objects removed, actions replayed), hidden (squares cover the view). Default: every kind the data allows (without democheck's sim records: no-action and hidden).")] = None,
+    kinds: Annotated[Optional[str], typer.Option(help="Comma-separated: no-action (arm still), random (random torques), no-objects (objects removed, actions replayed), hidden (squares cover the view); on request, reversed (the recording played backwards: a reset recorded as a demo) and hesitates (a pause put in). Default: no-action, random, no-objects and hidden where the data allows (without democheck's sim records: no-action and hidden).")] = None,
     per_kind: Annotated[int, typer.Option(help="Probes per kind, each from a different clean source demo.")] = 50,
     seed: Annotated[int, typer.Option(help="Seed for the choice of sources, random torques and squares.")] = 0,
     workers: Annotated[int, typer.Option(help="Parallel worker processes.")] = 2,

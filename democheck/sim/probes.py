@@ -9,7 +9,10 @@ to it (``source_episode``); its ``label`` is the probe kind:
 - ``no-objects``: the source's actions replayed in the scene without objects
   (needs the sim record);
 - ``hidden``: the source's frames with opaque squares over a large share of the
-  view, the same squares all episode (works on any dataset).
+  view, the same squares all episode (works on any dataset);
+- on request (``TIME_PROBES``, any dataset): ``reversed``, the source's recording played backwards (what a reset
+  recorded as a demo looks like), and ``hesitates``, the source with a pause put in
+  (``democheck.data.reorder``).
 
 A re-simulated probe's frames are rendered now, and the source's were stored by a lossy video encoder, so
 they go through the same encoder (the source's pixel format and quality: ``source_codec``) before they are
@@ -29,7 +32,7 @@ from typing import Any, Callable
 import numpy as np
 
 from democheck import pool
-from democheck.data import open_dataset
+from democheck.data import open_dataset, reorder
 from democheck.data.demo import Demo
 from democheck.data.lerobot_write import VideoOptions, write_meta, write_shard
 from democheck.data.lerobot import SUITE_PATH, read_json
@@ -37,11 +40,24 @@ from democheck.data.video import DEFAULT_CRF, DEFAULT_PIX_FMT, through_codec
 from democheck.errors import DatasetError, DemocheckError
 from democheck.fsutil import atomic_output_dir
 from democheck.sim.env import ACTION_NAMES, ENV_STATE_DIM, ENV_STATE_NAMES, STATE_NAMES
-from democheck.sim.variants import IMAGE_PROBES, PROBES, EnvCache, resimulate
+from democheck.sim.variants import IMAGE_PROBES, PROBES, TIME_PROBES, EnvCache, resimulate
 
 EPISODES_PER_FILE = 50
 HIDDEN_COVER = (0.5, 0.7)  # share of the image the squares cover, drawn per probe
 HIDDEN_SIDE = (0.25, 0.5)  # side of each square, as a share of the image side
+
+
+def hesitate(demo: Demo, seed: int) -> tuple[dict[str, np.ndarray | None], dict[str, int]]:
+    """The demo with a pause put in (``reorder.pause``, ``reorder.hold``): at a drawn step, its frame, state and
+    actions held for a drawn share of its length, then the rest.  Returns the streams and where the pause is."""
+    at, n = reorder.pause(len(demo), seed)
+    x = demo.extra
+    streams = {"frames": reorder.hold(demo.frames, at, n),
+               "state": reorder.hold(demo.state, at, n, x.get("state_names")),
+               "actions": reorder.hold(demo.actions, at, n, x.get("action_names")),
+               "env_state": None if demo.env_state is None else reorder.hold(demo.env_state, at, n,
+                                                                             x.get("env_state_names"))}
+    return streams, {"at": at, "steps": n}
 
 
 def hide(frames: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, list[list[int]]]:
@@ -118,6 +134,15 @@ def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[
             frames, probe["squares"] = hide(source.frames, rng)
             state, actions, env_state = source.state, source.actions, source.env_state
             sim = source.sim
+        elif kind == "reversed":
+            frames = source.frames[::-1].copy()
+            state = reorder.reverse(source.state, source.extra.get("state_names"))
+            actions = reorder.reverse(source.actions, source.extra.get("action_names"))
+            env_state = None if source.env_state is None else reorder.reverse(source.env_state,
+                                                                              source.extra.get("env_state_names"))
+        elif kind == "hesitates":
+            streams, probe["pause"] = hesitate(source, probe_seed)
+            frames, state, actions, env_state = (streams[k] for k in ("frames", "state", "actions", "env_state"))
         elif source.sim is None:  # image-level no-action: the first frame and state held
             frames = np.repeat(source.frames[:1], T, 0)
             state, actions, env_state = np.repeat(source.state[:1], T, 0), np.zeros_like(source.actions), None
@@ -129,7 +154,7 @@ def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[
                 frames = through_codec(frames, w["fps"], *w["source_codec"])
             sim = {**source.sim, "policy": kind, "seed": probe_seed}
         if env_state is None:
-            env_state = np.full((T, ENV_STATE_DIM), np.nan, np.float32)
+            env_state = np.full((len(actions), ENV_STATE_DIM), np.nan, np.float32)
         sim = {**(sim or {}), "probe": probe}
         demos.append(Demo(episode_index=episode_index, task=source.task, frames=frames, state=state, actions=actions,
                           success=None, label=kind, split=source.split, sim=sim, env_state=env_state,
@@ -152,16 +177,16 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
     ds = open_dataset(source, camera=camera).require_camera("a probe")
     has_sim = "sim" in ds.episodes and bool(ds.episodes["sim"].fillna("").astype(str).str.len().gt(0).all())
     kinds = list(kinds or (PROBES if has_sim else IMAGE_PROBES))
-    unknown = [k for k in kinds if k not in PROBES]
+    unknown = [k for k in kinds if k not in (*PROBES, *TIME_PROBES)]
     if unknown:
-        raise DemocheckError(f"unknown probe kind {', '.join(unknown)}; kinds: {', '.join(PROBES)}")
+        raise DemocheckError(f"unknown probe kind {', '.join(unknown)}; kinds: {', '.join((*PROBES, *TIME_PROBES))}")
     if per_kind < 1:
         raise DemocheckError("--per-kind must be at least 1")
     h, w, _ = ds.image_shape
     if h != w:
         raise DatasetError(f"{ds.root}: probes are written as square videos; this camera is {h}x{w}")
     picks = pick_sources(ds.episodes, kinds, per_kind, seed)
-    need_sim = sorted({k for k, _ in picks if k not in IMAGE_PROBES})
+    need_sim = sorted({k for k, _ in picks if k not in (*IMAGE_PROBES, *TIME_PROBES)})
     if need_sim and not has_sim:
         raise DatasetError(f"{ds.root}: {', '.join(need_sim)} probes re-simulate each demo and this dataset has no "
                            f"sim records (it was not made by democheck synth); use --kinds {','.join(IMAGE_PROBES)}")
@@ -172,7 +197,8 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
     for f, s in enumerate(range(0, len(episodes), EPISODES_PER_FILE)):
         chunk = episodes[s:s + EPISODES_PER_FILE]
         jobs.append((f, frame, chunk))
-        frame += int(sum(lengths[src] for _, _, src, _ in chunk))
+        frame += int(sum(lengths[src] + (reorder.pause(lengths[src], s)[1] if kind == "hesitates" else 0)
+                         for _, kind, src, s in chunk))
     tasks = sorted({str(ds.episodes.loc[src, "task"]) for _, src in picks})
     context = {"task_index": {t: i for i, t in enumerate(tasks)}, "fps": int(round(ds.fps)),
                "source_codec": source_codec(ds),

@@ -33,8 +33,11 @@ DEFECTS = ("wrong-object", "both-objects", "occluded", "gave-up")
 PLANT_KINDS = BAD_OPERATORS + DEFECTS
 # The kinds a scripted expert drives (a recipe's ``action_noise`` perturbs these alone): every semantic defect.
 PUSHING_KINDS = ("expert",) + DEFECTS
+# What ``democheck probe`` makes by default; ``TIME_PROBES`` on request (``--kinds``).
 PROBES = ("no-action", "random", "no-objects", "hidden")
-# Kinds made from the frames alone, so they work on datasets without a sim record.
+# A demo's recording in another order: played backwards (a reset recorded as a demo), or with a pause put in.
+TIME_PROBES = ("reversed", "hesitates")
+# Kinds made from the frames alone, so they work on datasets without a sim record (``TIME_PROBES`` too).
 IMAGE_PROBES = ("no-action", "hidden")
 # The scripted experts a recipe can record with (``democheck.sim.expert``); push-v1 was made by "hysteresis".
 EXPERTS = {"hysteresis": ScriptedExpert, "markovian": MarkovianExpert}

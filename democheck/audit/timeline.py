@@ -1,0 +1,320 @@
+"""The time-aligned checks (model-free): a demo's start against its task's starts, its end against their ends, its
+path against their paths.
+
+The other checks summarise a demo over time, so a demo done backwards -- a reset recorded as a demo, the object
+carried from where it should end to where it should start -- has their numbers: the same frames, colours and joint
+values, in the other order.  Compared in time, it begins where its task's demos end and ends where they begin; a
+failed place or a knocked-over object shows in the last frames, a detour or a regrasp along the path.
+
+- ``start``: the first ``END_FRAMES`` frames (their median, ``END_THUMB`` px);
+- ``end``: the last frames;
+- ``path``: ``PATH_POINTS`` evenly spaced points of the demo in normalised time, of its state and of a grey
+  ``PATH_THUMB`` px thumbnail.
+
+The start and end read the camera alone: where the state ends, and how far it moved, is the outcome check's
+(``democheck.audit.outcome``), which knows rotations, piles and a task's several outcomes; read twice, one end
+state would count twice.  A demo is compared with its ``NEAR`` nearest task-mates, not with the task's median, so
+that a task done two ways (the object placed left or right) has two kinds of clean end.  Each feature is in units
+of its robust SD over the group (at least ``VIEW_FLOOR`` grey levels, or ``STATE_FLOOR`` of the dimension's range
+over the dataset; a path's picture in one unit for all its pixels).  A start's or end's picture is unlike its
+mates' by the share of its pixels more than ``UNLIKE`` units from theirs (the median over the mates), as the view
+check counts; a path by the RMS distance, the larger of its state's and its picture's robust z.  The demo played
+backwards gives the words: an end as near its mates' starts as their ends are to each other (``_ordinary``), and
+nearer than to their ends, "ends where its task's demos begin"; a path so near its mates' played backwards "runs
+opposite to its task's".  A dataset with no camera has the path's state part alone; one with no state compares its
+actions instead.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from democheck.audit.findings import Finding, Vocabulary
+from democheck.audit.modelfree import PerDemo
+from democheck.audit.scores import calibrated
+from democheck.audit.view import VIEW_FLOOR, VIEW_K, VIEW_MIN_SCALE, place
+from democheck.data.demo import Demo
+
+END_FRAMES = 3  # frames at each end whose median picture stands for it (one frame may be a codec's glitch)
+END_THUMB = 24  # pixels: the side of the thumbnail of a demo's first and last picture
+PATH_POINTS = 16  # points of a demo's path, evenly spaced from its first step to its last
+PATH_THUMB = 8  # pixels: the side of the grey thumbnail at each point of the path
+NEAR = 5  # task-mates a demo is compared with (at most half its group)
+MIN_GROUP = 4  # a group of fewer demos gives its demos no score
+UNLIKE = VIEW_K  # units: a pixel this far from each of its nearest task-mates' differs
+STATE_FLOOR = 0.05  # a state dimension's least robust SD: this share of its range (5th to 95th percentile) overall
+STATE_MIN_SCALE = 0.25  # log units: the least robust SD of the state's and path's log distance within a group
+CLIP = 20.0  # units: a feature further off counts as this far (one wild value is one feature, not the distance)
+ORDINARY = 3.0  # robust SD: a distance at most this far above its group's usual one is ordinary (``_ordinary``)
+
+
+class Timeline(PerDemo):
+    """Consumer of decoded demos: each demo's first and last picture (``END_THUMB`` RGB, median of ``END_FRAMES``
+    frames), the grey thumbnails and state at ``PATH_POINTS`` points, its first and last state, and the state's
+    names (2-3 kB a demo)."""
+
+    fields = ("first_view", "last_view", "view_path", "state_path", "names")
+    first_view: list[np.ndarray | None]
+    last_view: list[np.ndarray | None]
+    view_path: list[np.ndarray | None]
+    state_path: list[np.ndarray]
+    names: list[list[str] | None]
+
+    def add(self, demo: Demo) -> None:
+        frames = demo.frames
+        state = np.asarray(demo.state, np.float64).reshape(len(demo.state), -1)
+        named = "state_names"
+        if not state.shape[1] or not len(state):
+            state, named = np.asarray(demo.actions, np.float64).reshape(len(demo.actions), -1), "action_names"
+        at = _points(len(state))
+        self.state_path.append(state[at].astype(np.float32) if len(at) else np.full((PATH_POINTS, state.shape[1]),
+                                                                                    np.nan, np.float32))
+        self.names.append(demo.extra.get(named))
+        if frames.ndim != 4 or not frames.shape[1] or not len(frames):
+            self.first_view.append(None)
+            self.last_view.append(None)
+            self.view_path.append(None)
+            return
+        self.first_view.append(_picture(frames[:END_FRAMES]))
+        self.last_view.append(_picture(frames[-END_FRAMES:]))
+        size = (PATH_THUMB, PATH_THUMB)
+        self.view_path.append(np.stack([
+            cv2.resize(cv2.cvtColor(np.ascontiguousarray(frames[i]), cv2.COLOR_RGB2GRAY), size,
+                       interpolation=cv2.INTER_AREA) for i in _points(len(frames))]))
+
+
+def _points(n: int) -> np.ndarray:
+    return np.rint(np.linspace(0, n - 1, PATH_POINTS)).astype(int) if n else np.zeros(0, int)
+
+
+def _picture(frames: np.ndarray) -> np.ndarray:
+    size = (END_THUMB, END_THUMB)
+    small = [cv2.resize(np.ascontiguousarray(f), size, interpolation=cv2.INTER_AREA)[..., :3] for f in frames]
+    return np.median(np.stack(small), axis=0).astype(np.uint8)
+
+
+def _units(x: np.ndarray, floor: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """Per feature of ``x`` [n, m], the group's median and robust SD (at least ``floor``)."""
+    med = np.nanmedian(x, axis=0)
+    return med, np.fmax(1.4826 * np.nanmedian(np.abs(x - med), axis=0), floor)
+
+
+def _nearest(query: np.ndarray, ref: np.ndarray, exclude_self: bool) -> np.ndarray:
+    """[n, m] per demo and feature, the median |query_i - ref_j| over the ``NEAR`` demos j nearest it (RMS over
+    the features; at most half the others), itself left out where ``exclude_self``."""
+    q, r = np.nan_to_num(query), np.nan_to_num(ref)
+    d2 = (q * q).sum(1)[:, None] + (r * r).sum(1)[None, :] - 2.0 * q @ r.T
+    if exclude_self:
+        np.fill_diagonal(d2, np.inf)
+    n = len(ref) - int(exclude_self)
+    k = max(1, min(NEAR, n // 2))
+    near = np.argpartition(d2, k - 1, axis=1)[:, :k]
+    return np.median(np.abs(q[:, None, :] - r[near]), axis=1)
+
+
+def _grouped(groups: np.ndarray):
+    for g in np.unique(groups):
+        rows = np.flatnonzero(groups == g)
+        if len(rows) >= MIN_GROUP:
+            yield rows
+
+
+def _in_units(x: np.ndarray, unit_of: np.ndarray, floor, pooled: bool = False) -> np.ndarray:
+    """``x`` in units of ``unit_of``'s robust SD per feature (``pooled``: their median, one unit for all)."""
+    med, unit = _units(unit_of, floor)
+    if pooled:
+        unit = np.fmax(np.nanmedian(unit), floor)
+    return np.clip((x - med) / unit, -CLIP, CLIP)
+
+
+def _state_floor(paths: list[np.ndarray]) -> np.ndarray:
+    every = np.concatenate([p for p in paths if len(p)]) if paths else np.zeros((0, 0))
+    if not every.size:
+        return np.ones(every.shape[1] if every.ndim == 2 else 1)
+    lo, hi = np.nanpercentile(every, [5, 95], axis=0)
+    return np.maximum(STATE_FLOOR * (hi - lo), 1e-9)
+
+
+def _rms(diff: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.mean(diff ** 2, axis=1))
+
+
+def _names(names: list[str] | None, dims: np.ndarray, source: str) -> str:
+    said = [names[d] if names and d < len(names) else f"{source}[{d}]" for d in dims]
+    return ", ".join(said)
+
+
+def _view_words(which: str, share: float, place: str, **_) -> str:
+    return f"{100 * share:.0f}% of its {which} picture differs from its nearest task-mates' (mostly {place})"
+
+
+START = Vocabulary("start", {
+    # its start nearer its task-mates' ends than their starts
+    "where they end": "begins where its task's demos end: done backwards (a reset recorded as a demo?)",
+    "view": lambda **p: "begins unlike its task's demos: " + _view_words("first", **p),
+    "like": "begins like its task's demos",
+    "no frames": "no camera to compare",
+})
+
+END = Vocabulary("end", {
+    # its end nearer its task-mates' starts than their ends
+    "where they begin": "ends where its task's demos begin: done backwards (a reset recorded as a demo?)",
+    "view": lambda **p: "ends unlike its task's demos: " + _view_words("last", **p),
+    "like": "ends like its task's demos",
+    "no frames": "no camera to compare",
+})
+
+
+def _backwards_words(part: str, **_) -> str:
+    what = "its state" if part == "state" else "what its camera sees"
+    return f"its path runs opposite to its task's: {what}, played backwards, is nearer its task's demos than forwards"
+
+
+PATH = Vocabulary("path", {
+    "backwards": _backwards_words,  # nearer its task-mates' paths played backwards than forwards
+    "view": lambda at, **_: f"what its camera sees on the way differs from its task's demos, most {at:.0%} of the "
+                            "way through",
+    "state": lambda dims, at, **_: f"its path strays from its task's, most in {dims}, {at:.0%} of the way through",
+    "like": "its path is like its task's demos'",
+})
+
+
+def _view_part(query: list, groups: np.ndarray, cross: list | None = None
+               ) -> tuple[np.ndarray, np.ndarray, list, np.ndarray]:
+    """Per demo, the share of its picture's pixels unlike its nearest task-mates' (``UNLIKE``), that share's
+    robust z within its group, the unlike mask [h, w], and the share against ``cross`` (the mates' other end)."""
+    n = len(query)
+    share, cross_share, masks = np.full(n, np.nan), np.full(n, np.nan), [None] * n
+    if any(q is None for q in query):
+        return share, np.full(n, np.nan), masks, cross_share
+    for rows in _grouped(groups):
+        q = np.stack([query[i] for i in rows]).astype(np.float64)
+        shape = q.shape[1:]
+        q = q.reshape(len(rows), -1)
+        z = _in_units(q, q, VIEW_FLOOR)
+        diff = _nearest(z, z, exclude_self=True).reshape(len(rows), *shape)
+        unlike = (diff > UNLIKE).max(axis=-1)
+        share[rows] = unlike.mean(axis=(1, 2))
+        for k, i in enumerate(rows):
+            masks[i] = unlike[k]
+        if cross is not None:
+            c = np.stack([cross[i] for i in rows]).astype(np.float64).reshape(len(rows), -1)
+            cz = _in_units(c, q, VIEW_FLOOR)
+            d = _nearest(z, cz, exclude_self=True).reshape(len(rows), *shape)
+            cross_share[rows] = (d > UNLIKE).max(axis=-1).mean(axis=(1, 2))
+    return share, calibrated(share, groups, min_scale=VIEW_MIN_SCALE), masks, cross_share
+
+
+def _state_part(query: np.ndarray, groups: np.ndarray, floor: np.ndarray | float, cross: np.ndarray | None = None,
+                pooled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per demo, the RMS distance of ``query`` [N, m] to its nearest task-mates (in units; ``pooled``: one unit for
+    every feature, as for a picture's pixels, where a still background's tiny spread would make any shadow far),
+    its robust z within its group on a log scale, the per-feature distance [N, m], and the distance against
+    ``cross``."""
+    n, m = query.shape
+    dist, cross_dist, per = np.full(n, np.nan), np.full(n, np.nan), np.full((n, m), np.nan)
+    for rows in _grouped(groups):
+        z = _in_units(query[rows], query[rows], floor, pooled)
+        diff = _nearest(z, z, exclude_self=True)
+        per[rows], dist[rows] = diff, _rms(diff)
+        if cross is not None:
+            cz = _in_units(cross[rows], query[rows], floor, pooled)
+            cross_dist[rows] = _rms(_nearest(z, cz, exclude_self=True))
+    return dist, calibrated(np.log1p(dist), groups, min_scale=STATE_MIN_SCALE), per, cross_dist
+
+
+def _ordinary(x: np.ndarray, usual: np.ndarray, groups: np.ndarray, min_scale: float, log: bool = False
+              ) -> np.ndarray:
+    """[N] bool: ``x`` at most ``ORDINARY`` robust SD (at least ``min_scale``; of log1p where ``log``) above the
+    median of ``usual`` in the demo's group -- a distance its group's demos commonly have."""
+    out = np.zeros(len(x), bool)
+    f = np.log1p if log else np.asarray
+    for rows in _grouped(groups):
+        ref = f(usual[rows])
+        ref = ref[np.isfinite(ref)]
+        if len(ref):
+            med = np.median(ref)
+            out[rows] = f(x[rows]) <= med + ORDINARY * max(1.4826 * np.median(np.abs(ref - med)), min_scale)
+    return out
+
+
+def _stack_state(paths: list[np.ndarray], at: int | slice) -> np.ndarray:
+    width = max((p.shape[1] for p in paths), default=0)
+    out = np.full((len(paths), PATH_POINTS, width), np.nan)
+    for i, p in enumerate(paths):
+        out[i, :len(p), :p.shape[1]] = p
+    return out[:, at]
+
+
+def _end(t: Timeline, groups: np.ndarray, which: str) -> tuple[np.ndarray, list[Finding]]:
+    """The ``start`` (``which`` "first") or ``end`` ("last") check: see the module docstring."""
+    first = which == "first"
+    vocab, crossed = (START, "where they end") if first else (END, "where they begin")
+    views, others = (t.first_view, t.last_view) if first else (t.last_view, t.first_view)
+    if any(v is None for v in views):
+        return np.full(len(views), np.nan), [vocab("no frames")] * len(views)
+    share, score, masks, cross = _view_part(views, groups, others)
+    # near its mates' other end, as near as their own other ends are to each other: done backwards
+    like_other = _ordinary(cross, _view_part(others, groups)[0], groups, VIEW_MIN_SCALE)
+    found = []
+    for i in range(len(score)):
+        if not np.isfinite(score[i]) or not share[i]:
+            found.append(vocab("like"))
+        elif cross[i] < share[i] and like_other[i]:
+            found.append(vocab(crossed, share=float(share[i]), cross=float(cross[i])))
+        else:
+            found.append(vocab("view", share=float(share[i]), place=place(masks[i])))
+    return score, found
+
+
+def start(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
+    """How unlike its task-mates' first picture and state a demo's are (robust z; see the module docstring)."""
+    return _end(t, groups, "first")
+
+
+def end(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
+    """How unlike its task-mates' last picture and state a demo's are (robust z; see the module docstring)."""
+    return _end(t, groups, "last")
+
+
+def path(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
+    """How far a demo's path in normalised time (its state's and its camera's) lies from its nearest task-mates'
+    (robust z of the log RMS distance, the larger part's), and whether it runs backwards."""
+    n = len(t.state_path)
+    state = _stack_state(t.state_path, slice(None))
+    floor = np.tile(_state_floor(t.state_path), PATH_POINTS)
+    flat = state.reshape(n, -1)
+    back = state[:, ::-1].reshape(n, -1)
+    parts = {"state": (flat, back, floor)}
+    if all(v is not None for v in t.view_path):
+        views = np.stack([np.asarray(v, np.float64) for v in t.view_path])
+        parts["view"] = (views.reshape(n, -1), views[:, ::-1].reshape(n, -1), VIEW_FLOOR)
+    z, own, reversed_, where = {}, {}, {}, {}
+    for name, (x, xb, fl) in parts.items():
+        own[name], z[name], per, reversed_[name] = _state_part(x, groups, fl, xb, pooled=name == "view")
+        where[name] = per.reshape(n, PATH_POINTS, -1)
+    # nearer its mates' paths played backwards than forwards, and as near as their paths are to each other
+    ordinary = {name: _ordinary(reversed_[name], own[name], groups, STATE_MIN_SCALE, True) for name in z}
+    score = np.full(n, np.nan)
+    for name in z:
+        score = np.fmax(score, z[name])
+    found = []
+    for i in range(n):
+        if not np.isfinite(score[i]):
+            found.append(PATH("like"))
+            continue
+        name = max(z, key=lambda p: z[p][i] if np.isfinite(z[p][i]) else -np.inf)
+        if reversed_[name][i] < own[name][i] and ordinary[name][i]:
+            found.append(PATH("backwards", part="state" if name == "state" else "picture", own=float(own[name][i]),
+                              backwards=float(reversed_[name][i])))
+            continue
+        per_point = np.nan_to_num(where[name][i])
+        at = float(np.argmax(per_point.mean(axis=1)) / (PATH_POINTS - 1))
+        if name == "view":
+            found.append(PATH("view", at=at, distance=float(own[name][i])))
+        else:
+            dims = np.argsort(-per_point.mean(axis=0))[:2]
+            found.append(PATH("state", dims=_names(t.names[i], dims, "state"), at=at, distance=float(own[name][i])))
+    return score, found
+

@@ -1,0 +1,48 @@
+"""A recording in another order: played backwards (what a reset recorded as a demo looks like), or with a pause put
+in (an operator who hesitates).  Numpy alone, so that generators running in other environments plant the same.
+
+Time run backwards flips a velocity's sign and keeps a position, a torque or an acceleration: the dimensions a
+dataset names as velocities (``VELOCITY``) are negated, the others only reordered.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+VELOCITY = re.compile(r"(^|[._/\- ])(vel|velocity|velocities|speed|qvel|dq)([._/\- \[]|$)", re.I)
+PAUSE_AT = (0.3, 0.7)  # where in the demo a pause begins, as a share of its steps
+PAUSE_LENGTH = (0.3, 0.5)  # how long it lasts, as a share of the demo's steps
+
+
+def velocities(names: list[str] | None, width: int) -> np.ndarray:
+    """[width] bool: the dimensions ``names`` calls velocities (none where the dataset names none)."""
+    if not names or len(names) != width:
+        return np.zeros(width, bool)
+    return np.array([bool(VELOCITY.search(str(n))) for n in names])
+
+
+def reverse(x: np.ndarray, names: list[str] | None = None) -> np.ndarray:
+    """A recorded stream [T, ...] played backwards: its steps in the other order, velocities negated."""
+    x = np.asarray(x)[::-1].copy()
+    if x.ndim == 2:
+        x[:, velocities(names, x.shape[1])] *= -1
+    return x
+
+
+def pause(steps: int, seed: int) -> tuple[int, int]:
+    """Where a pause drawn by ``seed`` begins in a demo of ``steps`` steps (``PAUSE_AT``), and how many steps it
+    lasts (``PAUSE_LENGTH``)."""
+    rng = np.random.default_rng([seed, 0x9A05E])
+    return int(rng.uniform(*PAUSE_AT) * steps), max(1, int(rng.uniform(*PAUSE_LENGTH) * steps))
+
+
+def hold(x: np.ndarray, at: int, steps: int, names: list[str] | None = None) -> np.ndarray:
+    """A recorded stream [T, ...] with step ``at`` held for ``steps`` more steps (velocities zero there), then the
+    rest: the stream of a demo paused at ``at``."""
+    x = np.asarray(x)
+    still = np.repeat(x[at:at + 1], steps, 0)
+    if still.ndim == 2:
+        still[:, velocities(names, x.shape[1])] = 0
+    return np.concatenate([x[:at], still, x[at:]])

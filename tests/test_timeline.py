@@ -1,0 +1,163 @@
+"""The time-aligned checks (``start``, ``end``, ``path``) and the probes that plant what they are for.
+
+A task of 30 demos in which the arm carries a bright block from the left of the view to the right: one demo is
+the recording played backwards (a reset recorded as a demo), one ends with the block knocked down to the bottom
+of the view, one takes a detour with its elbow half-way.  The summaries over time see none of the first: it has
+its task's frames and joint values, in the other order.
+"""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from democheck.audit.evidence import Evidence
+from democheck.audit.scorers import compute, select
+from democheck.data import open_dataset
+from democheck.data.demo import Demo
+
+T, S, N = 80, 4, 30
+REVERSED, KNOCKED, DETOUR = 3, 7, 11
+NAMES = ["shoulder", "elbow", "wrist", "gripper"]
+
+
+def _frame(x: int, y: int, noise: np.ndarray | None = None) -> np.ndarray:
+    frame = np.full((24, 24, 3), 40, np.uint8) + (0 if noise is None else noise)
+    frame[y:y + 5, x:x + 5] = 220
+    return frame
+
+
+def _carry(i: int, rng: np.random.Generator, frames: bool = True) -> Demo:
+    xs = np.rint(np.linspace(rng.integers(0, 7), rng.integers(13, 19), T)).astype(int)
+    noise = rng.integers(0, 3, (T, 24, 24, 3), dtype=np.uint8)
+    pictures = np.stack([_frame(x, 9, noise[t]) for t, x in enumerate(xs)]) if frames else np.zeros((T, 0, 0, 3),
+                                                                                                     np.uint8)
+    state = np.linspace(0, 1, T)[:, None] * np.array([1.0, -0.5, 0.3, 0.0]) + rng.normal(0, 0.01, (T, S))
+    state[:, 0] += rng.normal(0, 0.03)
+    actions = np.gradient(state, axis=0) + rng.normal(0, 0.001, (T, S))
+    return Demo(episode_index=i, task="carry", frames=pictures, state=state.astype(np.float32),
+                actions=actions.astype(np.float32), extra={"state_names": NAMES})
+
+
+def _carries(frames: bool = True) -> list[Demo]:
+    rng = np.random.default_rng(0)
+    demos = [_carry(i, rng, frames) for i in range(N)]
+    d = demos[REVERSED]
+    demos[REVERSED] = Demo(REVERSED, d.task, d.frames[::-1].copy(), d.state[::-1].copy(), -d.actions[::-1].copy(),
+                           extra=d.extra)
+    if frames:
+        demos[KNOCKED].frames[-10:] = _frame(17, 18)
+    demos[DETOUR].state[:, 1] += 0.4 * np.exp(-((np.arange(T) - 40) / 8.0) ** 2)
+    return demos
+
+
+def _evidence(demos: list[Demo]) -> Evidence:
+    ev = Evidence(episodes=pd.DataFrame({"episode_index": [d.episode_index for d in demos],
+                                         "task": [d.task for d in demos]}))
+    chosen = select(["start", "end", "path"])
+    consumer = chosen[0].decode(ev, slice(0, len(demos)), "cpu")
+    for d in demos:
+        consumer.add(d)
+    ev.behaviour = {"timeline": consumer.finish()}
+    return compute(ev, chosen)
+
+
+@pytest.fixture(scope="module")
+def carried() -> Evidence:
+    return _evidence(_carries())
+
+
+def _top(ev: Evidence, check: str) -> int:
+    return int(np.argmax(ev.scores[check]))
+
+
+def test_a_demo_played_backwards_begins_where_they_end_ends_where_they_begin_and_runs_opposite(carried):
+    for check in ("start", "end", "path"):
+        assert _top(carried, check) == REVERSED, check
+    assert carried.findings["start"][REVERSED].kind == "where they end"
+    assert carried.findings["end"][REVERSED].kind == "where they begin"
+    assert carried.findings["path"][REVERSED].kind == "backwards"
+    assert carried.reasons["end"][REVERSED] == ("ends where its task's demos begin: done backwards (a reset "
+                                                "recorded as a demo?)")
+
+
+def test_a_knocked_over_object_is_an_end_unlike_its_tasks_and_says_where(carried):
+    end = carried.scores["end"]
+    assert end[KNOCKED] > np.delete(end, [REVERSED, KNOCKED]).max() + 2
+    finding = carried.findings["end"][KNOCKED]
+    assert finding.kind == "view" and finding.params["place"] == "the bottom right"
+    # its start is its task's
+    assert carried.findings["start"][KNOCKED].kind == "like"
+
+
+def test_a_detour_strays_in_the_joint_it_took_half_way(carried):
+    path = carried.scores["path"]
+    assert path[DETOUR] > np.delete(path, [REVERSED, KNOCKED, DETOUR]).max()
+    finding = carried.findings["path"][DETOUR]
+    assert finding.kind == "state" and finding.params["dims"].startswith("elbow")
+    assert 0.4 <= finding.params["at"] <= 0.6
+    assert "elbow" in carried.reasons["path"][DETOUR]
+
+
+def test_clean_demos_stay_within_a_few_robust_sd():
+    ev = _evidence([_carry(i, np.random.default_rng(100 + i)) for i in range(N)])
+    for check in ("start", "end", "path"):
+        assert np.nanmax(ev.scores[check]) < 5, (check, np.sort(ev.scores[check])[-3:])
+
+
+def test_a_dataset_without_a_camera_is_judged_by_its_path_alone():
+    ev = _evidence(_carries(frames=False))
+    assert _top(ev, "path") == REVERSED and ev.findings["path"][REVERSED].params["part"] == "state"
+    assert ev.findings["path"][DETOUR].kind == "state"
+    assert np.isnan(ev.scores["end"]).all() and {f.kind for f in ev.findings["end"]} == {"no frames"}
+
+
+def test_a_group_too_small_to_compare_gives_no_score():
+    ev = _evidence(_carries()[:3])
+    assert np.isnan(ev.scores["end"]).all() and {f.kind for f in ev.findings["end"]} == {"like"}
+
+
+@pytest.fixture(scope="module")
+def time_probes(tiny_dataset, tmp_path_factory):
+    from democheck.sim.probes import make_probes
+
+    root, _ = tiny_dataset
+    out = tmp_path_factory.mktemp("time-probes") / "p"
+    summary = make_probes(root, out, ["reversed", "hesitates"], per_kind=2, seed=3, workers=1)
+    return root, out, summary
+
+
+def test_reversed_probe_is_its_source_played_backwards_with_velocities_negated(time_probes):
+    from democheck.data.reorder import velocities
+
+    root, out, summary = time_probes
+    assert summary["kinds"] == {"reversed": 2, "hesitates": 2}
+    src, probes = open_dataset(root), open_dataset(out)
+    for e in probes.episode_indices:
+        d = probes[e]
+        if d.label != "reversed":
+            continue
+        s = src[d.source_episode]
+        assert (d.frames == s.frames[::-1]).all()  # lossless video: bit for bit
+        vel = velocities(s.extra["state_names"], s.state.shape[1])
+        assert vel.any() and not vel.all()
+        np.testing.assert_array_equal(d.state[:, ~vel], s.state[::-1][:, ~vel])
+        np.testing.assert_array_equal(d.state[:, vel], -s.state[::-1][:, vel])
+        np.testing.assert_array_equal(d.actions, s.actions[::-1])  # torques: time reversal keeps them
+
+
+def test_hesitates_probe_holds_one_frame_and_state_then_goes_on(time_probes):
+    from democheck.data.reorder import pause
+
+    root, out, _ = time_probes
+    src, probes = open_dataset(root), open_dataset(out)
+    for e in probes.episode_indices:
+        d = probes[e]
+        if d.label != "hesitates":
+            continue
+        s = src[d.source_episode]
+        at, n = d.sim["probe"]["pause"]["at"], d.sim["probe"]["pause"]["steps"]
+        assert (at, n) == pause(len(s), d.sim["probe"]["seed"])
+        assert len(d) == len(s) + n
+        assert (d.frames[at:at + n + 1] == s.frames[at]).all()
+        np.testing.assert_array_equal(d.frames[at + n:], s.frames[at:])
+        np.testing.assert_array_equal(d.actions[:at], s.actions[:at])
