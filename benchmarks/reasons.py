@@ -32,6 +32,7 @@ CAUSE = {
     "frozen-camera": ("frozen_video",), "frozen-state": ("frozen_state",), "dead-dim": ("frozen_state",),
     "scaled": FLAIL + ("lag:scale",), "sensor-nan": ("broken",), "lagged": ("lag:delay",),
     "dropped": ("frame_jump",), "nan": ("broken",),
+    "reversed": ("start:where they end", "end:where they begin", "path:backwards"), "hesitates": ("pause", "idle"),
 }
 TINY = re.compile(r"e-(1[2-9]|[2-9]\d|\d{3,})\b")  # a probability under 1e-12, printed
 LATENT = re.compile(r"(?<!state )dimension \d|widest on|furthest from its task on")  # not a recorded one

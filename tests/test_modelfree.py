@@ -37,6 +37,8 @@ def _planted(kind: str, n: int = 30, seed: int = 0) -> tuple[list[Demo], int]:
     d = demos[bad]
     if kind == "idle":  # the arm stops at step 40 and never moves again
         d.actions[40:] = d.actions[40]
+    elif kind == "pause":  # the arm stops at step 40 for 30 steps, then goes on as before
+        d.actions[:] = np.concatenate([d.actions[:40], np.repeat(d.actions[40:41], 30, 0), d.actions[40:70]])
     elif kind == "jerk":
         d.actions += rng.normal(0, 0.5, d.actions.shape).astype(np.float32)
     elif kind == "saturation":  # commands clipped at their limit half the time
@@ -93,6 +95,14 @@ def test_idle_ranks_first_and_names_the_frames_it_is_still():
     reason = ev.reasons["idle"][17]
     assert "frames 40-99" in reason and "60% of the demo" in reason, reason
     assert ev.scores["idle"][17] > 0.55 and np.median(ev.scores["idle"]) < 0.1
+
+
+def test_pause_ranks_a_hesitation_first_and_a_still_end_is_none():
+    ev = _ranks_first("pause")
+    finding = ev.findings["pause"][17]
+    assert finding.kind == "paused" and (finding.params["start"], finding.params["stop"]) == (40, 70), finding
+    demos, _ = _planted("idle")  # still from step 40 to the end: no pause
+    assert _evidence(demos, ["pause"]).findings["pause"][17].kind == "no pause"
 
 
 def test_a_broken_recording_is_repaired_to_be_read_ranks_first_and_is_flagged_whatever_its_scores():

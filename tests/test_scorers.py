@@ -43,9 +43,10 @@ CONTROLS = {"random"}
 # Checked on demos made for them in tests/test_modelfree.py: nothing in the pushing suite freezes its camera,
 # copies a demo, records its actions against another demo's state or out of step, drops frames, records NaN,
 # freezes a sensor or lets go of the arm half-way (the coupling's kind; of an idle arm it says nothing); in
-# tests/test_timeline.py, demos played backwards, an object knocked over at the end and a detour.
+# tests/test_timeline.py, demos played backwards, an object knocked over at the end and a detour; in
+# tests/test_modelfree.py, an arm that pauses mid-task.
 ELSEWHERE = {"frozen_video", "frame_jump", "duplicate", "dynamics", "lag", "timing", "broken", "frozen_state",
-             "coupling", "start", "end", "path"}
+             "coupling", "start", "end", "path", "pause"}
 
 
 @pytest.fixture(scope="module")

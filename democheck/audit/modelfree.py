@@ -10,6 +10,8 @@ busiest dimension's, so that a gripper held shut cannot make a tiny twitch look 
   action| against the demos' median, on a log scale; the larger robust |z|).
 - ``idle``: the share of steps at which the actions hardly change (under ``STILL`` of the median change), against
   its task's share, since demos often rest once the task is done: an arm that never moves, or stops half-way.
+- ``pause``: the longest still stretch between the demo's first and last move, as a share of its steps: an
+  operator who hesitated mid-task (a still start or end is no pause).
 - ``jerk``: the log mean absolute third difference of the actions: shaking, chattering or random commands.
 - ``view`` (``democheck.audit.view``): how much of the demo's average picture is unlike its task's other demos'
   there (a covered, moved or blinded camera, another scene); ``colours`` (``democheck.audit.colours``): its
@@ -149,6 +151,34 @@ def idle(traces: ActionTraces) -> tuple[np.ndarray, list[Finding]]:
         kind = "paused" if start + n < len(still) and out[i] < 0.5 else "still"
         found.append(IDLE(kind, share=out[i], start=start, stop=start + n, length=len(still) + 1,
                           longest=n / len(still)))
+    return out, found
+
+
+PAUSE = Vocabulary("pause", {
+    "paused": lambda start, stop, length, share, **_: f"the arm stops mid-task and then goes on: still over "
+                                                      f"{steps_text(start, stop, length)}",
+    "no pause": "no pause between its first and last move",
+    "single frame": "a single frame",
+})
+
+
+def pause(traces: ActionTraces) -> tuple[np.ndarray, list[Finding]]:
+    """The longest stretch at which the actions hardly change between the demo's first and last change, as a share
+    of its steps: an operator who hesitated mid-task.  A still start (the recording began before the operator
+    did) and a still end (the task done, the recording not yet stopped) are no pause."""
+    out, found = np.zeros(len(traces.actions)), []
+    for i, still in enumerate(still_steps(traces)):
+        if not len(still):
+            found.append(PAUSE("single frame"))
+            continue
+        moving = np.flatnonzero(~still)
+        inner = np.zeros(len(still), bool)
+        if len(moving):
+            inner[moving[0]:moving[-1] + 1] = still[moving[0]:moving[-1] + 1]
+        start, n = longest_run(inner)
+        out[i] = n / len(still)
+        found.append(PAUSE("paused", start=start, stop=start + n, length=len(still) + 1, share=float(out[i])) if n
+                     else PAUSE("no pause"))
     return out, found
 
 

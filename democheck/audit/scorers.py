@@ -112,6 +112,10 @@ def _idle(ev: Evidence) -> Scores:
     return modelfree.idle(ev.behaviour["actions"])
 
 
+def _pause(ev: Evidence) -> Scores:
+    return modelfree.pause(ev.behaviour["actions"])
+
+
 def _broken(ev: Evidence) -> Scores:
     return modelfree.broken(ev.behaviour["actions"])
 
@@ -212,6 +216,9 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("idle", "model-free: share of steps at which the actions hardly change (under "
            f"{modelfree.STILL:g} x each dimension's median change), and the longest still stretch", ("demos",),
            _idle, behaviour="actions", decode=_traces, short="idle"),
+    Scorer("pause", "model-free: the longest stretch of steps at which the actions hardly change between the "
+           "demo's first and last move, as a share of its steps (an operator who hesitated mid-task)", ("demos",),
+           _pause, behaviour="actions", decode=_traces, short="pause"),
     Scorer("broken", "model-free: the share of the demo's frames that could not be decoded, or whose states or "
            "actions held NaN or infinite values (repaired to be read; any: the demo ranks first and is flagged)",
            ("demos",), _broken, behaviour="actions", decode=_traces, short="broken"),

@@ -15,8 +15,8 @@ The start and end read the camera alone: where the state ends, and how far it mo
 (``democheck.audit.outcome``), which knows rotations, piles and a task's several outcomes; read twice, one end
 state would count twice.  A demo is compared with its ``NEAR`` nearest task-mates, not with the task's median, so
 that a task done two ways (the object placed left or right) has two kinds of clean end.  Each feature is in units
-of its robust SD over the group (at least ``VIEW_FLOOR`` grey levels, or ``STATE_FLOOR`` of the dimension's range
-over the dataset; a path's picture in one unit for all its pixels).  A start's or end's picture is unlike its
+of its robust SD over the group (at least ``VIEW_FLOOR`` grey levels, or ``STATE_FLOOR`` of the dimension's whole
+range over the dataset; a path's picture in one unit for all its pixels).  A start's or end's picture is unlike its
 mates' by the share of its pixels more than ``UNLIKE`` units from theirs (the median over the mates), as the view
 check counts; a path by the RMS distance, the larger of its state's and its picture's robust z.  The demo played
 backwards gives the words: an end as near its mates' starts as their ends are to each other (``_ordinary``), and
@@ -43,7 +43,7 @@ PATH_THUMB = 8  # pixels: the side of the grey thumbnail at each point of the pa
 NEAR = 5  # task-mates a demo is compared with (at most half its group)
 MIN_GROUP = 4  # a group of fewer demos gives its demos no score
 UNLIKE = VIEW_K  # units: a pixel this far from each of its nearest task-mates' differs
-STATE_FLOOR = 0.05  # a state dimension's least robust SD: this share of its range (5th to 95th percentile) overall
+STATE_FLOOR = 0.05  # a state dimension's least robust SD: this share of its whole range over the demos' paths
 STATE_MIN_SCALE = 0.25  # log units: the least robust SD of the state's and path's log distance within a group
 CLIP = 20.0  # units: a feature further off counts as this far (one wild value is one feature, not the distance)
 ORDINARY = 3.0  # robust SD: a distance at most this far above its group's usual one is ordinary (``_ordinary``)
@@ -129,11 +129,13 @@ def _in_units(x: np.ndarray, unit_of: np.ndarray, floor, pooled: bool = False) -
 
 
 def _state_floor(paths: list[np.ndarray]) -> np.ndarray:
+    """Per state dimension, the least robust SD: ``STATE_FLOOR`` of its whole range over every demo's path.  Its
+    whole range, not a central one: a dimension that moves in a few demos alone (a block that tumbles) is measured
+    in units of how far it moves there, not in units of the stillness of the rest."""
     every = np.concatenate([p for p in paths if len(p)]) if paths else np.zeros((0, 0))
     if not every.size:
         return np.ones(every.shape[1] if every.ndim == 2 else 1)
-    lo, hi = np.nanpercentile(every, [5, 95], axis=0)
-    return np.maximum(STATE_FLOOR * (hi - lo), 1e-9)
+    return np.maximum(STATE_FLOOR * (np.nanmax(every, axis=0) - np.nanmin(every, axis=0)), 1e-9)
 
 
 def _rms(diff: np.ndarray) -> np.ndarray:
