@@ -145,6 +145,14 @@ def test_reversed_probe_is_its_source_played_backwards_with_velocities_negated(t
         np.testing.assert_array_equal(d.actions, s.actions[::-1])  # torques: time reversal keeps them
 
 
+def test_velocities_are_told_by_their_names():
+    from democheck.data.reorder import velocities
+
+    names = ["shoulder.pos", "joint1.vel", "grip.vx", "block.wz", "dx", "gripper", "speed", "block.x", "delta_yaw"]
+    assert velocities(names, len(names)).tolist() == [False, True, True, True, True, False, True, False, True]
+    assert not velocities(None, 3).any() and not velocities(["a"], 2).any()
+
+
 def test_hesitates_probe_holds_one_frame_and_state_then_goes_on(time_probes):
     from democheck.data.reorder import pause
 

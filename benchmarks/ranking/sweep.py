@@ -41,6 +41,7 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "without-outcome": lambda c: c.without("outcome"),
     "without-faults": lambda c: c.without(*RECORDING_FAULTS),
     "without-time": lambda c: c.without(*TIME_ALIGNED),
+    "without-time-and-pause": lambda c: c.without(*TIME_ALIGNED, "pause"),
     "time-one-look": lambda c: replace(c, specs=tuple(replace(s, look="in time") if s.name in TIME_ALIGNED else s
                                                       for s in c.specs)),
 }

@@ -11,7 +11,10 @@ import re
 
 import numpy as np
 
-VELOCITY = re.compile(r"(^|[._/\- ])(vel|velocity|velocities|speed|qvel|dq)([._/\- \[]|$)", re.I)
+# A name, or a part of one between separators, that says velocity: vel, speed, qvel, dq, a linear or angular
+# velocity's axis (vx, wz) or a step's displacement (dx, delta).
+VELOCITY = re.compile(r"(^|[._/\- ])(vel|velocity|velocities|speed|qvel|dq|[vw][xyz]|d[xyz]|delta)([._/\- \[]|$)",
+                      re.I)
 PAUSE_AT = (0.3, 0.7)  # where in the demo a pause begins, as a share of its steps
 PAUSE_LENGTH = (0.3, 0.5)  # how long it lasts, as a share of the demo's steps
 
