@@ -46,13 +46,14 @@ UNLIKE = VIEW_K  # units: a pixel this far from each of its nearest task-mates' 
 STATE_FLOOR = 0.05  # a state dimension's least robust SD: this share of its whole range over the demos' paths
 STATE_MIN_SCALE = 0.25  # log units: the least robust SD of the state's and path's log distance within a group
 CLIP = 20.0  # units: a feature further off counts as this far (one wild value is one feature, not the distance)
+BLOCK = 256  # demos whose nearest task-mates are found at once
 ORDINARY = 3.0  # robust SD: a distance at most this far above its group's usual one is ordinary (``_ordinary``)
 
 
 class Timeline(PerDemo):
     """Consumer of decoded demos: each demo's first and last picture (``END_THUMB`` RGB, median of ``END_FRAMES``
-    frames), the grey thumbnails and state at ``PATH_POINTS`` points, its first and last state, and the state's
-    names (2-3 kB a demo)."""
+    frames), its grey thumbnails and state at ``PATH_POINTS`` points, and the state's names (about 4.5 kB a
+    demo)."""
 
     fields = ("first_view", "last_view", "view_path", "state_path", "names")
     first_view: list[np.ndarray | None]
@@ -102,15 +103,20 @@ def _units(x: np.ndarray, floor: np.ndarray | float) -> tuple[np.ndarray, np.nda
 
 def _nearest(query: np.ndarray, ref: np.ndarray, exclude_self: bool) -> np.ndarray:
     """[n, m] per demo and feature, the median |query_i - ref_j| over the ``NEAR`` demos j nearest it (RMS over
-    the features; at most half the others), itself left out where ``exclude_self``."""
+    the features; at most half the others), itself left out where ``exclude_self``.  ``BLOCK`` queries at a time,
+    so that memory grows with the group's size, not its square."""
     q, r = np.nan_to_num(query), np.nan_to_num(ref)
-    d2 = (q * q).sum(1)[:, None] + (r * r).sum(1)[None, :] - 2.0 * q @ r.T
-    if exclude_self:
-        np.fill_diagonal(d2, np.inf)
-    n = len(ref) - int(exclude_self)
-    k = max(1, min(NEAR, n // 2))
-    near = np.argpartition(d2, k - 1, axis=1)[:, :k]
-    return np.median(np.abs(q[:, None, :] - r[near]), axis=1)
+    k = max(1, min(NEAR, (len(ref) - int(exclude_self)) // 2))
+    rr = (r * r).sum(1)
+    out = np.empty(q.shape)
+    for a in range(0, len(q), BLOCK):
+        b = q[a:a + BLOCK]
+        d2 = (b * b).sum(1)[:, None] + rr[None, :] - 2.0 * b @ r.T
+        if exclude_self:
+            d2[np.arange(len(b)), np.arange(a, a + len(b))] = np.inf
+        near = np.argpartition(d2, k - 1, axis=1)[:, :k]
+        out[a:a + len(b)] = np.median(np.abs(b[:, None, :] - r[near]), axis=1)
+    return out
 
 
 def _grouped(groups: np.ndarray):
