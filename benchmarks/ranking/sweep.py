@@ -42,6 +42,10 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "without-faults": lambda c: c.without(*RECORDING_FAULTS),
     "without-time": lambda c: c.without(*TIME_ALIGNED),
     "without-time-and-pause": lambda c: c.without(*TIME_ALIGNED, "pause"),
+    "time-apart": lambda c: replace(c, specs=tuple(replace(s, alone=True) if s.name in TIME_ALIGNED + ("pause",)
+                                                   else s for s in c.specs)),
+    "time-look-apart": lambda c: replace(c, specs=tuple(replace(s, alone=True) if s.name in TIME_ALIGNED else s
+                                                        for s in c.specs)),
     "time-one-look": lambda c: replace(c, specs=tuple(replace(s, look="in time") if s.name in TIME_ALIGNED else s
                                                       for s in c.specs)),
 }

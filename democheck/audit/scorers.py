@@ -26,7 +26,8 @@ import numpy as np
 import pandas as pd
 
 from democheck import resources
-from democheck.audit import colours, coupling, dynamics, frames, modelfree, outcome, ranking, reasons, sensors, timeline, view
+from democheck.audit import (colours, coupling, dynamics, frames, modelfree, outcome, ranking, reasons, sensors,
+                             timeline, view)
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit.evidence import Evidence, Scorer, Scores
@@ -281,13 +282,13 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            ("demos",), _coupling,
            decode=lambda ev, rows, device: coupling.CouplingStats(), short="coupl."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
-           "consistency, motion, idle, view, colours, outcome, how the demo began, ended and went (start, end and "
-           "path, one look) and whether the actions are explained (the action error (log) and the coupling, one "
-           "look: the Sidak minimum of the two) (one task: without the first two), each in robust standard deviations within its task, the "
-           "tails fitted on the robust core; beside that, the smallest of the recording faults' (timing, frozen "
+           "consistency, motion, idle, pause, view, colours, outcome, how the demo began, ended and went (start, "
+           "end and path, one look) and whether the actions are explained (the action error (log) and the "
+           "coupling, one look: the Sidak minimum of the two) (one task: without the first two), each in robust "
+           "standard deviations within its task, the tails fitted on the robust core; beside that, the smallest of the recording faults' (timing, frozen "
            "video, frame jump, frozen state, lag, jerk) (2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
-    Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, "
+    Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, pause, "
            "view, colours, outcome, start, end, path, coupling, and the recording faults): what democheck says with "
            "no model",
            ("scores",), _model_free,
