@@ -22,7 +22,8 @@ import pandas as pd
 
 STILL = ("idle", "motion:hardly", "motion:less")
 FLAIL = ("motion:more", "motion:flails", "jerk:shakes")
-VIEW = ("view:changed", "colours:changed")
+# a picture unlike its task's, over the demo or at its first or last frames (where a card or a moved camera shows)
+VIEW = ("view:changed", "colours:changed", "start:view", "end:view")
 WORLD = ("outcome",)
 CAUSE = {
     "idle": STILL, "no-action": STILL, "gave-up": STILL + WORLD,

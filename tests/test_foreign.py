@@ -69,3 +69,20 @@ def test_each_generator_names_every_dimension_it_writes(name):
         names = feats[key]["names"]
         assert len(names) == feats[key]["shape"][0] and len(set(names)) == len(names), key
     assert len(gen.TASKS) >= 4 and all(isinstance(words, str) for words, *_ in gen.TASKS.values())
+
+
+def test_time_kinds_are_written_reordered_and_the_others_as_simulated():
+    T = 20
+    ep = {"label": "reversed", "frames": np.arange(T)[:, None, None, None] * np.ones((1, 2, 2, 3), np.uint8),
+          "state": np.c_[np.arange(T), np.ones(T)].astype(np.float32), "env_state": np.zeros((T, 1), np.float32),
+          "actions": np.arange(T, dtype=np.float32)[:, None]}
+    names = {"frames": None, "state": ["x", "x.vel"], "env_state": ["z"], "actions": ["dx"]}
+    back = record.reordered(ep, names, seed=1)
+    assert (back["frames"][:, 0, 0, 0] == np.arange(T)[::-1]).all()
+    assert (back["state"][:, 0] == np.arange(T)[::-1]).all() and (back["state"][:, 1] == -1).all()
+    assert (back["actions"][:, 0] == -np.arange(T)[::-1]).all()  # a displacement per step: negated
+    paused = record.reordered({**ep, "label": "hesitates"}, names, seed=1)
+    assert len(paused["actions"]) > T and len(paused["frames"]) == len(paused["state"]) == len(paused["actions"])
+    clean = {**ep, "label": "clean"}
+    assert record.reordered(clean, names, seed=1) is clean
+    assert "reversed" in record.TIME_KINDS and "reversed" not in record.KINDS  # asked for, never by default

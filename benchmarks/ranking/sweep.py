@@ -5,8 +5,8 @@
 Each AUDIT is a ``democheck audit`` folder (its ``scores.parquet``; labels from a ``label`` column there or from
 ``--labels``, one csv of ``episode_index,label`` per audit in order).  Each variant is a change to the config the
 audit recorded in ``summary.json`` (``ranking``): the table is ranked again with it and scored per planted kind
-(AUROC of the suspicion against the clean demos, and how many of the kind it flags) and by the clean demos it flags at the audit's ``--fpr``.  The
-``shipped`` variant reproduces the audit's own suspicion (checked).  ``VARIANTS`` lists the others; add one there.
+(AUROC of the suspicion against the clean demos, and how many of the kind it flags) and by the clean demos it
+flags at the audit's ``--fpr``.  The ``shipped`` variant reproduces the audit's own suspicion (checked).  ``VARIANTS`` lists the others; add one there.
 """
 
 from __future__ import annotations
@@ -65,8 +65,8 @@ def evaluate(table: pd.DataFrame, suspicion: np.ndarray, flagged: np.ndarray) ->
     for kind in sorted(set(labels) - {"clean"}):
         bad = labels == kind
         y = np.r_[np.ones(bad.sum(), bool), np.zeros(clean.sum(), bool)]
-        auroc = detection(y, np.r_[suspicion[bad], suspicion[clean]])["auroc"]
-        out[kind] = f"{auroc:.3f} (flagged {int(flagged[bad].sum())}/{int(bad.sum())})"
+        out[kind] = round(detection(y, np.r_[suspicion[bad], suspicion[clean]])["auroc"], 4)
+        out[f"{kind} flagged"] = f"{int(flagged[bad].sum())} of {int(bad.sum())}"
     out["clean flagged"] = f"{int(flagged[clean].sum())} of {int(clean.sum())}"
     return out
 
