@@ -126,17 +126,20 @@ def time_probes(tiny_dataset, tmp_path_factory):
     return root, out, summary
 
 
+def _probes_of(time_probes, kind: str):
+    """(probe, its source demo) of each probe of ``kind``."""
+    root, out, _ = time_probes
+    src, probes = open_dataset(root), open_dataset(out)
+    for e in probes.episode_indices:
+        if probes[e].label == kind:
+            yield probes[e], src[probes[e].source_episode]
+
+
 def test_reversed_probe_is_its_source_played_backwards_with_velocities_negated(time_probes):
     from democheck.data.reorder import velocities
 
-    root, out, summary = time_probes
-    assert summary["kinds"] == {"reversed": 2, "hesitates": 2}
-    src, probes = open_dataset(root), open_dataset(out)
-    for e in probes.episode_indices:
-        d = probes[e]
-        if d.label != "reversed":
-            continue
-        s = src[d.source_episode]
+    assert time_probes[2]["kinds"] == {"reversed": 2, "hesitates": 2}
+    for d, s in _probes_of(time_probes, "reversed"):
         assert (d.frames == s.frames[::-1]).all()  # lossless video: bit for bit
         vel = velocities(s.extra["state_names"], s.state.shape[1])
         assert vel.any() and not vel.all()
@@ -156,13 +159,7 @@ def test_velocities_are_told_by_their_names():
 def test_hesitates_probe_holds_one_frame_and_state_then_goes_on(time_probes):
     from democheck.data.reorder import pause
 
-    root, out, _ = time_probes
-    src, probes = open_dataset(root), open_dataset(out)
-    for e in probes.episode_indices:
-        d = probes[e]
-        if d.label != "hesitates":
-            continue
-        s = src[d.source_episode]
+    for d, s in _probes_of(time_probes, "hesitates"):
         at, n = d.sim["probe"]["pause"]["at"], d.sim["probe"]["pause"]["steps"]
         assert (at, n) == pause(len(s), d.sim["probe"]["seed"])
         assert len(d) == len(s) + n
