@@ -326,3 +326,8 @@ def test_a_dataset_is_found_by_its_hub_id_offline_in_lerobots_home_and_in_the_hu
     assert res.exit_code == 0 and "lerobot-v3.0" in res.output, res.output
     res = CliRunner().invoke(app, ["audit", "someone/missing", "--out", str(tmp_path / "r"), "--no-model"])
     assert res.exit_code == 2 and "someone/missing: not on this machine" in " ".join(res.output.split())
+    # a mistyped path whose folder is here reads as a path first
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data").mkdir()
+    with pytest.raises(DatasetError, match=r"data/typo: no such folder \(data/ is here, without typo\); and as a hub"):
+        resolve("data/typo")

@@ -49,12 +49,18 @@ def resolve(name: str | Path, revision: str | None = None) -> Path:
     try:
         return Path(snapshot_download(str(name), repo_type="dataset", revision=revision, local_files_only=offline))
     except LocalEntryNotFoundError:
-        raise DatasetError(f"{name}: not on this machine ({local}, or the hub's cache) and the hub cannot be reached"
+        raise DatasetError(f"{name}: {_no_folder(path)}not on this machine ({local}, or the hub's cache) and the hub cannot be reached"
                            + (" (HF_HUB_OFFLINE is set)" if offline else "") + "; download it where there is a "
                            f"network (huggingface-cli download --repo-type dataset {name}"
                            + (f" --revision {revision}" if revision else "") + "), or give its folder") from None
     except RepositoryNotFoundError:
-        raise DatasetError(f"{name}: no such dataset on the hub (or it is private: huggingface-cli login), "
-                           "and no such folder here") from None
+        raise DatasetError(f"{name}: {_no_folder(path)}no such dataset on the hub (or it is private: "
+                           "huggingface-cli login)") from None
     except (HfHubHTTPError, OSError, ValueError) as exc:
         raise DatasetError(f"{name}: could not be fetched from the hub ({str(exc).splitlines()[0][:120]})") from None
+
+
+def _no_folder(path: Path) -> str:
+    """Where the id's first part is a folder here, the words that say the name was most likely a path, mistyped."""
+    return (f"no such folder ({path.parent}/ is here, without {path.name}); and as a hub id, "
+            if path.parent.is_dir() and str(path.parent) not in ("", ".") else "")
