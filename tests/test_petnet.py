@@ -1,4 +1,5 @@
 import pickle
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -94,6 +95,20 @@ def test_save_load_bit_identical_and_card(arrays, tmp_path):
         b = ckpt.model.encoder(cue_input(cue), end)
     assert all(torch.equal(x, y) for x, y in zip(a, b))
     assert not (tmp_path / ".m.partial").exists()  # the resume state is gone once the model is written
+
+
+def test_recipe_sets_the_task_variables_width_the_layers_and_weight_decay(arrays, tmp_path):
+    from democheck.petnet.recipe import load_recipe
+
+    tc, _ = load_recipe("paper", ["model.z_dim=16", "model.fc_units=32", "optim.weight_decay=0.01"])
+    assert (tc.z_dim, tc.fc_units, tc.weight_decay) == (16, 32, 0.01)
+    result = train(arrays, tmp_path / "m", replace(tc, steps=2, seed=0, **FAST))
+    assert (result.config.z_dim, result.config.fc_units) == (16, 32)
+    ckpt = load_checkpoint(tmp_path / "m")
+    assert (ckpt.config.z_dim, ckpt.config.fc_units) == (16, 32)
+    cue, end = torch.from_numpy(arrays.cue(np.arange(2))), torch.from_numpy(arrays.end_state(np.arange(2)))
+    with torch.no_grad():
+        assert ckpt.model.encoder(cue_input(cue), end)[0].shape == (2, 16)  # the task mean: 16 dimensions
 
 
 @pytest.mark.parametrize("shift", [0, 2])

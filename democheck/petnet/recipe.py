@@ -28,10 +28,11 @@ DEFAULT_RECIPE = "paper"
 KEYS: dict[str, dict[str, str]] = {
     "": {"model_type": "model_type", "seed": "seed"},
     "optim": {"steps": "steps", "batch_tasks": "batch_tasks", "timesteps": "timesteps", "lr": "lr",
-              "lr_schedule": "lr_schedule"},
+              "lr_schedule": "lr_schedule", "weight_decay": "weight_decay"},
     "batches": {"hard_negatives": "hard_negatives", "shift": "shift"},
     "model": {"keypoints": "keypoints", "task_fusion": "task_fusion", "conv_channels": "conv_channels",
-              "object_readout": "object_readout", "fine_points": "fine_points",
+              "object_readout": "object_readout", "fine_points": "fine_points", "z_dim": "z_dim",
+              "fc_units": "fc_units",
               "novelty": "novelty", "novelty_trim": "novelty_trim",
               "novelty_autoencoder": "novelty_autoencoder", "novelty_state": "novelty_state", "init": "init",
               "image_size": "image_size"},

@@ -73,6 +73,10 @@ class TrainConfig:
     task_fusion: str = "late"  # where the controller reads z, see ModelConfig.task_fusion
     conv_channels: int = 16  # channels of every convolution, encoder and controller
     fine_points: bool = False  # controller architecture option, see ModelConfig.fine_points
+    z_dim: int = 10  # the task variable's dimensions (ModelConfig.z_dim; tiled, each is one more input channel)
+    fc_units: int = 200  # units of every fully connected layer (ModelConfig.fc_units)
+    # Decoupled weight decay (AdamW) of every weight; 0: Adam, as every recipe before it.
+    weight_decay: float = 0.0
     # "constant", or "cosine": a linear warm-up over the first 2% of the steps, then a cosine decay to 0.
     lr_schedule: str = "constant"
     # Weight of the controller's read-out of the recorded environment state (the objects' poses, standardised)
@@ -284,7 +288,7 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     cfg = ModelConfig(model_type=tc.model_type, image_size=h, state_dim=arrays.state.shape[1],
                       action_dim=arrays.actions.shape[1], keypoints=tc.keypoints,
                       task_fusion=tc.task_fusion, conv_channels=tc.conv_channels, readout_dim=readout_dim,
-                      fine_points=tc.fine_points)
+                      fine_points=tc.fine_points, z_dim=tc.z_dim, fc_units=tc.fc_units)
     model = build_model(cfg).to(device)
     teacher = None
     if tc.init:
@@ -295,7 +299,8 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
         spans = np.concatenate([np.arange(arrays.offsets[r], arrays.offsets[r] + arrays.lengths[r]) for r in all_train])
         norm = Normalisation.fit(arrays.state[spans], arrays.actions[spans])
     model.train()
-    opt = torch.optim.Adam(model.parameters(), lr=tc.lr)
+    opt = (torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay) if tc.weight_decay
+           else torch.optim.Adam(model.parameters(), lr=tc.lr))
     groups = task_groups if tc.hard_negatives else None
     env_norm = env_standardisation(arrays, all_train) if readout_dim else None
     source = ResidentArrays(arrays, norm, device, env_norm) \
