@@ -130,12 +130,8 @@ def reordered(ep: dict, names: dict[str, list[str] | None], seed: int) -> dict:
     from democheck.data import reorder
 
     keys = ("frames", "state", "env_state", "actions")
-    if ep["label"] == "reversed":
-        return {**ep, **{k: reorder.reverse(ep[k], names[k]) for k in keys}}
-    if ep["label"] == "hesitates":
-        at, n = reorder.pause(len(ep["actions"]), seed)
-        return {**ep, **{k: reorder.hold(ep[k], at, n, names[k]) for k in keys}}
-    return ep
+    streams, _ = reorder.replant(ep["label"], {k: ep[k] for k in keys}, names, seed)
+    return {**ep, **streams}
 
 
 def features(camera: str, size: tuple[int, int], state: list[str], env: list[str], action: list[str]) -> dict:

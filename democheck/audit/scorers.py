@@ -266,12 +266,12 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "
            "z within its task)", ("demos",), _outcome,
            decode=lambda ev, rows, device: outcome.OutcomeStats(), short="outc."),
-    Scorer("start", "model-free: how unlike its nearest task-mates' the demo's first picture (share of it "
-           f"over {timeline.UNLIKE:g} robust SD from theirs) and first state (RMS distance) are, the larger robust z "
-           "within its task: a demo that begins elsewhere, or where its task's demos end (done backwards)",
+    Scorer("start", "model-free: how unlike its nearest task-mates' the demo's first picture is (share of it "
+           f"over {timeline.UNLIKE:g} robust SD from theirs), robust z within its task: a demo that begins "
+           "elsewhere, or where its task's demos end (done backwards)",
            ("demos",), _start, behaviour="timeline", decode=_timeline, short="start"),
-    Scorer("end", "model-free: how unlike its nearest task-mates' the demo's last picture and last state are, as "
-           "the start's: a failed place, a knocked-over object, a demo that ends where its task's demos begin",
+    Scorer("end", "model-free: how unlike its nearest task-mates' the demo's last picture is, as the start's: a "
+           "failed place, a knocked-over object, a demo that ends where its task's demos begin",
            ("demos",), _end, behaviour="timeline", decode=_timeline, short="end"),
     Scorer("path", f"model-free: how far the demo's path ({timeline.PATH_POINTS} points in normalised time, of its "
            "state and of its camera's grey thumbnail) lies from its nearest task-mates' (RMS distance, log, the "
@@ -285,8 +285,9 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "consistency, motion, idle, pause, view, colours, outcome, how the demo began, ended and went (start, "
            "end and path, one look) and whether the actions are explained (the action error (log) and the "
            "coupling, one look: the Sidak minimum of the two) (one task: without the first two), each in robust "
-           "standard deviations within its task, the tails fitted on the robust core; beside that, the smallest of the recording faults' (timing, frozen "
-           "video, frame jump, frozen state, lag, jerk) (2 = as unusual as 1 clean demo in 100)", ("scores",),
+           "standard deviations within its task, the tails fitted on the robust core; beside that, the smallest "
+           "of the recording faults' (timing, frozen video, frame jump, frozen state, lag, jerk) (2 = as unusual "
+           "as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, pause, "
            "view, colours, outcome, start, end, path, coupling, and the recording faults): what democheck says with "

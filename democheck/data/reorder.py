@@ -49,3 +49,14 @@ def hold(x: np.ndarray, at: int, steps: int, names: list[str] | None = None) -> 
     if still.ndim == 2:
         still[:, velocities(names, x.shape[1])] = 0
     return np.concatenate([x[:at], still, x[at:]])
+
+
+def replant(kind: str, streams: dict, names: dict, seed: int) -> tuple[dict, dict[str, int]]:
+    """``streams`` (name -> [T, ...] array, or None) of a demo as ``kind`` plants it: "reversed" played backwards,
+    "hesitates" paused where ``pause`` draws by ``seed``; ``names`` gives each stream's dimension names (velocities).
+    Returns the streams and where a pause is ({} for a reversal)."""
+    if kind == "reversed":
+        return {k: None if v is None else reverse(v, names.get(k)) for k, v in streams.items()}, {}
+    at, n = pause(len(streams["actions"]), seed)
+    return ({k: None if v is None else hold(v, at, n, names.get(k)) for k, v in streams.items()},
+            {"at": at, "steps": n})

@@ -47,19 +47,6 @@ HIDDEN_COVER = (0.5, 0.7)  # share of the image the squares cover, drawn per pro
 HIDDEN_SIDE = (0.25, 0.5)  # side of each square, as a share of the image side
 
 
-def hesitate(demo: Demo, seed: int) -> tuple[dict[str, np.ndarray | None], dict[str, int]]:
-    """The demo with a pause put in (``reorder.pause``, ``reorder.hold``): at a drawn step, its frame, state and
-    actions held for a drawn share of its length, then the rest.  Returns the streams and where the pause is."""
-    at, n = reorder.pause(len(demo), seed)
-    x = demo.extra
-    streams = {"frames": reorder.hold(demo.frames, at, n),
-               "state": reorder.hold(demo.state, at, n, x.get("state_names")),
-               "actions": reorder.hold(demo.actions, at, n, x.get("action_names")),
-               "env_state": None if demo.env_state is None else reorder.hold(demo.env_state, at, n,
-                                                                             x.get("env_state_names"))}
-    return streams, {"at": at, "steps": n}
-
-
 def hide(frames: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, list[list[int]]]:
     """Cover ``frames`` [T,H,W,3] with random solid squares until a drawn share of the view is hidden.
 
@@ -134,15 +121,16 @@ def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[
             frames, probe["squares"] = hide(source.frames, rng)
             state, actions, env_state = source.state, source.actions, source.env_state
             sim = source.sim
-        elif kind == "reversed":
-            frames = source.frames[::-1].copy()
-            state = reorder.reverse(source.state, source.extra.get("state_names"))
-            actions = reorder.reverse(source.actions, source.extra.get("action_names"))
-            env_state = None if source.env_state is None else reorder.reverse(source.env_state,
-                                                                              source.extra.get("env_state_names"))
-        elif kind == "hesitates":
-            streams, probe["pause"] = hesitate(source, probe_seed)
+        elif kind in TIME_PROBES:
+            x = source.extra
+            streams, pause = reorder.replant(
+                kind, {"frames": source.frames, "state": source.state, "actions": source.actions,
+                       "env_state": source.env_state},
+                {"state": x.get("state_names"), "actions": x.get("action_names"),
+                 "env_state": x.get("env_state_names")}, probe_seed)
             frames, state, actions, env_state = (streams[k] for k in ("frames", "state", "actions", "env_state"))
+            if pause:
+                probe["pause"] = pause
         elif source.sim is None:  # image-level no-action: the first frame and state held
             frames = np.repeat(source.frames[:1], T, 0)
             state, actions, env_state = np.repeat(source.state[:1], T, 0), np.zeros_like(source.actions), None
