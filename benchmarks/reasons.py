@@ -34,6 +34,10 @@ CAUSE = {
     "scaled": FLAIL + ("lag:scale",), "sensor-nan": ("broken",), "lagged": ("lag:delay",),
     "dropped": ("frame_jump",), "nan": ("broken",),
     "reversed": ("start:where they end", "end:where they begin", "path:backwards"), "hesitates": ("pause", "idle"),
+    # on the way: a path unlike its task's (a detour; a drop, the arm back down and up again), an end unlike
+    # its task's or the world left otherwise (an object off its goal)
+    "detour": ("path:state", "path:view", "motion:more"), "drop-regrasp": ("path:state", "path:view", "pause"),
+    "failed-place": ("end:view",) + WORLD,
 }
 TINY = re.compile(r"e-(1[2-9]|[2-9]\d|\d{3,})\b")  # a probability under 1e-12, printed
 LATENT = re.compile(r"(?<!state )dimension \d|widest on|furthest from its task on")  # not a recorded one

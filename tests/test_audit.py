@@ -98,6 +98,22 @@ def test_consistency_against_the_k_nearest_others_matches_brute_force():
     assert np.allclose(m[21], m_all[21])  # task b has 2 others, fewer than k: all of them
 
 
+def test_a_changed_cue_is_measured_against_its_demos_task_mates_as_the_demo_is():
+    """``consistency_of``: a demo's own cue standing in for it gives its own consistency; a cue moved far from its
+    task gives a larger one."""
+    from democheck.audit.scores import consistency, consistency_of
+
+    rng = np.random.default_rng(8)
+    n = 30
+    tasks = np.array(["a"] * 18 + ["b"] * 12)
+    post = _post(rng.normal(size=(n, 4)), rng.uniform(0.1, 1, (n, 4)))
+    rows = np.array([0, 5, 17, 18, 29])
+    same = _post(post.mu[rows], post.var[rows])
+    assert np.allclose(consistency_of(same, rows, post, tasks), consistency(post, tasks)[rows])
+    far = _post(post.mu[rows] + 50.0, post.var[rows])
+    assert (consistency_of(far, rows, post, tasks) > 10 * consistency(post, tasks)[rows]).all()
+
+
 def test_ocsvm_flags_high_uncertainty():
     rng = np.random.default_rng(3)
     train_sigma = rng.uniform(0.05, 0.07, (500, 10))
@@ -387,6 +403,13 @@ def test_audit_mismatch_and_fail_on(tiny_dataset, tiny_model, tmp_path):
     assert res.exit_code == 0, res.output
     frames = json.loads((tmp_path / "big" / "summary.json").read_text())["frames"]
     assert frames == {"camera": [32, 32, 3], "model": [16, 16, 3], "resized": True, "count": 48}
+    # Only the model reads the resized frames: the model-free checks score the camera's own, as without a model.
+    res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "bare"), "--no-model"])
+    assert res.exit_code == 0, res.output
+    with_model, bare = (pd.read_parquet(tmp_path / r / "scores.parquet").set_index("episode_index").sort_index()
+                        for r in ("big", "bare"))
+    for check in ("view", "colours", "frame_jump", "frozen_video", "start", "end", "path"):
+        assert np.allclose(with_model[check], bare[check], equal_nan=True), check
     path = tmp_path / "narrow.hdf5"
     _write_robomimic(path, joints=10)
     res = runner.invoke(app, ["audit", str(path), "--out", str(tmp_path / "r"), "--model", str(tiny_model)])
@@ -455,7 +478,8 @@ def test_action_error_is_the_controllers_mse_and_ranks_a_planted_flailing_demo_f
                              actions=rng.normal(0, 0.1, (40, 7)).astype(np.float32)) for _ in range(len(eps))]
     demos[6].actions = rng.normal(0, 3.0, (40, 7)).astype(np.float32)  # flails
     norm = Normalisation(state_mean=[0.0] * 17, state_std=[1.0] * 17, action_mean=[0.0] * 7, action_std=[1.0] * 7)
-    ckpt = SimpleNamespace(model=SimpleNamespace(controller=_ZeroController()), norm=norm)
+    ckpt = SimpleNamespace(model=SimpleNamespace(controller=_ZeroController()), norm=norm,
+                           config=SimpleNamespace(image_size=8))
     mu, var, _ = _posteriors(eps, rng)
     err = action_errors(iter(demos), ckpt, controller_z(_post(mu, var), eps["task"].to_numpy()), "cpu", steps=10, batch=4)
     t = np.linspace(0, 39, 10).round().astype(int)
@@ -539,6 +563,11 @@ def test_a_model_score_that_failed_its_test_is_reported_not_ranked(tiny_dataset,
     assert "task_uncertainty" in untrusted(meta, (np.full(8, 3.5), real), idle=(np.full(3, 2.0), real))
     assert untrusted(meta, (np.full(8, 2.5), real), idle=(np.full(3, 3.1), real)) == {}
     assert "task_uncertainty" in untrusted(meta, (np.full(8, 2.5), real), idle=(np.full(1, 9.0), real))
+    # The novelty and the consistency rank where the model reads demos played backwards as at least twice as
+    # unusual as the same demos (median); unmeasured, they rank as the recipe says.
+    left_out = untrusted(meta, backwards={"novelty": (np.full(8, 3.1), real), "consistency": (np.full(8, 2.9), real)})
+    assert "novelty" not in left_out and "median consistency 2.9 backwards, 1.5 as recorded" in left_out["consistency"]
+    assert not {"novelty", "consistency"} & set(untrusted(meta))
     src, _ = tiny_dataset
     model = tmp_path / "weak"
     shutil.copytree(tiny_model, model)
@@ -550,7 +579,9 @@ def test_a_model_score_that_failed_its_test_is_reported_not_ranked(tiny_dataset,
     assert res.exit_code == 0, res.output
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     ranked = summary["flag"]["scores"]
-    assert "action_error" not in ranked and "consistency" in ranked
+    assert "action_error" not in ranked
+    for name in ("novelty", "consistency"):  # tested on the data, each ranks or the audit says why not
+        assert (name in ranked) != any(f"its {name} is reported, not ranked" in w for w in summary["warnings"])
     table = pd.read_parquet(tmp_path / "r" / "scores.parquet")
     assert np.isfinite(table["action_error"]).all()
     said = [w for w in summary["warnings"] if "error is reported, not ranked" in w]

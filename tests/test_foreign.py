@@ -23,6 +23,31 @@ def test_the_plan_holds_every_task_and_kind_in_a_seeded_order():
     assert jobs != record.plan(["a", "b", "c"], 4, 2, 4, record.KINDS)
 
 
+def test_kinds_on_the_way_are_planted_only_where_the_simulator_can_and_on_the_tasks_they_fit(tmp_path):
+    plants = {"failed-place": ("b",), "detour": ("a", "b", "c")}
+    jobs = record.plan(["a", "b", "c"], demos=4, plant=5, seed=3, kinds=("idle", "failed-place"), plants=plants)
+    assert {j[1] for j in jobs if j[2] == "failed-place"} == {"b"}
+    assert sum(j[2] == "failed-place" for j in jobs) == 5 and sum(j[2] == "idle" for j in jobs) == 5
+    ap = record.parser("doc", demos=5, size="96")
+    with pytest.raises(SystemExit, match="unknown kind drop-regrasp"):
+        record.options(ap.parse_args([str(tmp_path / "y"), "--kinds", "detour,drop-regrasp"]), plants)
+    assert record.options(ap.parse_args([str(tmp_path / "y"), "--kinds", "detour"]), plants)[0] == ("detour",)
+
+
+def test_a_planted_kind_is_kept_only_where_its_rollout_did_what_it_says():
+    """A detour still succeeds, a failed place fails: layouts are drawn until the rollout does so."""
+    def rollout(task, scene, kind, rng, layout, stop=None):
+        ok = layout % 2 == 0  # every other layout succeeds
+        return {"frames": np.zeros((3, 2, 2, 3), np.uint8), "state": np.full((3, 1), layout, np.float64),
+                "env_state": np.zeros((3, 1)), "actions": np.zeros((3, 1)), "success": ok,
+                "first_success": 1 if ok else None}
+
+    for kind, succeeds in (("detour", True), ("drop-regrasp", True), ("failed-place", False), ("clean", True)):
+        for index in range(6):
+            ep = record.episode((index, "a", kind, "b", 9), rollout, {"a": "do a", "b": "do b"})
+            assert ep["label"] == kind and (int(ep["state"][0, 0]) % 2 == 0) == succeeds
+
+
 def test_the_card_covers_35_to_55_percent_of_every_frame_alike():
     frames = np.zeros((5, 48, 64, 3), np.uint8)
     for seed in range(20):

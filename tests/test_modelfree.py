@@ -761,26 +761,31 @@ def test_the_ray_engine_without_ray_says_how_to_get_it(monkeypatch):
             pass
 
 
-def test_on_one_task_the_ranking_leaves_the_task_embeddings_scores_out():
-    """A dataset of one task: task uncertainty and consistency are scored and reported, not ranked -- a clean
-    demo far from its neighbours there is mostly one on an unusual layout; with two tasks they are ranked."""
+def test_on_one_task_task_uncertainty_stays_out_and_the_cue_scores_rank_where_they_earn_it():
+    """A dataset of one task: task uncertainty is scored and reported, not ranked -- a clean demo far from its
+    neighbours there is mostly one on an unusual layout.  The novelty and the consistency rank on one task as on
+    many, where the model reads demos played backwards as unlike them (``trust.untrusted``), and not elsewhere."""
     from democheck.audit.scorers import ranked
+    from democheck.audit.trust import untrusted
 
-    available = ["task_uncertainty", "consistency", "action_error", "motion", "idle", "view"]
-    assert ranked(available, np.array(["push"] * 9)) == ["action_error", "motion", "idle", "view"]
-    assert ranked(available, np.array(["push", "pull"] * 5)) == available
+    available = ["task_uncertainty", "novelty", "consistency", "action_error", "motion", "idle", "view"]
+    one_task, two = np.array(["push"] * 9), np.array(["push", "pull"] * 5)
+    assert ranked(available, one_task) == available[1:]
+    assert ranked(available, two) == available
+    real = np.linspace(1.0, 2.0, 20)
+    failed = untrusted({}, backwards={"novelty": (1.5 * real, real), "consistency": (3 * real, real)})
+    assert set(failed) == {"novelty"}
+    assert ranked(available, one_task, untrusted=failed) == ["consistency", "action_error", "motion", "idle", "view"]
+    assert ranked(available, two, untrusted=failed) == ["task_uncertainty", *ranked(available, one_task, untrusted=failed)]
     rng = np.random.default_rng(2)
     n = 60
     scores = {name: rng.normal(0, 1, n) for name in ("motion", "idle", "view")}
     scores.update(task_uncertainty=rng.exponential(1.0, n), consistency=rng.exponential(1.0, n))
-    scores["consistency"][7] = 1e6  # far from its neighbours, nothing else unusual
+    scores["consistency"][7] = 1e6  # far from its neighbours: where consistency ranks, it leads
+    scores["task_uncertainty"][11] = 1e6  # on one task, task uncertainty alone says nothing
     one = Evidence(episodes=pd.DataFrame({"episode_index": range(n), "task": ["push"] * n}), scores=dict(scores))
     values, _ = SCORERS["suspicion"].score(one)
-    assert values[7] < 2  # not flagged at --fpr 0.01
-    two = Evidence(episodes=pd.DataFrame({"episode_index": range(n), "task": ["push", "pull"] * (n // 2)}),
-                   scores=dict(scores))
-    values, _ = SCORERS["suspicion"].score(two)
-    assert values[7] == values.max() and values[7] > 5
+    assert values[7] == values.max() and values[7] > 5 and values[11] < 2
 
 
 def _failing_init() -> None:
@@ -1073,6 +1078,7 @@ def test_numbers_compared_in_a_reason_never_read_the_same():
     assert pair(1.891, 1.912) == ("1.89", "1.91")
     assert pair(0.25, 0.5) == ("0.25", "0.5")
     assert pair(2.0, 2.0) == ("2", "2")
+    assert pair(-1.0, 7.42e-17) == ("-1", "0") and pair(3e-9, 1e-9) == ("3e-09", "1e-09")  # noise beside, reads 0
     assert colour_name(0) == "black (#202020)" and colour_name(21).startswith("grey")
 
 

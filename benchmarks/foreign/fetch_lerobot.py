@@ -20,6 +20,15 @@ kinds, each replacing a demo of the task it is labelled with:
 - ``occluded``: a clean demo whose camera a grey card covers over 35-55% of the view;
 - ``jerky``: a shaky teleoperator -- the oracle's actions plus Gaussian noise of SD 0.3-0.5, executed.
 
+On request (``--kinds``), what operators do on the way, each episode longer by the steps it takes:
+
+- ``detour``: 25-45% of the way in, the gripper leaves for an empty spot 12-20 cm aside and 5-10 cm up for 15-25
+  steps, holding what it holds, then the oracle resumes and succeeds (any task);
+- ``drop-regrasp``: 4-10 steps into the carry the gripper opens for 6 steps, the block drops, and the oracle
+  grasps it again and succeeds (pick-place, lift);
+- ``failed-place``: the block carried to a point 8-15 cm off the goal, let go there and the gripper lifted away:
+  the block lies off its goal (pick-place).
+
 Clean demos are kept only where the oracle succeeds, on a layout whose goal the arm has to move to meet.  The same seed gives the same dataset.
 """
 
@@ -90,12 +99,20 @@ def _goal(task: str, env, obs: dict, rng: np.random.Generator) -> np.ndarray:
     return obs["desired_goal"].copy()
 
 
+PLANTS = {"detour": tuple(TASKS), "drop-regrasp": ("pick-place", "lift"), "failed-place": ("pick-place",)}
+
+
+def head_for(grip: np.ndarray, target: np.ndarray, gain: float = 10.0) -> np.ndarray:
+    """The gripper motion [dx, dy, dz] that heads for ``target``."""
+    return np.clip((target - grip) * gain, -1, 1)
+
+
 def oracle(task: str, obs: np.ndarray, goal: np.ndarray, memory: dict) -> np.ndarray:
     """The scripted action [dx, dy, dz, gripper] for ``task`` from the Fetch observation and the goal."""
-    grip, block, fingers = obs[0:3], obs[3:6], obs[9:11].sum()
+    grip, block = obs[0:3], obs[3:6]
 
     def toward(target, gain=10.0):
-        return np.clip((target - grip) * gain, -1, 1)
+        return head_for(grip, target, gain)
 
     if task == "reach":
         return np.r_[toward(goal), 1.0]
@@ -134,6 +151,46 @@ def oracle(task: str, obs: np.ndarray, goal: np.ndarray, memory: dict) -> np.nda
     return np.r_[toward(goal), -1.0]
 
 
+def way(kind: str, steps: int, rng: np.random.Generator) -> dict:
+    """What a ``record.WAY_KINDS`` demo does and when, drawn once: the steps it adds to the episode (``extra``)."""
+    if kind == "detour":
+        turn = rng.uniform(0, 2 * np.pi)
+        aside = rng.uniform(0.12, 0.2) * np.r_[np.cos(turn), np.sin(turn), 0] + np.r_[0, 0, rng.uniform(0.05, 0.1)]
+        length = int(rng.integers(15, 26))
+        return {"at": int(steps * rng.uniform(0.25, 0.45)), "length": length, "aside": aside, "extra": length + 15}
+    if kind == "drop-regrasp":
+        return {"carried": int(rng.integers(4, 11)), "open": 6, "extra": 45}
+    turn = rng.uniform(0, 2 * np.pi)
+    return {"off": rng.uniform(0.08, 0.15) * np.r_[np.cos(turn), np.sin(turn), 0], "extra": 20}
+
+
+def way_action(kind: str, plan: dict, t: int, task: str, obs: np.ndarray, goal: np.ndarray, memory: dict
+               ) -> np.ndarray:
+    """The action at step ``t`` of a ``record.WAY_KINDS`` demo: the oracle's, but for what ``plan`` has it do."""
+    grip = obs[0:3]
+    if kind == "detour" and plan["at"] <= t < plan["at"] + plan["length"]:
+        plan.setdefault("to", grip + plan["aside"])
+        return np.r_[head_for(grip, plan["to"]), plan.get("hold", 1.0)]
+    if kind == "drop-regrasp" and memory.get("phase") == 3 and not plan.get("done"):
+        plan["carry"] = plan.get("carry", 0) + 1
+        if plan["carry"] > plan["carried"]:
+            if plan["carry"] <= plan["carried"] + plan["open"]:
+                return np.r_[0.0, 0.0, 0.0, 1.0]
+            plan["done"] = True
+            memory.clear()  # grasp it again from above
+    if kind == "failed-place":
+        if "let go" in plan:
+            return np.r_[head_for(grip, plan["let go"]), 1.0]
+        off = goal + plan["off"]
+        if memory.get("phase") == 3 and np.linalg.norm(grip - off) < 0.02:
+            plan["let go"] = grip + np.r_[0, 0, 0.12]
+            return np.r_[0.0, 0.0, 0.0, 1.0]
+        goal = off
+    a = oracle(task, obs, goal, memory)
+    plan["hold"] = a[3]
+    return a
+
+
 def _success(task: str, obs: dict, goal: np.ndarray) -> bool:
     where = obs["observation"][0:3] if task == "reach" else obs["observation"][3:6]
     return bool(np.linalg.norm(where - goal) < 0.04)
@@ -148,6 +205,8 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
     goal = _goal(scene, env, obs, np.random.default_rng(seed))
     other_goal = _goal(task, env, obs, np.random.default_rng(seed + 1)) if task != scene else goal
     steps = int(round(TASKS[scene][2] * _W.get("scale", 1.0)))
+    plan = way(kind, steps, rng) if kind in PLANTS else None
+    steps += plan["extra"] if plan else 0
     noise = rng.uniform(0.3, 0.5) if kind == "jerky" else 0.0
     memory: dict = {}
     frames, state, env_state, actions, first = [], [], [], [], None
@@ -157,7 +216,10 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
         q = env._utils.get_joint_qpos(env.model, env.data, "object0:joint")
         state.append(np.r_[o, goal].astype(np.float32))
         env_state.append(np.r_[q[:3], q[3:7], goal].astype(np.float32))
-        a = planted_action(kind, t, stop, rng, noise, 4, lambda: oracle(task, o, other_goal, memory))
+        if plan is not None:
+            a = way_action(kind, plan, t, task, o, other_goal, memory)
+        else:
+            a = planted_action(kind, t, stop, rng, noise, 4, lambda: oracle(task, o, other_goal, memory))
         actions.append(np.asarray(a, np.float32))
         obs, *_ = env.step(np.asarray(a, np.float32))
         if first is None and _success(scene, obs, goal):
@@ -185,4 +247,4 @@ def parser():
 if __name__ == "__main__":
     os.environ.setdefault("MUJOCO_GL", "egl")
     record.main(parser(), list(TASKS), _episode, _init, features, FPS, "fetch",
-                init_args=lambda args: (args.length_scale,))
+                init_args=lambda args: (args.length_scale,), plants=PLANTS)

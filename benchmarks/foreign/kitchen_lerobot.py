@@ -16,8 +16,10 @@ beside the handle or the kettle by damped least-squares inverse kinematics; each
 and kettle place and goes at its own speed.  Planted kinds, each replacing a demo of the task it is labelled with:
 ``idle`` (the arm never moves), ``random`` (uniformly random joint velocities), ``wrong-task`` (another task's
 oracle), ``gave-up`` (the oracle until 30-60% of the steps it needs, then still), ``occluded`` (a grey card over
-35-55% of the view), ``jerky`` (the oracle's actions plus Gaussian noise of SD 0.3-0.5, executed).  Clean demos
-are kept only where the oracle succeeds.  The same seed gives the same dataset.
+35-55% of the view), ``jerky`` (the oracle's actions plus Gaussian noise of SD 0.3-0.5, executed); on request
+(``--kinds``), ``detour`` (on its way to the handle or the kettle the hand first goes to an empty spot 15-25 cm
+aside and 5-15 cm up and back, then on as the oracle goes, 35 steps longer).  Clean demos are kept only where the oracle
+succeeds.  The same seed gives the same dataset.
 """
 
 from __future__ import annotations
@@ -49,6 +51,8 @@ ENV_NAMES = ["knob1", "burner1", "knob2", "burner2", "knob3", "burner3", "knob4"
 ACTION_NAMES = [f"joint{i}.vel" for i in range(1, 8)] + ["finger.left.vel", "finger.right.vel"]
 KETTLE = slice(23, 30)  # the kettle's free joint in qpos
 JOINT = {"slide": 19, "microwave": 22, "hinge": 21}
+PLANTS = {"detour": tuple(TASKS)}
+DETOUR_STEPS = 35
 
 _W: dict = {}
 
@@ -152,13 +156,20 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
     memory = {"points": waypoints(task, env, layout), "next": 0, "speed": layout.uniform(0.04, 0.07),
               "rot": env.data.site_xmat[ee].reshape(3, 3).copy()}
     noise = rng.uniform(0.3, 0.5) if kind == "jerky" else 0.0
+    steps = TASKS[scene][1]
+    if kind == "detour":  # from the approach to a spot aside and back, before the handle or the kettle
+        turn = rng.uniform(0, 2 * np.pi)
+        aside = rng.uniform(0.15, 0.25) * np.r_[np.cos(turn), np.sin(turn), 0] + np.r_[0, 0, rng.uniform(0.05, 0.15)]
+        approach = memory["points"][0]
+        memory["points"][1:1] = [approach + aside, approach.copy()]
+        steps += DETOUR_STEPS
     frames, state, env_state, actions, first = [], [], [], [], None
-    for t in range(TASKS[scene][1]):
+    for t in range(steps):
         frames.append(env.render().copy())
         o = obs["observation"]
         state.append(o[:18].astype(np.float32))
         env_state.append(o[18:39].astype(np.float32))
-        a = planted_action(kind, t, stop, rng, noise, 9, lambda: oracle(env, memory))
+        a = planted_action("clean" if kind in PLANTS else kind, t, stop, rng, noise, 9, lambda: oracle(env, memory))
         actions.append(np.asarray(a, np.float32))
         obs, *_ = env.step(np.asarray(a, np.float64))
         if first is None and _success(scene, env, start):
@@ -177,4 +188,5 @@ def features(size: tuple[int, int]) -> dict:
 
 if __name__ == "__main__":
     os.environ.setdefault("MUJOCO_GL", "egl")
-    record.main(record.parser(__doc__, demos=40, size="96"), list(TASKS), _episode, _init, features, FPS, "franka")
+    record.main(record.parser(__doc__, demos=40, size="96"), list(TASKS), _episode, _init, features, FPS, "franka",
+                plants=PLANTS)

@@ -22,6 +22,10 @@ KINDS = ("idle", "random", "wrong-task", "gave-up", "occluded", "jerky")
 # On request (--kinds): a clean demo recorded backwards (a reset recorded as a demo) or with a pause put in, as
 # ``democheck.data.reorder`` makes them (velocities negated by their names).
 TIME_KINDS = ("reversed", "hesitates")
+# On request, where a generator can plant them (its ``plants``: the tasks each fits): what operators do on the way --
+# a detour to an empty spot and back, an object dropped during the carry and grasped again (both still succeed), an
+# object put down off its goal (it fails).
+WAY_KINDS = ("detour", "drop-regrasp", "failed-place")
 
 
 def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
@@ -30,7 +34,8 @@ def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
     ap.add_argument("--demos", type=int, default=demos, help="clean demos per task")
     ap.add_argument("--plant", type=int, default=6, help="bad demos of each kind, in all")
     ap.add_argument("--kinds", default=",".join(KINDS),
-                    help=f"comma-separated, of {', '.join(KINDS + TIME_KINDS)} (default: {', '.join(KINDS)})")
+                    help=f"comma-separated, of {', '.join(KINDS + TIME_KINDS + WAY_KINDS)} (default: "
+                         f"{', '.join(KINDS)}; of the last three, those the simulator can plant)")
     ap.add_argument("--size", default=size, help="camera image size in pixels: N (square) or HxW, e.g. 480x640")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
@@ -38,26 +43,31 @@ def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
     return ap
 
 
-def options(args: argparse.Namespace) -> tuple[tuple[str, ...], tuple[int, int]]:
-    """The kinds asked for and the image size (height, width); OUT cleared when --force allows it."""
+def options(args: argparse.Namespace, plants: dict[str, tuple[str, ...]] | None = None
+            ) -> tuple[tuple[str, ...], tuple[int, int]]:
+    """The kinds asked for and the image size (height, width); OUT cleared when --force allows it.  ``plants``:
+    the ``WAY_KINDS`` the simulator can plant."""
+    kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
+    known = KINDS + TIME_KINDS + tuple(plants or ())
+    unknown = sorted(set(kinds) - set(known))
+    if unknown:
+        raise SystemExit(f"unknown kind {', '.join(unknown)}; kinds here: {', '.join(known)}")
     if args.out.exists():
         if not args.force:
             raise SystemExit(f"{args.out}: exists (--force replaces it)")
         shutil.rmtree(args.out)
-    kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
-    unknown = sorted(set(kinds) - set(KINDS + TIME_KINDS))
-    if unknown:
-        raise SystemExit(f"unknown kind {', '.join(unknown)}; kinds: {', '.join(KINDS + TIME_KINDS)}")
     h, _, w = args.size.partition("x")
     return kinds, (int(h), int(w or h))
 
 
-def plan(names: list[str], demos: int, plant: int, seed: int, kinds: tuple[str, ...]) -> list[tuple]:
+def plan(names: list[str], demos: int, plant: int, seed: int, kinds: tuple[str, ...],
+         plants: dict[str, tuple[str, ...]] | None = None) -> list[tuple]:
     """(episode index, task, kind, other task, seed) of every episode: ``demos`` clean per task, ``plant`` of
-    each kind in all on tasks drawn by the seed, in a shuffled order."""
+    each kind in all on tasks drawn by the seed (of a kind in ``plants``, among the tasks it fits), in a shuffled
+    order."""
     rng = np.random.default_rng([seed, 1])
     rows = [(n, "clean") for n in names for _ in range(demos)]
-    rows += [(str(rng.choice(names)), k) for k in kinds for _ in range(plant)]
+    rows += [(str(rng.choice(list((plants or {}).get(k, names)))), k) for k in kinds for _ in range(plant)]
     order = rng.permutation(len(rows))
     jobs = []
     for i, j in enumerate(order):
@@ -109,7 +119,8 @@ def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min
         else:
             led = "clean" if kind in TIME_KINDS else kind  # recorded as a clean demo, reordered when written
             rec = rollout(other if kind == "wrong-task" else task, task, led, rng, layout)
-            if led in ("clean", "occluded", "wrong-task") and rec["success"] != (led != "wrong-task"):
+            fails = led in ("wrong-task", "failed-place")  # a detour and a regrasp still do the task
+            if led in ("clean", "occluded", *WAY_KINDS, "wrong-task") and rec["success"] == fails:
                 continue
             if led in ("clean", "occluded") and (rec["first_success"] or 0) < min_first:
                 continue
@@ -148,12 +159,13 @@ def features(camera: str, size: tuple[int, int], state: list[str], env: list[str
 
 def main(ap: argparse.ArgumentParser, tasks: list[str], episode: Callable[[tuple], dict], init: Callable,
          features_of: Callable[[tuple[int, int]], dict], fps: int, robot_type: str,
-         init_args: Callable[[argparse.Namespace], tuple] = lambda args: ()) -> None:
+         init_args: Callable[[argparse.Namespace], tuple] = lambda args: (),
+         plants: dict[str, tuple[str, ...]] | None = None) -> None:
     """A generator's command line: parse ``ap``, plan, simulate in workers (``init(size, *init_args(args))`` in
-    each) and write."""
+    each) and write.  ``plants``: the ``WAY_KINDS`` the simulator can plant, and on which of its tasks."""
     args = ap.parse_args()
-    kinds, size = options(args)
-    record(args.out, plan(tasks, args.demos, args.plant, args.seed, kinds), episode, args.workers, init,
+    kinds, size = options(args, plants)
+    record(args.out, plan(tasks, args.demos, args.plant, args.seed, kinds, plants), episode, args.workers, init,
            (size, *init_args(args)), features_of(size), fps, robot_type)
 
 

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from democheck.audit.findings import Finding, Vocabulary
-from democheck.data.demo import Demo
+from democheck.data.demo import Demo, resize_frames
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
 
@@ -32,7 +32,8 @@ def controller_z(post: TaskPosterior, tasks: np.ndarray) -> np.ndarray:
 class ActionErrors:
     """Consumer of decoded demos: the mean squared error between each demo's normalised actions and the
     controller's under its task variable ``z``, at ``steps`` evenly spaced timesteps (all of them when the demo
-    is shorter), and the timestep where they differ most."""
+    is shorter), and the timestep where they differ most.  It reads the camera's frames and resizes the sampled
+    ones to the model's size, so the other checks of the same pass read the camera's own."""
 
     def __init__(self, ckpt: Checkpoint, z: np.ndarray, device: Any, steps: int = ACTION_STEPS,
                  batch: int = ACTION_BATCH):
@@ -47,7 +48,8 @@ class ActionErrors:
         if len(t) < self.steps:  # a short demo: repeat its timesteps so a batch stacks
             t = np.resize(t, self.steps)
         norm = self.ckpt.norm
-        self.pending.append((self.seen, demo.frames[t], norm.state(demo.state[t]).astype(np.float32),
+        frames = resize_frames(demo.frames[t], self.ckpt.config.image_size)  # as the model's training read them
+        self.pending.append((self.seen, frames, norm.state(demo.state[t]).astype(np.float32),
                              norm.action(demo.actions[t]).astype(np.float32), t))
         self.seen += 1
         if len(self.pending) == self.batch:

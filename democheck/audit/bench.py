@@ -14,6 +14,8 @@ kind.  Figure 5B: the task standard deviation of the product of Gaussians of
 
 from __future__ import annotations
 
+import functools
+
 import time
 from typing import Any, Callable
 
@@ -22,7 +24,7 @@ import pandas as pd
 
 from democheck.audit import scorers as registry
 from democheck.audit.metrics import by_label
-from democheck.audit.run import for_model, gather_evidence, score_table
+from democheck.audit.run import backwards_cues, for_model, gather_evidence, score_table
 from democheck.data.demo import DemoSet
 from democheck.errors import DemocheckError
 from democheck.fsutil import to_json
@@ -126,7 +128,8 @@ def bench(sets: list[DemoSet], ckpt: Checkpoint, tecnet: Checkpoint | None = Non
         raise DemocheckError("bench needs at least one labelled dataset")
     if tecnet is not None and tecnet.config.model_type != "tecnet":
         raise DemocheckError(f"{tecnet.path}: --tecnet needs a TecNets model (democheck train --recipe tecnet)")
-    sets = [for_model(ds, ckpt) for ds in sets]
+    for ds in sets:
+        for_model(ds, ckpt)  # refuses a dataset the model cannot read; the audit resizes the model's frames alone
     if labels is not None and len(labels) != len(sets):
         raise DemocheckError(f"{len(labels)} label files for {len(sets)} datasets; give one --labels per dataset")
     parts = []
@@ -143,8 +146,10 @@ def bench(sets: list[DemoSet], ckpt: Checkpoint, tecnet: Checkpoint | None = Non
     episodes["label"] = episodes["label"].fillna("clean").astype(str)
     episodes = episodes.rename(columns={"episode_index": "source_index"})
     episodes.insert(0, "episode_index", np.arange(len(episodes)))  # pooled id: unique across datasets
+    seen = [ds.resized(ckpt.config.image_size) for ds in sets]  # as the model reads them
     ev = gather_evidence(sets, ckpt, registry.select(audit=False), device, tecnet=tecnet, episodes=episodes,
-                         seed=seed, on_progress=on_progress)
+                         seed=seed, on_progress=on_progress,
+                         backwards=functools.cache(lambda: backwards_cues(seen, ckpt.model, device)))
     table = score_table(ev)
     names = [n for n in registry.SCORERS if n in ev.scores]
     kinds = sorted(set(table["label"]) - {"clean"})

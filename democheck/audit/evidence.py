@@ -11,7 +11,7 @@ from typing import Any, Callable, Protocol
 import numpy as np
 import pandas as pd
 
-from democheck.audit import modelfree, trust
+from democheck.audit import modelfree, scores as arithmetic, trust
 from democheck.audit.action_error import controller_z
 from democheck.audit.findings import Finding
 from democheck.data.demo import Demo
@@ -70,6 +70,8 @@ class Evidence:
     frames: bool = True  # the demos have camera frames (False: a dataset that records no camera, ``NO_CAMERA``)
     # Task uncertainty of cut cues and of the same demos' real ones (``trust``), or how to measure it when needed.
     still: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
+    # Some demos' rows and their cues played backwards (``trust``), or how to encode them when needed.
+    backwards: tuple[np.ndarray, TaskPosterior] | Callable[[], tuple[np.ndarray, TaskPosterior]] | None = None
     _z: np.ndarray | None = field(default=None, repr=False)
     # The ranking of each set of ranked scores, and the reasons, computed once (``scorers.combination``,
     # ``scorers.explanation``).
@@ -84,8 +86,9 @@ class Evidence:
 
     @property
     def untrusted(self) -> dict[str, str]:
-        """The model's scores that stay out of the ranking, and why (``trust.untrusted``: on the demos whose arm
-        the motion check finds hardly moving, else on the cut cues where the audit encoded them)."""
+        """The model's scores that stay out of the ranking, and why (``trust.untrusted``: task uncertainty on the
+        demos whose arm the motion check finds hardly moving, else on the cut cues where the audit encoded them;
+        the novelty and the consistency on cues played backwards)."""
         if self.model is None:
             return {}
         idle = None
@@ -93,7 +96,23 @@ class Evidence:
             still = np.asarray(self.behaviour["motion"])[:, 0] < modelfree.HARDLY_MOVES  # mean |action|
             sigma = self.posterior.task_uncertainty()
             idle = (sigma[still], sigma[~still])
-        return trust.untrusted(self.model.meta, self.still, idle)
+        return trust.untrusted(self.model.meta, self.still, idle, self.read_backwards())
+
+    def read_backwards(self) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
+        """The novelty and the consistency of the demos' cues played backwards and of the same demos' real cues
+        (``trust.untrusted``'s ``backwards``); None where they were not encoded."""
+        if self.backwards is None or self.posterior is None:
+            return None
+        rows, back = self.backwards() if callable(self.backwards) else self.backwards
+        if not len(rows):
+            return None
+        own = self.scores.get("consistency")
+        own = arithmetic.consistency(self.posterior, self.tasks) if own is None else np.asarray(own)
+        out = {"consistency": (arithmetic.consistency_of(back, rows, self.posterior, self.tasks), own[rows])}
+        if self.has("novelty"):
+            prior_var = self.model.model.encoder.prior_var.cpu().numpy()
+            out["novelty"] = (arithmetic.novelty(back, prior_var), arithmetic.novelty(self.posterior, prior_var)[rows])
+        return out
 
     @property
     def tasks(self) -> np.ndarray:

@@ -39,7 +39,8 @@ Progress = Callable[[str, int, int], None]  # (stage, done, total)
 
 def for_model(ds: DemoSet, ckpt: Checkpoint) -> DemoSet:
     """``ds`` as ``ckpt`` reads it -- frames resized to the model's input size, as its training resized them --
-    or one clear line when the model cannot read this dataset at all."""
+    or one clear line when the model cannot read this dataset at all.  Only the model reads these frames: the
+    model-free checks read the camera's own, with or without a model."""
     cfg = ckpt.config
     ds.require_camera("the model")
     train = f"train a model on this data: democheck train {ds.root} --out models/<name>"
@@ -86,6 +87,24 @@ def still_cues(ds: DemoSet, model, device) -> tuple[np.ndarray, np.ndarray]:
     return short, real.task_uncertainty()
 
 
+def backwards_cues(sets: list[DemoSet], model, device) -> tuple[np.ndarray, TaskPosterior]:
+    """Up to ``trust.STILL_SAMPLE`` evenly spread demos of each of ``sets`` (pooled in order), their cues played
+    backwards -- the last frame first, and the state they began in as the state they ended in -- and those demos'
+    rows in the pooled order, for the test the novelty and the consistency must pass to rank."""
+    rows, parts, start = [], [], 0
+    for ds in sets:
+        eps = ds.episode_indices
+        at = np.unique(np.linspace(0, len(eps) - 1, min(len(eps), trust.STILL_SAMPLE)).astype(int))
+        pick = [eps[i] for i in at]
+        if pick:
+            cues = ds.cue_frames_many(pick)[:, ::-1]
+            parts.append(encode(model, np.ascontiguousarray(cues), device,
+                                end_states=ds.end_states(pick, at=0.0) if reads_end_states(model) else None))
+            rows.append(start + at)
+        start += len(ds)
+    return np.concatenate(rows) if rows else np.zeros(0, np.int64), TaskPosterior.concat(parts)
+
+
 def decoding_pass(ds: DemoSet, consumers: list, on_progress: Callable[[int, int], None] | None = None) -> None:
     """Decode every demo of ``ds`` once, in ``ds.episode_indices`` order, and feed it to each consumer."""
     n = len(ds)
@@ -100,7 +119,8 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
                     tecnet: Checkpoint | None = None, episodes: pd.DataFrame | None = None, seed: int = 0,
                     on_progress: Progress | None = None, timings: dict[str, float] | None = None,
                     workers: int = 1, engine: str = "local", ray_address: str | None = None,
-                    still: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> Evidence:
+                    still: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+                    backwards: Callable[[], tuple[np.ndarray, TaskPosterior]] | None = None) -> Evidence:
     """Score the demos of ``sets``, pooled in order, with ``scorers``: the cue pass (PETNet, when ``ckpt`` is
     given, and TecNets when given), one decoding pass per dataset for the scorers that need every frame, then
     each scorer.
@@ -129,19 +149,19 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
     with shards.runner(parallel, engine, workers, model, str(device), ray_address) as runner:
         t0 = time.perf_counter()
         post = None
-        if ckpt is not None:
-            post = TaskPosterior.concat([cue_posteriors(ds, ckpt.model, device, on_progress=stage("PETNet", ds),
-                                                        runner=runner if spread(ds, shards.CUE_SHARD) else None)
-                                         for ds in sets])
+        if ckpt is not None:  # each model reads frames at its own size; the decoding pass, the camera's
+            post = TaskPosterior.concat([
+                cue_posteriors(ds.resized(ckpt.config.image_size), ckpt.model, device, on_progress=stage("PETNet", ds),
+                               runner=runner if spread(ds, shards.CUE_SHARD) else None) for ds in sets])
         embedding = None
         if tecnet is not None:
-            embedding = np.concatenate([cue_posteriors(ds, tecnet.model, device, on_progress=stage("TecNets", ds)).mu
-                                        for ds in sets])
+            embedding = np.concatenate([cue_posteriors(ds.resized(tecnet.config.image_size), tecnet.model, device,
+                                                       on_progress=stage("TecNets", ds)).mu for ds in sets])
         t["score_s"] = time.perf_counter() - t0
         if episodes is None:
             episodes = pd.concat([ds.episodes.reset_index() for ds in sets], ignore_index=True)
         ev = Evidence(episodes=episodes, posterior=post, model=ckpt, embedding=embedding, seed=seed,
-                      frames=all(ds.has_camera for ds in sets), still=still)
+                      frames=all(ds.has_camera for ds in sets), still=still, backwards=backwards)
         decoding = {}
         for s in scorers:  # scorers that share a behaviour key share its consumer
             if s.can_decode(ev):
@@ -241,9 +261,8 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     ``why_no_model``: the sentence the summary gives for auditing without a model."""
     if not 0 < fpr < 1:
         raise DemocheckError(f"--fpr {fpr:g}: the share of clean demos to flag must lie between 0 and 1")
-    if ckpt is not None:
-        ds = for_model(ds, ckpt)
-    elif not actions:
+    seen = for_model(ds, ckpt) if ckpt is not None else ds  # the frames the model reads
+    if ckpt is None and not actions:
         raise DemocheckError("without a model every score decodes the demos: --no-actions leaves nothing to score")
     if not actions:  # no decoding pass reports a broken recording: refuse it, as before the readers repaired it
         ds.strict()
@@ -251,9 +270,13 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     chosen = [s for s in registry.select() if actions or "demos" not in s.needs]
     # Encoded only if the data holds too few hardly-moving demos to test task uncertainty on (``trust.untrusted``),
     # and then once.
-    still = functools.cache(lambda: still_cues(ds, ckpt.model, device)) if ckpt is not None and ds.has_camera else None
+    # The cues played backwards, encoded where the model has a novelty or consistency to test, and then once.
+    still = backwards = None
+    if ckpt is not None and ds.has_camera:
+        still = functools.cache(lambda: still_cues(seen, ckpt.model, device))
+        backwards = functools.cache(lambda: backwards_cues([seen], ckpt.model, device))
     ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers,
-                         engine=engine, ray_address=ray_address, still=still)
+                         engine=engine, ray_address=ray_address, still=still, backwards=backwards)
     broken = registry.broken_rows(ev)
     if len(broken) and broken.all():  # nothing left to compare a demo with: the dataset, not a demo, is what is broken
         raise DatasetError(f"{ds.root}: every episode is broken, e.g. episode "
@@ -267,8 +290,8 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     flagged = int(table["is_anomaly"].sum())
     summary = {
         "dataset": str(ds.root), "format": ds.format, "camera": ds.camera, "dataset_fingerprint": fingerprint,
-        "frames": {"camera": list(ds.native_shape), "model": list(ds.image_shape),
-                   "resized": ds.image_size is not None, "count": int(ds.episodes["length"].sum())},
+        "frames": {"camera": list(ds.native_shape), "model": list(seen.image_shape),
+                   "resized": seen.image_size is not None, "count": int(ds.episodes["length"].sum())},
         "model": str(ckpt.path) if ckpt is not None else None,
         "model_trained_on_this_dataset": fingerprint is not None and fingerprint == trained_on,
         "demos": len(table), "tasks": int(table["task"].nunique()), "flagged": flagged,

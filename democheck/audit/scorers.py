@@ -34,7 +34,7 @@ from democheck.audit.evidence import Evidence, Scorer, Scores
 from democheck.audit.findings import VOCABULARIES, Vocabulary, known
 from democheck.audit.flagging import DEFAULT_FPR, is_broken
 from democheck.audit.ocsvm import ocsvm_margin
-from democheck.audit.scores import CONSISTENCY_K, consistency_parts
+from democheck.audit.scores import CONSISTENCY_K, consistency_parts, novelty
 from democheck.errors import RecipeError
 
 # ---------------------------------------------------------------------------
@@ -53,6 +53,10 @@ TASK_UNCERTAINTY = Vocabulary("task_uncertainty", {
                         "median)",
     "read": "the model cannot tell the task from its first and last frames",
 })
+NOVELTY = Vocabulary("novelty", {
+    "against its task": "its end looks unlike the ends the model learnt from ({ratio:.2g} x its task's median)",
+    "read": "its end looks unlike the ends the model learnt from",
+})
 CONSISTENCY = Vocabulary("consistency", {
     "against its task": "its first and last frames read as another task than its task's other demos ({ratio:.2g} "
                         "x its task's median)",
@@ -70,8 +74,8 @@ def _task_uncertainty_head(ev: Evidence) -> Scores:
 
 
 def _novelty(ev: Evidence) -> Scores:
-    # d2 / d2_ref of each cue: the novelty part of the variance is the prior's variance times this.
-    return (ev.posterior.var_novel / ev.model.model.encoder.prior_var.cpu().numpy()).mean(1), None
+    values = novelty(ev.posterior, ev.model.model.encoder.prior_var.cpu().numpy())
+    return values, _against_task(NOVELTY, values, ev.groups)
 
 
 def _consistency(ev: Evidence) -> Scores:
@@ -274,17 +278,18 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "failed place, a knocked-over object, a demo that ends where its task's demos begin",
            ("demos",), _end, behaviour="timeline", decode=_timeline, short="end"),
     Scorer("path", f"model-free: how far the demo's path ({timeline.PATH_POINTS} points in normalised time, of its "
-           "state and of its camera's grey thumbnail) lies from its nearest task-mates' (RMS distance, log, the "
-           "larger robust z within its task): a detour, a regrasp, a path run backwards",
+           "state and of its camera's grey thumbnail) lies from its nearest task-mates' (RMS distance over the path "
+           "and at its furthest point, log, the largest robust z within its task): a detour, a regrasp, a path run "
+           "backwards",
            ("demos",), _path, behaviour="timeline", decode=_timeline, short="path"),
     Scorer("coupling", "model-free: how little the demo's actions go with its state (minus their mutual "
            "information over its steps, KSG estimate, nats); one look with the action error in the ranking",
            ("demos",), _coupling,
            decode=lambda ev, rows, device: coupling.CouplingStats(), short="coupl."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
-           "consistency, motion, idle, pause, view, colours, outcome, how the demo began, ended and went (start, "
+           "novelty (log), consistency (the model's scores that pass their tests on the data), motion, idle, pause, view, colours, outcome, how the demo began, ended and went (start, "
            "end and path, one look) and whether the actions are explained (the action error (log) and the "
-           "coupling, one look: the Sidak minimum of the two) (one task: without the first two), each in robust "
+           "coupling, one look: the Sidak minimum of the two) (one task: without the task uncertainty), each in robust "
            "standard deviations within its task, the tails fitted on the robust core; beside that, the smallest "
            "of the recording faults' (timing, frozen video, frame jump, frozen state, lag, jerk) (2 = as unusual "
            "as 1 clean demo in 100)", ("scores",),

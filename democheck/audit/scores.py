@@ -4,6 +4,9 @@ Every score is one number per demo, higher = more suspect.  The model's scores:
 
 - ``task_uncertainty`` (the paper's score): the mean over embedding dimensions of the task standard deviation
   sqrt(var) of the demo's cue.  It catches cues that say nothing.
+- ``novelty``: how unfamiliar the demo's end is to the model: the novelty part of its task variance over the
+  prior's (a squared feature distance from the training demos' ends over the model's reference, mean over the
+  embedding's dimensions).
 - ``consistency``: the mean Euclidean distance from the demo's ``mu`` to those of its ``CONSISTENCY_K`` nearest
   *other* demos of the task (at most half of them, so that a small task's bad minority is not every clean demo's
   neighbours), each dimension in units of its median task standard deviation (``consistency_units``).  It
@@ -89,6 +92,29 @@ def consistency_parts(post: TaskPosterior, tasks: np.ndarray, k: int = CONSISTEN
 def consistency(post: TaskPosterior, tasks: np.ndarray, k: int = CONSISTENCY_K) -> np.ndarray:
     """Task consistency of each demo against its k nearest other demos of the task (see module docstring)."""
     return consistency_parts(post, tasks, k)[0]
+
+
+def consistency_of(other: TaskPosterior, rows: np.ndarray, post: TaskPosterior, tasks: np.ndarray,
+                   k: int = CONSISTENCY_K) -> np.ndarray:
+    """``consistency`` of cues ``other`` that stand in for the demos at ``rows`` of ``post`` (the same demos'
+    cues changed, e.g. played backwards): each one's mean distance to its k nearest demos of that demo's task,
+    that demo left out, in the units and with the neighbour count the demos' own consistency uses."""
+    units = consistency_units(post)
+    x, y = post.mu / units, other.mu / units
+    out = np.full(len(rows), np.nan)
+    for i, row in enumerate(np.asarray(rows)):
+        mates = np.flatnonzero((tasks == tasks[row]) & (np.arange(len(tasks)) != row))
+        if not len(mates):
+            continue
+        kk = max(min(k, len(mates) // 2), 1)  # as ``consistency_parts``: at most half the task's others
+        out[i] = np.sort(np.linalg.norm(x[mates] - y[i], axis=1))[:kk].mean()
+    return out
+
+
+def novelty(post: TaskPosterior, prior_var: np.ndarray) -> np.ndarray:
+    """``novelty`` of each cue (see module docstring): above 1, less familiar than 9 in 10 of the real demos the
+    model was referenced on."""
+    return (post.var_novel / prior_var).mean(1)
 
 
 def robust_stats(x: np.ndarray) -> dict[str, float]:

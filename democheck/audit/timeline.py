@@ -18,7 +18,9 @@ that a task done two ways (the object placed left or right) has two kinds of cle
 of its robust SD over the group (at least ``VIEW_FLOOR`` grey levels, or ``STATE_FLOOR`` of the dimension's whole
 range over the dataset; a path's picture in one unit for all its pixels).  A start's or end's picture is unlike its
 mates' by the share of its pixels more than ``UNLIKE`` units from theirs (the median over the mates), as the view
-check counts; a path by the RMS distance, the larger of its state's and its picture's robust z.  The demo played
+check counts; a path by two distances, the RMS over the whole path (a path that differs throughout: another task,
+an arm that never moved) and the RMS at its furthest point (a detour, a drop and regrasp: a few points of the path
+far off, which the whole path's RMS dilutes), the largest robust z of the two, of its state's and its picture's.  The demo played
 backwards gives the words: an end as near its mates' starts as their ends are to each other (``_ordinary``), and
 nearer than to their ends, "ends where its task's demos begin"; a path so near its mates' played backwards "runs
 opposite to its task's".  A dataset with no camera has the path's state part alone; one with no state compares its
@@ -38,7 +40,7 @@ from democheck.data.demo import Demo
 
 END_FRAMES = 3  # frames at each end whose median picture stands for it (one frame may be a codec's glitch)
 END_THUMB = 24  # pixels: the side of the thumbnail of a demo's first and last picture
-PATH_POINTS = 16  # points of a demo's path, evenly spaced from its first step to its last
+PATH_POINTS = 32  # points of a demo's path, evenly spaced from its first step to its last
 PATH_THUMB = 8  # pixels: the side of the grey thumbnail at each point of the path
 NEAR = 5  # task-mates a demo is compared with (at most half its group)
 MIN_GROUP = 4  # a group of fewer demos gives its demos no score
@@ -48,11 +50,14 @@ STATE_MIN_SCALE = 0.25  # log units: the least robust SD of the state's and path
 CLIP = 20.0  # units: a feature further off counts as this far (one wild value is one feature, not the distance)
 BLOCK = 256  # demos whose nearest task-mates are found at once
 ORDINARY = 3.0  # robust SD: a distance at most this far above its group's usual one is ordinary (``_ordinary``)
+# How far a path lies from its mates' is read two ways, and the larger robust z counts: the RMS over the whole path
+# (a path unlike throughout) and the RMS at its furthest point (a few points far off: a detour, a drop and regrasp).
+PATH_DISTANCES = ("whole", "furthest")
 
 
 class Timeline(PerDemo):
     """Consumer of decoded demos: each demo's first and last picture (``END_THUMB`` RGB, median of ``END_FRAMES``
-    frames), its grey thumbnails and state at ``PATH_POINTS`` points, and the state's names (about 4.5 kB a
+    frames), its grey thumbnails and state at ``PATH_POINTS`` points, and the state's names (about 8 kB a
     demo)."""
 
     fields = ("first_view", "last_view", "view_path", "state_path", "names")
@@ -216,20 +221,25 @@ def _view_part(query: list, groups: np.ndarray, cross: list | None = None
 
 def _state_part(query: np.ndarray, groups: np.ndarray, floor: np.ndarray | float, cross: np.ndarray | None = None,
                 pooled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per demo, the RMS distance of ``query`` [N, m] to its nearest task-mates (in units; ``pooled``: one unit for
-    every feature, as for a picture's pixels, where a still background's tiny spread would make any shadow far),
-    its robust z within its group on a log scale, the per-feature distance [N, m], and the distance against
-    ``cross``."""
+    """Per demo of a path's part (``query`` [N, PATH_POINTS * m]), the RMS distance to its nearest task-mates over
+    the whole path (in units; ``pooled``: one unit for every feature, as for a picture's pixels, where a still
+    background's tiny spread would make any shadow far); the larger robust z within its group, on a log scale, of
+    its ``PATH_DISTANCES``; the per-feature distance; and the whole path's RMS distance against ``cross``."""
     n, m = query.shape
-    dist, cross_dist, per = np.full(n, np.nan), np.full(n, np.nan), np.full((n, m), np.nan)
+    dist = {name: np.full(n, np.nan) for name in ("whole", "furthest")}
+    cross_dist, per = np.full(n, np.nan), np.full((n, m), np.nan)
     for rows in _grouped(groups):
         z = _in_units(query[rows], query[rows], floor, pooled)
         diff = _nearest(z, z, exclude_self=True)
-        per[rows], dist[rows] = diff, _rms(diff)
+        per[rows], dist["whole"][rows] = diff, _rms(diff)
+        dist["furthest"][rows] = _rms(diff.reshape(len(rows), PATH_POINTS, -1).transpose(0, 2, 1)).max(axis=1)
         if cross is not None:
             cz = _in_units(cross[rows], query[rows], floor, pooled)
             cross_dist[rows] = _rms(_nearest(z, cz, exclude_self=True))
-    return dist, calibrated(np.log1p(dist), groups, min_scale=STATE_MIN_SCALE), per, cross_dist
+    score = np.full(n, np.nan)
+    for name in PATH_DISTANCES:
+        score = np.fmax(score, calibrated(np.log1p(dist[name]), groups, min_scale=STATE_MIN_SCALE))
+    return dist["whole"], score, per, cross_dist
 
 
 def _ordinary(x: np.ndarray, usual: np.ndarray, groups: np.ndarray, min_scale: float, log: bool = False

@@ -1,7 +1,7 @@
 """Whether a model's scores may vote in the ranking: each model score has a test -- the controller's, from its
-training record; task uncertainty's, on the audited data where it can be -- and a score that failed stays in the
-table and the report, leaves the ranking, and the audit says why in a warning; the model-free checks still judge
-those demos."""
+training record; task uncertainty's, the novelty's and the consistency's, on the audited data where they can be
+-- and a score that failed stays in the table and the report, leaves the ranking, and the audit says why in a
+warning; the model-free checks still judge those demos."""
 
 from __future__ import annotations
 
@@ -25,18 +25,39 @@ STILL_MIN_RATIO = 2.0
 IDLE_MIN_DEMOS = 2
 STILL_AT = 0.1
 STILL_SAMPLE = 64  # demos whose cut cue the audit encodes for the test
+# The novelty and the consistency vote where the model reads the audited demos' own cues played backwards (their
+# last frame first, the state they began in as their end) as clearly unlike the real ones: the median of the
+# backwards cues at least BACKWARDS_MIN_RATIO times the same demos' real cues' median.  A model that cannot tell
+# a demo's end from its beginning has nothing to say about how a demo ended: a reset recorded as a demo, an object
+# knocked over; one that can is heard on any dataset, of one task or many.
+BACKWARDS_MIN_RATIO = 2.0
+READS_BACKWARDS = ("novelty", "consistency")
 
 
 def untrusted(meta: dict[str, Any],
               still: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
-              idle: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, str]:
+              idle: tuple[np.ndarray, np.ndarray] | None = None,
+              backwards: dict[str, tuple[np.ndarray, np.ndarray]] | None = None) -> dict[str, str]:
     """The model scores that failed their test, each with the sentence that says why (empty: none, or a model
     trained before the tests were recorded).  ``still``: the task uncertainty of cut cues and of the real cues
     of the same audited demos, where the audit measured them (``run.still_cues``; a callable is called only when
     ``idle`` does not decide); ``idle``: the task uncertainty of the demos whose arm the motion check finds hardly
-    moving and of the others."""
+    moving and of the others; ``backwards``: per score of ``READS_BACKWARDS``, its values on demos' cues played
+    backwards and on the same demos' real cues (``run.backwards_cues``); a score not measured so keeps its vote,
+    as the ranking recipe gives it."""
     metrics = meta.get("metrics") or {}
     out = {}
+    for name in READS_BACKWARDS:
+        if name not in (backwards or {}):
+            continue
+        back, real = (v[np.isfinite(v)] for v in (np.asarray(v, np.float64) for v in backwards[name]))
+        if not len(back) or not len(real):
+            continue
+        level, usual = float(np.median(back)), float(np.median(real))
+        if not level >= BACKWARDS_MIN_RATIO * usual:
+            out[name] = (f"the model reads demos played backwards hardly unlike the same demos (median {name} "
+                         f"{level:.2g} backwards, {usual:.2g} as recorded, of {len(back)} demos; it should be "
+                         f"at least {BACKWARDS_MIN_RATIO:g} times): its {name} is reported, not ranked")
     mse = (metrics.get("final") or {}).get("val_mse")
     if mse is not None and mse > CONTROLLER_MAX_MSE:
         out["action_error"] = (f"the model's controller explains held-out demos' actions barely better than their "

@@ -7,7 +7,10 @@ MAX_DIGITS = 8
 
 def pair(value: float, reference: float, digits: int = 2) -> tuple[str, str]:
     """``value`` and the ``reference`` it is compared with, each to ``digits`` significant figures, or to as many
-    more (at most ``MAX_DIGITS``) as tell them apart: '0.99998' against '0.99999', not '1' against '1'."""
+    more (at most ``MAX_DIGITS``) as tell them apart: '0.99998' against '0.99999', not '1' against '1'.  Either
+    one that is float noise beside the other (under 10^-MAX_DIGITS of it: the sine of an angle of 0) reads 0."""
+    scale = max(abs(value), abs(reference))
+    value, reference = (0.0 if abs(x) < 10.0 ** -MAX_DIGITS * scale else x for x in (value, reference))
     for d in range(digits, MAX_DIGITS + 1):
         a, b = f"{value:.{d}g}", f"{reference:.{d}g}"
         if a != b or value == reference:
