@@ -776,7 +776,8 @@ def test_on_one_task_task_uncertainty_stays_out_and_the_cue_scores_rank_where_th
     failed = untrusted({}, backwards={"novelty": (1.5 * real, real), "consistency": (3 * real, real)})
     assert set(failed) == {"novelty"}
     assert ranked(available, one_task, untrusted=failed) == ["consistency", "action_error", "motion", "idle", "view"]
-    assert ranked(available, two, untrusted=failed) == ["task_uncertainty", *ranked(available, one_task, untrusted=failed)]
+    assert ranked(available, two, untrusted=failed) == ["task_uncertainty",
+                                                        *ranked(available, one_task, untrusted=failed)]
     rng = np.random.default_rng(2)
     n = 60
     scores = {name: rng.normal(0, 1, n) for name in ("motion", "idle", "view")}

@@ -287,12 +287,13 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            ("demos",), _coupling,
            decode=lambda ev, rows, device: coupling.CouplingStats(), short="coupl."),
     Scorer("suspicion", "democheck's ranking: -log10 of the combined tail probability of task uncertainty (log), "
-           "novelty (log), consistency (the model's scores that pass their tests on the data), motion, idle, pause, view, colours, outcome, how the demo began, ended and went (start, "
-           "end and path, one look) and whether the actions are explained (the action error (log) and the "
-           "coupling, one look: the Sidak minimum of the two) (one task: without the task uncertainty), each in robust "
-           "standard deviations within its task, the tails fitted on the robust core; beside that, the smallest "
-           "of the recording faults' (timing, frozen video, frame jump, frozen state, lag, jerk) (2 = as unusual "
-           "as 1 clean demo in 100)", ("scores",),
+           "novelty (log) and consistency (those of the model's scores that pass their tests on the data), "
+           "motion, idle, pause, view, colours, outcome, how the demo began, ended and went (start, end and path, "
+           "one look) and whether the actions are explained (the action error (log) and the coupling, one look: "
+           "the Sidak minimum of the two) (one task: without the task uncertainty), each in robust standard "
+           "deviations within its task, the tails fitted on the robust core; beside that, the smallest of the "
+           "recording faults' (timing, frozen video, frame jump, frozen state, lag, jerk) (2 = as unusual as 1 "
+           "clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, pause, "
            "view, colours, outcome, start, end, path, coupling, and the recording faults): what democheck says with "

@@ -18,10 +18,8 @@ that a task done two ways (the object placed left or right) has two kinds of cle
 of its robust SD over the group (at least ``VIEW_FLOOR`` grey levels, or ``STATE_FLOOR`` of the dimension's whole
 range over the dataset; a path's picture in one unit for all its pixels).  A start's or end's picture is unlike its
 mates' by the share of its pixels more than ``UNLIKE`` units from theirs (the median over the mates), as the view
-check counts; a path by two distances, the RMS over the whole path (a path that differs throughout: another task,
-an arm that never moved) and the RMS at its furthest point (a detour, a drop and regrasp: a few points of the path
-far off, which the whole path's RMS dilutes), the largest robust z of the two, of its state's and its picture's.  The demo played
-backwards gives the words: an end as near its mates' starts as their ends are to each other (``_ordinary``), and
+check counts; a path by its ``PATH_DISTANCES``, the largest robust z of its state's and its picture's.  The demo
+played backwards gives the words: an end as near its mates' starts as their ends are to each other (``_ordinary``), and
 nearer than to their ends, "ends where its task's demos begin"; a path so near its mates' played backwards "runs
 opposite to its task's".  A dataset with no camera has the path's state part alone; one with no state compares its
 actions instead.
