@@ -7,8 +7,9 @@ the audit does).  Each dataset's timelines are decoded once, at 64 points, and s
 
 from __future__ import annotations
 
-import sys
+import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -37,8 +38,14 @@ def path_scores(t: timeline.Timeline, groups: np.ndarray, points: int, distances
         timeline.PATH_POINTS, timeline.PATH_DISTANCES = saved
 
 
-def main(args: list[str]) -> None:
-    for data, labels in zip(args[::2], args[1::2]):
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("pairs", nargs="+", type=Path, metavar="DATA LABELS.csv",
+                    help="a dataset and its labels (episode_index,label; unlisted: clean), one pair after another")
+    args = ap.parse_args(argv)
+    if len(args.pairs) % 2:
+        ap.error("give each dataset its labels: DATA LABELS.csv [DATA LABELS.csv ...]")
+    for data, labels in zip(args.pairs[::2], args.pairs[1::2]):
         t0 = time.perf_counter()
         ds = open_dataset(data)
         saved = timeline.PATH_POINTS
@@ -63,4 +70,4 @@ def main(args: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()
