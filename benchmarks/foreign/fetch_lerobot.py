@@ -20,7 +20,7 @@ kinds, each replacing a demo of the task it is labelled with:
 - ``occluded``: a clean demo whose camera a grey card covers over 35-55% of the view;
 - ``jerky``: a shaky teleoperator -- the oracle's actions plus Gaussian noise of SD 0.3-0.5, executed.
 
-On request (``--kinds``), what operators do on the way, each episode longer by the steps it takes:
+On request (``--kinds``), what operators do on the way, each in an episode as long as its task's clean ones:
 
 - ``detour``: 25-45% of the way in, the gripper leaves for an empty spot 12-20 cm aside and 5-10 cm up for 15-25
   steps, holding what it holds, then the oracle resumes and succeeds (any task);
@@ -152,16 +152,17 @@ def oracle(task: str, obs: np.ndarray, goal: np.ndarray, memory: dict) -> np.nda
 
 
 def way(kind: str, steps: int, rng: np.random.Generator) -> dict:
-    """What a ``record.WAY_KINDS`` demo does and when, drawn once: the steps it adds to the episode (``extra``)."""
+    """What a ``record.WAY_KINDS`` demo does and when, drawn once.  The episode keeps its task's length, as every
+    clean one does, so that no check can tell the kind by its length."""
     if kind == "detour":
         turn = rng.uniform(0, 2 * np.pi)
         aside = rng.uniform(0.12, 0.2) * np.r_[np.cos(turn), np.sin(turn), 0] + np.r_[0, 0, rng.uniform(0.05, 0.1)]
         length = int(rng.integers(15, 26))
-        return {"at": int(steps * rng.uniform(0.25, 0.45)), "length": length, "aside": aside, "extra": length + 15}
+        return {"at": int(steps * rng.uniform(0.25, 0.45)), "length": length, "aside": aside}
     if kind == "drop-regrasp":
-        return {"carried": int(rng.integers(4, 11)), "open": 6, "extra": 45}
+        return {"carried": int(rng.integers(4, 11)), "open": 6}
     turn = rng.uniform(0, 2 * np.pi)
-    return {"off": rng.uniform(0.08, 0.15) * np.r_[np.cos(turn), np.sin(turn), 0], "extra": 20}
+    return {"off": rng.uniform(0.08, 0.15) * np.r_[np.cos(turn), np.sin(turn), 0]}
 
 
 def way_action(kind: str, plan: dict, t: int, task: str, obs: np.ndarray, goal: np.ndarray, memory: dict
@@ -206,7 +207,6 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
     other_goal = _goal(task, env, obs, np.random.default_rng(seed + 1)) if task != scene else goal
     steps = int(round(TASKS[scene][2] * _W.get("scale", 1.0)))
     plan = way(kind, steps, rng) if kind in PLANTS else None
-    steps += plan["extra"] if plan else 0
     noise = rng.uniform(0.3, 0.5) if kind == "jerky" else 0.0
     memory: dict = {}
     frames, state, env_state, actions, first = [], [], [], [], None

@@ -27,10 +27,10 @@ STILL_AT = 0.1
 STILL_SAMPLE = 64  # demos whose cut cue the audit encodes for the test
 # The novelty and the consistency vote where the model reads the audited demos' own cues played backwards (their
 # last frame first, the state they began in as their end) as clearly unlike the real ones: the median of the
-# backwards cues at least BACKWARDS_MIN_RATIO times the same demos' real cues' median.  A model that cannot tell
-# a demo's end from its beginning has nothing to say about how a demo ended: a reset recorded as a demo, an object
-# knocked over; one that can is heard on any dataset, of one task or many.
-BACKWARDS_MIN_RATIO = 2.0
+# backwards cues at least BACKWARDS_MIN_RATIO times the same demos' real cues' median (the task uncertainty's
+# factor).  A model that cannot tell a demo's end from its beginning has nothing to say about how a demo ended: a
+# reset recorded as a demo, an object knocked over; one that can is heard on any dataset, of one task or many.
+BACKWARDS_MIN_RATIO = STILL_MIN_RATIO
 READS_BACKWARDS = ("novelty", "consistency")
 
 
