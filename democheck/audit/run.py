@@ -382,9 +382,10 @@ def flag_summary(table: pd.DataFrame, fpr: float, untrusted=()) -> dict[str, Any
     left_out = [n for n, keys in recipe["scores"].items() if not keys.get("single_task", True)
                 and n in table] if table["task"].nunique() == 1 else []
     if left_out:
-        out["one_task"] = (f"one task: {' and '.join(n.replace('_', ' ') for n in left_out)} are reported but not "
-                           "ranked (with no other task to tell apart, a demo far from its neighbours is mostly one "
-                           "on an unusual layout)")
+        verb = "is" if len(left_out) == 1 else "are"
+        out["one_task"] = (f"one task: {' and '.join(n.replace('_', ' ') for n in left_out)} {verb} reported but "
+                           "not ranked (with no other task to tell apart, a demo far from its neighbours is mostly "
+                           "one on an unusual layout)")
     if "label" in table:
         labels = table["label"].fillna("clean").astype(str).to_numpy()
         clean = labels == "clean"
