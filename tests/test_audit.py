@@ -582,6 +582,8 @@ def test_a_model_score_that_failed_its_test_is_reported_not_ranked(tiny_dataset,
     assert "action_error" not in ranked
     for name in ("novelty", "consistency"):  # tested on the data, each ranks or the audit says why not
         assert (name in ranked) != any(f"its {name} is reported, not ranked" in w for w in summary["warnings"])
+        test = summary["model_tests"][name]  # what the test read, whichever way it went
+        assert test["demos"] > 0 and test["votes"] == (name in ranked) and test["backwards"] >= 0
     table = pd.read_parquet(tmp_path / "r" / "scores.parquet")
     assert np.isfinite(table["action_error"]).all()
     said = [w for w in summary["warnings"] if "error is reported, not ranked" in w]

@@ -105,7 +105,8 @@ def test_time_kinds_are_written_reordered_and_the_others_as_simulated():
     back = record.reordered(ep, names, seed=1)
     assert (back["frames"][:, 0, 0, 0] == np.arange(T)[::-1]).all()
     assert (back["state"][:, 0] == np.arange(T)[::-1]).all() and (back["state"][:, 1] == -1).all()
-    assert (back["actions"][:, 0] == -np.arange(T)[::-1]).all()  # a displacement per step: negated
+    # a displacement per step: negated, one step on (the step from t to t + 1 undoes the recording's step before)
+    assert (back["actions"][:-1, 0] == -np.arange(T)[::-1][1:]).all() and back["actions"][-1, 0] == 0
     paused = record.reordered({**ep, "label": "hesitates"}, names, seed=1)
     assert len(paused["actions"]) > T and len(paused["frames"]) == len(paused["state"]) == len(paused["actions"])
     clean = {**ep, "label": "clean"}

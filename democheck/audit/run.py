@@ -317,6 +317,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         "timing": t,
     }
     if ckpt is not None:
+        summary["model_tests"] = trust.backwards_tests(ev.read_backwards())
         summary["reference"] = {k: v for k, v in ref.items() if k != "ocsvm"}
         summary["ocsvm"] = {k: ref.get("ocsvm", {}).get(k) for k in ("nu", "offset", "n_fit", "flagged_fraction_on_fit")}
         summary["scores"]["ocsvm_margin"] = ("the paper's linear one-class SVM on 1/sigma^2, fitted on the model's "

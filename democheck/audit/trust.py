@@ -34,6 +34,20 @@ BACKWARDS_MIN_RATIO = STILL_MIN_RATIO
 READS_BACKWARDS = ("novelty", "consistency")
 
 
+def backwards_tests(backwards: dict[str, tuple[np.ndarray, np.ndarray]] | None) -> dict[str, dict[str, Any]]:
+    """What the backwards test read, per score of ``READS_BACKWARDS`` that it measured (``untrusted``'s
+    ``backwards``): the medians over the demos played backwards and as recorded, how many, and whether it votes --
+    for the audit's summary, whether the score passed or not."""
+    out = {}
+    for name, values in (backwards or {}).items():
+        back, real = (v[np.isfinite(v)] for v in (np.asarray(v, np.float64) for v in values))
+        if len(back) and len(real):
+            level, usual = float(np.median(back)), float(np.median(real))
+            out[name] = {"backwards": level, "as_recorded": usual, "demos": len(back),
+                         "votes": bool(level >= BACKWARDS_MIN_RATIO * usual)}
+    return out
+
+
 def untrusted(meta: dict[str, Any],
               still: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
               idle: tuple[np.ndarray, np.ndarray] | None = None,
@@ -47,17 +61,12 @@ def untrusted(meta: dict[str, Any],
     as the ranking recipe gives it."""
     metrics = meta.get("metrics") or {}
     out = {}
-    for name in READS_BACKWARDS:
-        if name not in (backwards or {}):
-            continue
-        back, real = (v[np.isfinite(v)] for v in (np.asarray(v, np.float64) for v in backwards[name]))
-        if not len(back) or not len(real):
-            continue
-        level, usual = float(np.median(back)), float(np.median(real))
-        if not level >= BACKWARDS_MIN_RATIO * usual:
+    for name, test in backwards_tests(backwards).items():
+        if name in READS_BACKWARDS and not test["votes"]:
             out[name] = (f"the model reads demos played backwards hardly unlike the same demos (median {name} "
-                         f"{level:.2g} backwards, {usual:.2g} as recorded, of {len(back)} demos; it should be "
-                         f"at least {BACKWARDS_MIN_RATIO:g} times): its {name} is reported, not ranked")
+                         f"{test['backwards']:.2g} backwards, {test['as_recorded']:.2g} as recorded, of "
+                         f"{test['demos']} demos; it should be at least {BACKWARDS_MIN_RATIO:g} times): its {name} "
+                         "is reported, not ranked")
     mse = (metrics.get("final") or {}).get("val_mse")
     if mse is not None and mse > CONTROLLER_MAX_MSE:
         out["action_error"] = (f"the model's controller explains held-out demos' actions barely better than their "

@@ -2,7 +2,10 @@
 in (an operator who hesitates).  Numpy alone, so that generators running in other environments plant the same.
 
 Time run backwards flips a velocity's sign and keeps a position, a torque or an acceleration: the dimensions a
-dataset names as velocities (``VELOCITY``) are negated, the others only reordered.
+dataset names as velocities (``VELOCITY``) are negated, the others only reordered.  A recording's action at a step
+is the one that took it from that step's state to the next; played backwards, the transition from step t to t + 1
+is the one the action of the step before undid, so the reversed actions are one step on (``reverse_actions``): a
+reset recorded as a demo has no lag its recording did not.
 """
 
 from __future__ import annotations
@@ -34,6 +37,18 @@ def reverse(x: np.ndarray, names: list[str] | None = None) -> np.ndarray:
     return x
 
 
+def reverse_actions(actions: np.ndarray, names: list[str] | None = None) -> np.ndarray:
+    """A recording's actions [T, ...] as the same recording played backwards would have them: reversed, velocities
+    negated, one step on (the last step holds the one before it, its velocities still)."""
+    a = reverse(actions, names)
+    if len(a) < 2:
+        return a
+    last = a[-1:].copy()
+    if last.ndim == 2:
+        last[:, velocities(names, last.shape[1])] = 0
+    return np.concatenate([a[1:], last])
+
+
 def pause(steps: int, seed: int) -> tuple[int, int]:
     """Where a pause drawn by ``seed`` begins in a demo of ``steps`` steps (``PAUSE_AT``), and how many steps it
     lasts (``PAUSE_LENGTH``)."""
@@ -56,7 +71,8 @@ def replant(kind: str, streams: dict, names: dict, seed: int) -> tuple[dict, dic
     "hesitates" paused where ``pause`` draws by ``seed``; ``names`` gives each stream's dimension names (velocities).
     Returns the streams and where a pause is ({} for a reversal)."""
     if kind == "reversed":
-        return {k: None if v is None else reverse(v, names.get(k)) for k, v in streams.items()}, {}
+        return {k: None if v is None else (reverse_actions if k == "actions" else reverse)(v, names.get(k))
+                for k, v in streams.items()}, {}
     at, n = pause(len(streams["actions"]), seed)
     return ({k: None if v is None else hold(v, at, n, names.get(k)) for k, v in streams.items()},
             {"at": at, "steps": n})
