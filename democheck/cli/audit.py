@@ -43,8 +43,9 @@ def audit(
     revision: Annotated[Optional[str], typer.Option(help=REVISION_HELP)] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
 ) -> None:
-    """Score every demonstration -- task uncertainty, consistency, action error and model-free checks -- combine
-    them into one tail probability, rank the suspects and flag those below --fpr."""
+    """Score every demonstration -- task uncertainty, novelty, consistency, action error and model-free checks --
+    combine them into one tail probability, rank the suspects and flag those below --fpr.  A model's score votes
+    only where it passes its test on your data (summary.json: model_tests and warnings)."""
     with user_errors():
         if top < 1:
             raise DemocheckError("--top must be at least 1")
