@@ -74,12 +74,18 @@ def cue_posteriors(ds: DemoSet, model, device, batch: int | None = None,
     return TaskPosterior.concat(parts)
 
 
+def cue_sample(n: int) -> np.ndarray:
+    """The positions of the ``trust.STILL_SAMPLE`` evenly spread demos of ``n`` whose cues the model's tests encode
+    (all of them where there are fewer)."""
+    return np.unique(np.linspace(0, n - 1, min(n, trust.STILL_SAMPLE)).astype(int))
+
+
 def still_cues(ds: DemoSet, model, device) -> tuple[np.ndarray, np.ndarray]:
     """The task uncertainty of ``trust.STILL_SAMPLE`` evenly spread demos' cues cut short (their first frame and
     the one ``trust.STILL_AT`` of the way in, with the state there: a demo that stopped almost at once) and of
     their real cues, for the test task uncertainty must pass to rank."""
     eps = ds.episode_indices
-    pick = [eps[i] for i in np.unique(np.linspace(0, len(eps) - 1, min(len(eps), trust.STILL_SAMPLE)).astype(int))]
+    pick = [eps[i] for i in cue_sample(len(eps))]
     reads = reads_end_states(model)
     short = encode(model, ds.cue_frames_many(pick, at=trust.STILL_AT), device,
                    end_states=ds.end_states(pick, at=trust.STILL_AT) if reads else None).task_uncertainty()
@@ -94,7 +100,7 @@ def backwards_cues(sets: list[DemoSet], model, device) -> tuple[np.ndarray, Task
     rows, parts, start = [], [], 0
     for ds in sets:
         eps = ds.episode_indices
-        at = np.unique(np.linspace(0, len(eps) - 1, min(len(eps), trust.STILL_SAMPLE)).astype(int))
+        at = cue_sample(len(eps))
         pick = [eps[i] for i in at]
         if pick:
             cues = ds.cue_frames_many(pick)[:, ::-1]
