@@ -343,7 +343,7 @@ def test_a_missing_video_file_breaks_its_episodes_and_the_audit_goes_on(tiny_dat
 
 def test_runs_of_episodes_read_as_ranges():
     from democheck.audit.modelfree import BROKEN
-    from democheck.audit.run import spans, unreadable_files
+    from democheck.audit.summary import spans, unreadable_files
 
     assert spans([9, 3, 7, 8, 12, 13]) == "3, 7-9, 12-13" and spans([5]) == "5"
     found = [BROKEN("intact"), BROKEN("damaged", what="", files=[("v/a.mp4", "frame 9 is missing")]),
@@ -593,7 +593,7 @@ def test_a_model_score_that_failed_its_test_is_reported_not_ranked(tiny_dataset,
 def test_a_reference_too_small_for_the_rate_asked_for_is_said():
     """With n reference demos a conformal share is never under 1 / (n + 1): at --fpr 0.01 a reference of 40
     cannot calibrate the flag, and the audit says so; one of 200 can."""
-    from democheck.audit.run import warnings
+    from democheck.audit.summary import warnings
 
     def table(n_ref):
         return pd.DataFrame({"task": ["push"] * 250, "reference": np.arange(250) < n_ref})

@@ -787,7 +787,7 @@ def test_on_one_task_task_uncertainty_stays_out_and_the_cue_scores_rank_where_th
     one = Evidence(episodes=pd.DataFrame({"episode_index": range(n), "task": ["push"] * n}), scores=dict(scores))
     values, _ = SCORERS["suspicion"].score(one)
     assert values[7] == values.max() and values[7] > 5 and values[11] < 2
-    from democheck.audit.run import flag_summary
+    from democheck.audit.summary import flag_summary
 
     table = pd.DataFrame({"task": ["push"] * n, "is_anomaly": False, "reference": True, "p_reference": 0.5,
                           "suspicion": values, "driven_by": "", **scores})
