@@ -22,6 +22,20 @@ def refuse_existing(out: Path, force: bool) -> None:
         raise DemocheckError(f"{out}: already exists; choose another --out or pass --force to replace it")
 
 
+def work_dir(out: Path, resume: bool, force: bool, what: str = "run of this model") -> Path:
+    """The folder beside ``out`` where a long run keeps what it has done for ``--resume``, after checking ``out``
+    and it: refuses an existing ``out`` without ``force``, and an interrupted ``what``'s folder without ``resume``
+    (or ``force``, which discards it)."""
+    work = out.parent / f".{out.name}.partial"
+    refuse_existing(out, force)
+    if work.exists() and not resume:
+        if not force:
+            raise DemocheckError(f"{work}: an interrupted {what} is there; pass --resume to continue it "
+                                 "or --force to start over")
+        shutil.rmtree(work)
+    return work
+
+
 @contextmanager
 def atomic_output_dir(out: str | Path, force: bool = False) -> Iterator[Path]:
     """Yield a temporary folder that becomes ``out`` only if the block finishes.

@@ -111,35 +111,51 @@ class Workers:
             self._pool = None
 
     def run(self, jobs: list, shard: Callable[[Any], list[dict[str, Any]]], total: int,
-            on_progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
-        """``shard(job)`` for every job: the rows of all shards, in job order (see ``run_shards``)."""
-        rows: list[dict[str, Any]] = []
+            on_progress: Callable[[int, int], None] | None = None,
+            on_result: Callable[[int, list[dict[str, Any]]], None] | None = None) -> list[dict[str, Any]]:
+        """``shard(job)`` for every job: the rows of all shards, in job order (see ``run_shards``); ``on_result(i,
+        rows)`` as each job ``i`` finishes."""
+        results: list[Any] = [None] * len(jobs)
         done = 0
         if self._pool is None:
-            for job in jobs:
-                rows += _guarded(shard, job)
+            for i, job in enumerate(jobs):
+                results[i] = _guarded(shard, job)
+                if on_result:
+                    on_result(i, results[i])
                 done += len(job[2])
                 if on_progress:
                     on_progress(done, total)
-            return rows
+            return [row for rows in results for row in rows]
         while True:  # ticks of an earlier run that arrived after its results
             try:
                 self._progress.get_nowait()
             except queue_mod.Empty:
                 break
-        pending = self._pool.map_async(partial(_guarded, shard), jobs, chunksize=1)
-        while not pending.ready():
-            try:
-                done = min(done + self._progress.get(timeout=0.2), total)
-                if on_progress:
-                    on_progress(done, total)
-            except queue_mod.Empty:
-                pass
-        for part in pending.get():
-            rows += part
+        pending = self._pool.imap_unordered(partial(_numbered, shard), list(enumerate(jobs)), chunksize=1)
+        for _ in jobs:
+            while True:
+                try:
+                    i, rows = pending.next(timeout=0.2)
+                    break
+                except mp.TimeoutError:
+                    ticked = done
+                    while True:
+                        try:
+                            done = min(done + self._progress.get_nowait(), total)
+                        except queue_mod.Empty:
+                            break
+                    if on_progress and done > ticked:
+                        on_progress(done, total)
+            results[i] = rows
+            if on_result:
+                on_result(i, rows)
         if on_progress and done < total:
             on_progress(total, total)
-        return rows
+        return [row for rows in results for row in rows]
+
+
+def _numbered(shard: Callable[[Any], list[dict[str, Any]]], item: tuple[int, Any]) -> tuple[int, list]:
+    return item[0], _guarded(shard, item[1])
 
 
 def run_shards(jobs: list, shard: Callable[[Any], list[dict[str, Any]]], init: Callable[..., None], args: tuple,
@@ -244,9 +260,10 @@ class RayWorkers:
             _ray().shutdown()
 
     def run(self, jobs: list[tuple], shard: Callable[[Any], list[dict[str, Any]]], total: int,
-            on_progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
+            on_progress: Callable[[int, int], None] | None = None,
+            on_result: Callable[[int, list[dict[str, Any]]], None] | None = None) -> list[dict[str, Any]]:
         """``shard(job)`` of every job (a tuple whose third item lists its episodes) by the actor pool: the rows
-        of all jobs, in job order."""
+        of all jobs, in job order; ``on_result(i, rows)`` as each job ``i`` comes back."""
         ray = _ray()
         done, results = 0, [None] * len(jobs)
         items = [{"job": _Held((i, job))} for i, job in enumerate(jobs)]
@@ -256,6 +273,8 @@ class RayWorkers:
         for batch in ran.iter_batches(batch_size=1, batch_format="numpy"):
             for position, held in zip(batch["position"], batch["result"]):
                 results[int(position)] = held.value
+                if on_result:
+                    on_result(int(position), held.value)
                 done += len(jobs[int(position)][2])
                 if on_progress:
                     on_progress(min(done, total), total)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import shlex
+import shutil
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -35,7 +36,7 @@ from democheck.data.cache import build_cache, dataset_fingerprint
 from democheck.data.subset import write_subset
 from democheck.errors import DatasetError, DemocheckError
 from democheck.evaluate.meta_test import markdown as eval_markdown, meta_test
-from democheck.fsutil import atomic_output_dir, refuse_existing, to_json, write_json
+from democheck.fsutil import atomic_output_dir, refuse_existing, to_json, work_dir, write_json
 from democheck.petnet.batches import task_rows
 from democheck.petnet.card import git_commit, model_card
 from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
@@ -152,17 +153,21 @@ def object_pair_groups(ds) -> dict[str, str]:
 
 
 class Suspects(Sequence):
-    """The top demos, each read from the dataset when the report reaches it: twenty hub-sized demos held at once
-    are gigabytes of frames."""
+    """The top demos, each read from the dataset when the report reaches it (twenty hub-sized demos held at once
+    are gigabytes of frames), with every other camera's pictures (``Demo.extra["cameras"]``, by short name)."""
 
     def __init__(self, ds: DemoSet, episodes: list[int]):
         self.ds, self.episodes = ds, episodes
+        self.others = ds.other_cameras() if ds.has_camera else {}
 
     def __len__(self) -> int:
         return len(self.episodes)
 
     def __getitem__(self, i):
-        return self.ds[int(self.episodes[i])]
+        demo = self.ds[int(self.episodes[i])]
+        if self.others:
+            demo.extra["cameras"] = {c: v[demo.episode_index].frames for c, v in self.others.items()}
+        return demo
 
 
 class Typical(Mapping):
@@ -186,14 +191,32 @@ class Typical(Mapping):
         return self.ds[self.episodes[task]]
 
 
+def in_frames(ds: DemoSet, on_progress: Callable[..., None]) -> Callable[[str, int, int], None]:
+    """``on_progress(stage, done, total)`` that also tells, as its fourth argument, how many frames a second the
+    pass decodes -- of demos in the dataset's order, the unit a video's cost goes by."""
+    frames = np.concatenate([[0], np.cumsum(ds.episodes.loc[ds.episode_indices, "length"].to_numpy())])
+    began: dict[str, tuple[float, int]] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        now = time.monotonic()
+        t0, at = began.setdefault(stage, (now, done))
+        if total != len(ds) or now - t0 < 1 or done <= at:
+            return on_progress(stage, done, total)
+        on_progress(stage, done, total, f"{(frames[done] - frames[at]) / (now - t0):,.0f} frames/s")
+
+    return progress
+
+
 def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None = None, top: int = 20,
                   camera: str | None = None, task: str | None = None, device: str = "auto", force: bool = False,
                   on_progress: Callable[[str, int, int], None] | None = None, actions: bool = True,
                   fpr: float = DEFAULT_FPR, no_model: bool = False, keep_list: str | Path | None = None,
                   drop_list: str | Path | None = None, workers: int = 1, engine: str = "local",
-                  ray_address: str | None = None) -> dict[str, Any]:
+                  ray_address: str | None = None, resume: bool = False) -> dict[str, Any]:
     """Open ``dataset``, load the model (default: the shipped one), audit, and write the report folder ``out``
-    atomically (scores.parquet/.csv, summary.json, suspects.txt, report.rrd); returns the summary.
+    atomically (scores.parquet/.csv, summary.json, suspects.txt, report.rrd); returns the summary.  The passes
+    keep what they have done beside ``out`` (``fsutil.work_dir``) until it is written: ``resume`` continues an
+    interrupted audit from there.
 
     ``no_model``: the model-free checks alone.  Without ``model``, a dataset the shipped model cannot read
     (other state or action dimensions) is audited model-free too, and the summary says why.
@@ -201,7 +224,7 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
     a dataset-editing tool takes (e.g. ``lerobot-edit-dataset --operation.episode_indices``).
     ``on_progress(stage, done, total)``: the cue pass, then the decoding pass."""
     out = Path(out)
-    refuse_existing(out, force)
+    work = work_dir(out, resume, force, what="audit")
     ds = open_dataset(dataset, camera=camera, task=task)
     dev = resolve_device(device)
     t0 = time.perf_counter()
@@ -224,8 +247,8 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
                 ckpt = None
     t = {"model_load_s": time.perf_counter() - t0}
     table, summary = audit(ds, ckpt, top=top, device=dev, actions=actions, fpr=fpr, timings=t,
-                           on_progress=on_progress, why_no_model=why, workers=workers, engine=engine,
-                           ray_address=ray_address)
+                           on_progress=on_progress and in_frames(ds, on_progress), why_no_model=why,
+                           workers=workers, engine=engine, ray_address=ray_address, work=work)
     if why and not no_model:
         summary["warnings"].insert(0, why)
     t.update(summary.pop("timing"))
@@ -243,6 +266,7 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
         t["rrd_s"] = time.perf_counter() - t2
         summary = finish_summary(summary, t)
         write_json(tmp / "summary.json", summary)
+    shutil.rmtree(work, ignore_errors=True)  # the report is written: nothing left to resume
     for path, flagged in ((keep_list, False), (drop_list, True)):
         if path is not None:
             write_episode_list(path, table, flagged)

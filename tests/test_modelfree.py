@@ -629,6 +629,7 @@ def test_the_decoding_pass_in_two_worker_processes_gives_the_same_scores(tmp_pat
     generate(replace(TINY, seed=6, demos_per_task=6, steps=16, defects=(("idle", 1),)), root, workers=1)
     ds = open_dataset(root)
     monkeypatch.setattr(shards, "SHARD", 4)  # 24 demos: six shards, three per worker
+    monkeypatch.setattr(shards, "PARALLEL_MIN_PIXELS", 0)  # spread however little they decode
     one, _ = audit(ds, None, workers=1)
     two, _ = audit(ds, None, workers=2)
     for col in one.columns:
@@ -654,15 +655,15 @@ def test_both_passes_in_two_worker_processes_give_the_same_scores_with_a_model(t
     monkeypatch.setattr(shards, "SHARD", 4)  # 24 demos: six decoding shards
     monkeypatch.setattr(shards, "CUE_SHARD", 8)  # and three cue shards of two batches (the jobs carry the size)
     monkeypatch.setattr(shards, "CUE_BATCH", 4)
-    monkeypatch.setattr(shards, "PARALLEL_MIN_SHARDS", 1)
+    monkeypatch.setattr(shards, "PARALLEL_MIN_PIXELS", 0)
     passes = []
     from democheck import pool
 
-    monkeypatch.setattr(pool.Workers, "run", lambda self, jobs, shard, total, on_progress=None,
+    monkeypatch.setattr(pool.Workers, "run", lambda self, jobs, shard, total, on_progress=None, on_result=None,
                         real=pool.Workers.run: passes.extend(job[1]["pass"] for job in jobs)
-                        or real(self, jobs, shard, total, on_progress))
+                        or real(self, jobs, shard, total, on_progress, on_result))
     one, _ = audit(ds, ckpt, workers=1)
-    assert not passes  # one process: no shards
+    assert not passes  # one process: its shards run here, not by workers
     two, _ = audit(ds, ckpt, workers=2)
     assert passes.count("cues") == 3 and passes.count("decode") == 6
     assert {"task_uncertainty", "consistency", "action_error", "mu", "sigma"} <= set(two)

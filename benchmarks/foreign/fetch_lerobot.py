@@ -29,6 +29,10 @@ On request (``--kinds``), what operators do on the way, each in an episode as lo
 - ``failed-place``: the block carried to a point 8-15 cm off the goal, let go there and the gripper lifted away:
   the block lies off its goal (pick-place).
 
+With ``--cameras head,side,gripper`` (of ``CAMERAS``) the dataset records several cameras, as hub datasets do, and
+``--kinds frozen-camera`` plants a clean demo whose ``--freeze-camera`` (default: the second) stops delivering at
+20-50% of the episode, its last picture repeated.
+
 Clean demos are kept only where the oracle succeeds, on a layout whose goal the arm has to move to meet.  The same seed gives the same dataset.
 """
 
@@ -52,6 +56,11 @@ TASKS = {  # name -> (the task as the dataset names it, Gymnasium-Robotics env, 
     "lift": ("lift the block", "FetchPickAndPlace-v4", 80),
 }
 CAMERA = "head"
+# The cameras a dataset may record (--cameras): the first the simulator's default view, the others the model's own.
+CAMERAS = {"head": (None, "the scene from the front, as the simulator shows it"),
+           "gripper": ("gripper_camera_rgb", "on the gripper, looking down its fingers"),
+           "side": ("external_camera_0", "a fixed camera at the table's side"),
+           "robot": ("head_camera_rgb", "the robot's own head camera")}
 FPS = 25
 STATE_NAMES = ["grip.x", "grip.y", "grip.z", "block.x", "block.y", "block.z", "block_rel.x", "block_rel.y",
                "block_rel.z", "finger.left", "finger.right", "block.roll", "block.pitch", "block.yaw", "block.vx",
@@ -83,9 +92,29 @@ def _env(task: str):
     return _W["env"]
 
 
-def _init(size: tuple[int, int], scale: float = 1.0) -> None:
+def _init(size: tuple[int, int], scale: float = 1.0, cameras: tuple[str, ...] = (CAMERA,)) -> None:
     warnings.filterwarnings("ignore")
-    _W["size"], _W["scale"] = size, scale
+    _W["size"], _W["scale"], _W["cameras"] = size, scale, cameras
+
+
+def _views(env) -> dict[str, np.ndarray]:
+    """The pictures of the cameras asked for: the environment's own view first, then each named camera's."""
+    import mujoco
+
+    out = {}
+    for name in _W["cameras"]:
+        if CAMERAS[name][0] is None:
+            out[name] = env.render().copy()
+            continue
+        model, renderer = _W.get("renderer", (None, None))
+        if model is not env.model:  # one renderer per live environment
+            if renderer is not None:
+                renderer.close()
+            renderer = mujoco.Renderer(env.model, *_W["size"])
+            _W["renderer"] = (env.model, renderer)
+        renderer.update_scene(env.data, camera=CAMERAS[name][0])
+        out[name] = renderer.render().copy()
+    return out
 
 
 def _goal(task: str, env, obs: dict, rng: np.random.Generator) -> np.ndarray:
@@ -209,9 +238,11 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
     plan = way(kind, steps, rng) if kind in PLANTS else None
     noise = rng.uniform(0.3, 0.5) if kind == "jerky" else 0.0
     memory: dict = {}
-    frames, state, env_state, actions, first = [], [], [], [], None
+    views: dict[str, list] = {name: [] for name in _W["cameras"]}
+    state, env_state, actions, first = [], [], [], None
     for t in range(steps):
-        frames.append(env.render().copy())
+        for name, picture in _views(env).items():
+            views[name].append(picture)
         o = obs["observation"]
         q = env._utils.get_joint_qpos(env.model, env.data, "object0:joint")
         state.append(np.r_[o, goal].astype(np.float32))
@@ -224,8 +255,10 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
         obs, *_ = env.step(np.asarray(a, np.float32))
         if first is None and _success(scene, obs, goal):
             first = t + 1
-    return {"frames": np.stack(frames), "state": np.stack(state), "env_state": np.stack(env_state),
-            "actions": np.stack(actions), "first_success": first, "success": _success(scene, obs, goal)}
+    first_camera, *others = _W["cameras"]
+    return {"frames": np.stack(views[first_camera]), "views": {k: np.stack(views[k]) for k in others},
+            "state": np.stack(state), "env_state": np.stack(env_state), "actions": np.stack(actions),
+            "first_success": first, "success": _success(scene, obs, goal)}
 
 
 def _episode(job: tuple) -> dict:
@@ -233,18 +266,29 @@ def _episode(job: tuple) -> dict:
     return episode(job, _rollout, {name: words for name, (words, *_) in TASKS.items()}, min_first=5)
 
 
-def features(size: tuple[int, int]) -> dict:
-    return record.features(CAMERA, size, STATE_NAMES, ENV_NAMES, ["dx", "dy", "dz", "gripper"])
+def features(size: tuple[int, int], scale: float = 1.0, cameras: tuple[str, ...] = (CAMERA,)) -> dict:
+    return record.features(list(cameras), size, STATE_NAMES, ENV_NAMES, ["dx", "dy", "dz", "gripper"])
 
 
 def parser():
     ap = record.parser(__doc__, demos=40, size="96")
     ap.add_argument("--length-scale", type=float, default=1.0,
                     help="episode lengths times this (the oracle done, the arm holds): 3 gives 150-330 steps")
+    ap.add_argument("--cameras", default=CAMERA,
+                    help="comma-separated, of " + "; ".join(f"{k} ({v[1]})" for k, v in CAMERAS.items()))
+    ap.add_argument("--freeze-camera", help="the camera a frozen-camera demo's stops on (default: the second)")
     return ap
+
+
+def cameras(args) -> tuple[str, ...]:
+    names = tuple(c.strip() for c in args.cameras.split(",") if c.strip())
+    unknown = sorted(set(names) - set(CAMERAS))
+    if unknown or not names:
+        raise SystemExit(f"--cameras: unknown {', '.join(unknown) or 'none given'}; cameras: {', '.join(CAMERAS)}")
+    return names
 
 
 if __name__ == "__main__":
     os.environ.setdefault("MUJOCO_GL", "egl")
     record.main(parser(), list(TASKS), _episode, _init, features, FPS, "fetch",
-                init_args=lambda args: (args.length_scale,), plants=PLANTS)
+                init_args=lambda args: (args.length_scale, cameras(args)), plants=PLANTS)

@@ -183,7 +183,7 @@ def _episode(job: tuple) -> dict:
 
 
 def features(size: tuple[int, int]) -> dict:
-    return record.features(CAMERA, size, STATE_NAMES, ENV_NAMES, ACTION_NAMES)
+    return record.features([CAMERA], size, STATE_NAMES, ENV_NAMES, ACTION_NAMES)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,8 @@ episodes, the grey card of an occluded demo, and LeRobot's own writer fed in ord
 worker processes (a set of 480x640 frames does not fit in memory).  Runs in LeRobot's virtual environment.
 
 An episode, as a generator's worker returns it: ``index``, ``task`` (the dataset's words), ``label`` (``clean`` or
-a planted kind), ``frames`` (T x H x W x 3 uint8), ``state``, ``env_state`` and ``actions`` (T x d float32).
+a planted kind), ``frames`` (T x H x W x 3 uint8, the first camera's), ``state``, ``env_state`` and ``actions``
+(T x d float32), and ``views`` (each further camera's name and frames) where the generator records several cameras.
 """
 
 from __future__ import annotations
@@ -26,6 +27,9 @@ TIME_KINDS = ("reversed", "hesitates")
 # a detour to an empty spot and back, an object dropped during the carry and grasped again (both still succeed), an
 # object put down off its goal (it fails).
 WAY_KINDS = ("detour", "drop-regrasp", "failed-place")
+# On request: a clean demo one of whose cameras stops delivering at 20-50% of the episode, its last picture repeated
+# (``--freeze-camera`` names the camera; default the second where there are several).
+CAMERA_KINDS = ("frozen-camera",)
 
 
 def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
@@ -34,8 +38,8 @@ def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
     ap.add_argument("--demos", type=int, default=demos, help="clean demos per task")
     ap.add_argument("--plant", type=int, default=6, help="bad demos of each kind, in all")
     ap.add_argument("--kinds", default=",".join(KINDS),
-                    help=f"comma-separated, of {', '.join(KINDS + TIME_KINDS + WAY_KINDS)} (default: "
-                         f"{', '.join(KINDS)}; of the last three, those the simulator can plant)")
+                    help=f"comma-separated, of {', '.join(KINDS + TIME_KINDS + WAY_KINDS + CAMERA_KINDS)} (default: "
+                         f"{', '.join(KINDS)}; of {', '.join(WAY_KINDS)}, those the simulator can plant)")
     ap.add_argument("--size", default=size, help="camera image size in pixels: N (square) or HxW, e.g. 480x640")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
@@ -48,7 +52,7 @@ def options(args: argparse.Namespace, plants: dict[str, tuple[str, ...]] | None 
     """The kinds asked for and the image size (height, width); OUT cleared when --force allows it.  ``plants``:
     the ``WAY_KINDS`` the simulator can plant."""
     kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
-    known = KINDS + TIME_KINDS + tuple(plants or ())
+    known = KINDS + TIME_KINDS + tuple(plants or ()) + CAMERA_KINDS
     unknown = sorted(set(kinds) - set(known))
     if unknown:
         raise SystemExit(f"unknown kind {', '.join(unknown)}; kinds here: {', '.join(known)}")
@@ -117,7 +121,8 @@ def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min
             if rec["success"]:
                 continue
         else:
-            led = "clean" if kind in TIME_KINDS else kind  # recorded as a clean demo, reordered when written
+            # recorded as a clean demo, then reordered or its camera stopped when written
+            led = "clean" if kind in TIME_KINDS + CAMERA_KINDS else kind
             rec = rollout(other if kind == "wrong-task" else task, task, led, rng, layout)
             fails = led in ("wrong-task", "failed-place")  # a detour and a regrasp still do the task
             if led in ("clean", "occluded", *WAY_KINDS, "wrong-task") and rec["success"] == fails:
@@ -129,8 +134,14 @@ def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min
         raise RuntimeError(f"episode {index} ({task}, {kind}): no usable rollout in 30 layouts")
     if kind == "occluded":
         rec["frames"] = cover(rec["frames"], rng)
-    return {"index": index, "task": words[task], "label": kind,
+    return {"index": index, "task": words[task], "label": kind, "views": rec.get("views", {}),
             **{k: rec[k] for k in ("frames", "state", "env_state", "actions")}}
+
+
+def frozen(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The frames of a camera that stops delivering at 20-50% of the episode: its last picture repeats."""
+    at = max(1, int(len(frames) * rng.uniform(0.2, 0.5)))
+    return np.concatenate([frames[:at], np.repeat(frames[at - 1:at], len(frames) - at, axis=0)])
 
 
 def reordered(ep: dict, names: dict[str, list[str] | None], seed: int) -> dict:
@@ -141,16 +152,19 @@ def reordered(ep: dict, names: dict[str, list[str] | None], seed: int) -> dict:
     from democheck.data import reorder
 
     keys = ("frames", "state", "env_state", "actions")
-    streams, _ = reorder.replant(ep["label"], {k: ep[k] for k in keys}, names, seed)
-    return {**ep, **streams}
+    views = ep.get("views", {})
+    given = {**{k: ep[k] for k in keys}, **{("view", k): v for k, v in views.items()}}
+    streams, _ = reorder.replant(ep["label"], given, names, seed)
+    return {**ep, **{k: streams[k] for k in keys}, "views": {k: streams[("view", k)] for k in views}}
 
 
-def features(camera: str, size: tuple[int, int], state: list[str], env: list[str], action: list[str]) -> dict:
-    """LeRobot's feature table of a generator's dataset: the camera, and the state, environment state and actions
+def features(cameras: list[str], size: tuple[int, int], state: list[str], env: list[str], action: list[str]
+             ) -> dict:
+    """LeRobot's feature table of a generator's dataset: the cameras, and the state, environment state and actions
     with the dataset's names of their dimensions."""
     return {
-        f"observation.images.{camera}": {"dtype": "video", "shape": (size[0], size[1], 3),
-                                         "names": ["height", "width", "channels"]},
+        **{f"observation.images.{camera}": {"dtype": "video", "shape": (size[0], size[1], 3),
+                                            "names": ["height", "width", "channels"]} for camera in cameras},
         "observation.state": {"dtype": "float32", "shape": (len(state),), "names": state},
         "observation.environment_state": {"dtype": "float32", "shape": (len(env),), "names": env},
         "action": {"dtype": "float32", "shape": (len(action),), "names": action},
@@ -158,25 +172,32 @@ def features(camera: str, size: tuple[int, int], state: list[str], env: list[str
 
 
 def main(ap: argparse.ArgumentParser, tasks: list[str], episode: Callable[[tuple], dict], init: Callable,
-         features_of: Callable[[tuple[int, int]], dict], fps: int, robot_type: str,
+         features_of: Callable[..., dict], fps: int, robot_type: str,
          init_args: Callable[[argparse.Namespace], tuple] = lambda args: (),
          plants: dict[str, tuple[str, ...]] | None = None) -> None:
     """A generator's command line: parse ``ap``, plan, simulate in workers (``init(size, *init_args(args))`` in
-    each) and write.  ``plants``: the ``WAY_KINDS`` the simulator can plant, and on which of its tasks."""
+    each) and write (``features_of(size, *init_args(args))``).  ``plants``: the ``WAY_KINDS`` the simulator can
+    plant, and on which of its tasks."""
     args = ap.parse_args()
     kinds, size = options(args, plants)
+    feats = features_of(size, *init_args(args))
+    cameras = [k for k, f in feats.items() if f["dtype"] == "video"]
+    freeze = getattr(args, "freeze_camera", None) or cameras[min(1, len(cameras) - 1)].rpartition(".")[2]
+    if f"observation.images.{freeze}" not in cameras:
+        raise SystemExit(f"--freeze-camera {freeze}: no such camera; cameras: {', '.join(cameras)}")
     record(args.out, plan(tasks, args.demos, args.plant, args.seed, kinds, plants), episode, args.workers, init,
-           (size, *init_args(args)), features_of(size), fps, robot_type)
+           (size, *init_args(args)), feats, fps, robot_type, freeze)
 
 
 def record(out: Path, jobs: list[tuple], episode: Callable[[tuple], dict], workers: int,
-           init: Callable, initargs: tuple, features: dict, fps: int, robot_type: str) -> None:
+           init: Callable, initargs: tuple, features: dict, fps: int, robot_type: str, freeze: str = "") -> None:
     """Simulate ``jobs`` with ``episode`` in ``workers`` spawned processes (``init(*initargs)`` in each) and write
-    them with LeRobot's writer to OUT; OUT.labels.csv beside it holds each episode's label."""
+    them with LeRobot's writer to OUT; OUT.labels.csv beside it holds each episode's label.  ``freeze``: the camera
+    a ``frozen-camera`` demo's stops on."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    camera = next(k for k, f in features.items() if f["dtype"] == "video")
-    streams = {"frames": camera, "state": "observation.state", "env_state": "observation.environment_state",
+    cameras = [k for k, f in features.items() if f["dtype"] == "video"]
+    streams = {"frames": cameras[0], "state": "observation.state", "env_state": "observation.environment_state",
                "actions": "action"}
     ds = LeRobotDataset.create(repo_id=f"local/{out.name}", fps=fps, features=features, root=out,
                                robot_type=robot_type, use_videos=True)
@@ -184,8 +205,12 @@ def record(out: Path, jobs: list[tuple], episode: Callable[[tuple], dict], worke
     with mp.get_context("spawn").Pool(workers, initializer=init, initargs=initargs) as pool:
         for job, ep in zip(jobs, pool.imap(episode, jobs)):
             ep = reordered(ep, {k: features[key].get("names") for k, key in streams.items()}, job[-1] + job[0])
+            views = {cameras[0]: ep["frames"], **{f"observation.images.{k}": v for k, v in ep["views"].items()}}
+            if ep["label"] in CAMERA_KINDS:
+                key = f"observation.images.{freeze}"
+                views[key] = frozen(views[key], np.random.default_rng([job[-1], job[0], 2]))
             for t in range(len(ep["actions"])):
-                ds.add_frame({camera: ep["frames"][t], "observation.state": ep["state"][t],
+                ds.add_frame({**{key: views[key][t] for key in cameras}, "observation.state": ep["state"][t],
                               "observation.environment_state": ep["env_state"][t], "action": ep["actions"][t],
                               "task": ep["task"]})
             ds.save_episode()

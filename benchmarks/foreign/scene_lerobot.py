@@ -174,7 +174,7 @@ def _episode(job: tuple) -> dict:
 
 
 def features(size: tuple[int, int]) -> dict:
-    return record.features(CAMERA, size, STATE_NAMES, ENV_NAMES, ["dx", "dy", "dz", "dyaw", "gripper"])
+    return record.features([CAMERA], size, STATE_NAMES, ENV_NAMES, ["dx", "dy", "dz", "dyaw", "gripper"])
 
 
 if __name__ == "__main__":

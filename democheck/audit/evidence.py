@@ -5,7 +5,7 @@ registry of scorers (``democheck.audit.scorers``) builds on it; the checks' modu
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Protocol
 
 import numpy as np
@@ -13,7 +13,7 @@ import pandas as pd
 
 from democheck.audit import modelfree, scores as arithmetic, trust
 from democheck.audit.action_error import controller_z
-from democheck.audit.findings import Finding
+from democheck.audit.findings import Finding, camera_column
 from democheck.data.demo import Demo
 from democheck.petnet.checkpoint import Checkpoint
 from democheck.petnet.posterior import TaskPosterior
@@ -68,6 +68,11 @@ class Evidence:
     reasons: dict[str, list[str]] = field(default_factory=dict)  # the findings' words
     seed: int = 0
     frames: bool = True  # the demos have camera frames (False: a dataset that records no camera, ``NO_CAMERA``)
+    # The camera read first (its short name, ``data.demo.camera_name``) and the dataset's others, whose pictures
+    # the ``per_camera`` checks read too (``behaviour`` keys "<source>@<camera>": ``findings.camera_column``).
+    camera: str = ""
+    cameras: tuple[str, ...] = ()
+    unread_cameras: dict[str, str] = field(default_factory=dict)  # other cameras left unread, and why
     # Task uncertainty of cut cues and of the same demos' real ones (``trust``), or how to measure it when needed.
     still: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
     # Some demos' rows and their cues played backwards (``trust``), or how to encode them when needed.
@@ -118,6 +123,14 @@ class Evidence:
     def tasks(self) -> np.ndarray:
         return self.episodes["task"].to_numpy()
 
+    def on_camera(self, camera: str, source: str) -> "Evidence | None":
+        """This evidence as a ``per_camera`` check reads another camera: its decoding pass's result ``source`` that
+        camera's (None where that camera was not decoded)."""
+        key = camera_column(source, camera)
+        if key not in self.behaviour:
+            return None
+        return replace(self, behaviour={**self.behaviour, source: self.behaviour[key]})
+
     @property
     def groups(self) -> np.ndarray:
         """What each demo is compared with by the checks that judge a demo against its task's others
@@ -159,6 +172,9 @@ class Scorer:
     # For "demos": (evidence, its rows of one dataset, device) -> a consumer of that dataset's decoded demos.
     decode: Callable[[Evidence, slice, Any], DemoConsumer] | None = None
     short: str = ""  # header in narrow terminal tables
+    # It reads the pictures alone, so it reads every camera of a dataset of several: its column on each other
+    # camera is "<name>@<camera>" (``Evidence.cameras``).
+    per_camera: bool = False
     higher_is_more_suspect: bool = True  # the contract: every scorer's direction
 
     @property

@@ -29,7 +29,14 @@ class Finding:
 
     @property
     def words(self) -> str:
-        return VOCABULARIES[self.check].render(self)
+        """The kind's words; a finding on one of several cameras (``camera`` in its parameters) names it first."""
+        words = VOCABULARIES[self.check].render(self)
+        camera = self.params.get("camera")
+        return f"on the {camera} camera, {words}" if camera else words
+
+    def on_camera(self, camera: str) -> "Finding":
+        """The same finding, on the named camera (``words`` say which)."""
+        return Finding(self.check, self.kind, {**self.params, "camera": camera})
 
 
 class Vocabulary:
@@ -62,6 +69,17 @@ class Vocabulary:
 
 
 VOCABULARIES: dict[str, Vocabulary] = {}
+CAMERA_MARK = "@"  # a check's column on another camera than the one read first: "frozen_video@wrist"
+
+
+def camera_column(check: str, camera: str) -> str:
+    """The column of ``check`` on one of the dataset's other cameras."""
+    return f"{check}{CAMERA_MARK}{camera}"
+
+
+def check_of(column: str) -> str:
+    """The check a score column holds: its name, less the camera of a check on another camera."""
+    return column.partition(CAMERA_MARK)[0]
 
 
 def known(name: str) -> bool:

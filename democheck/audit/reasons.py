@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from democheck.audit.findings import Finding
+from democheck.audit.findings import Finding, check_of
 from democheck.audit.ranking import Ranking, RankingConfig
 from democheck.audit.scores import merge_looks
 
@@ -98,10 +98,11 @@ def odds(at_least: int, references: int, reference: bool) -> str:
     return "typical" if n <= 2 else f"as unusual as 1 clean demo in {float(f'{n:.2g}'):,.0f}"
 
 
-def _matches(finding: Finding | None, name: str, check: str) -> bool:
-    """Whether the finding of ``check`` is what ``name`` ('check' or 'check:kind') names."""
+def _matches(finding: Finding | None, name: str, column: str) -> bool:
+    """Whether the finding in ``column`` (a check's, on any camera) is what ``name`` ('check' or 'check:kind')
+    names."""
     want, _, kind = name.partition(":")
-    return want == check and (not kind or (finding is not None and finding.kind == kind))
+    return want == check_of(column) and (not kind or (finding is not None and finding.kind == kind))
 
 
 def lead_of(config: RankingConfig, row: np.ndarray, found: list[Finding | None], tier: np.ndarray) -> list[int]:
@@ -138,8 +139,8 @@ def lead_of(config: RankingConfig, row: np.ndarray, found: list[Finding | None],
         if other is not None:
             lead = other
             break
-    if names[lead] not in pre.behaviour and not specs[lead].alone:  # a reading: what the demo did leads
-        plain = [j for j in order if names[j] in pre.behaviour]
+    if check_of(names[lead]) not in pre.behaviour and not specs[lead].alone:  # a reading: what the demo did leads
+        plain = [j for j in order if check_of(names[j]) in pre.behaviour]
         lead = first(plain) if plain else lead
     return [lead, *[j for j in order if j != lead]][:CLAUSES]
 

@@ -11,6 +11,7 @@ beside the table is ``democheck.audit.summary``'s.
 from __future__ import annotations
 
 import functools
+import hashlib
 
 import time
 from pathlib import Path
@@ -22,12 +23,13 @@ import pandas as pd
 from democheck import pool
 from democheck.audit import reasons, scorers as registry, shards, trust
 from democheck.audit.evidence import Evidence, Scorer
+from democheck.audit.findings import camera_column
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.flagging import DEFAULT_FPR, conformal_p, flagged_regardless, flags
 from democheck.audit.scores import rank_order
 from democheck.audit.summary import flag_summary, unreadable_files, warnings
 from democheck.data.cache import dataset_fingerprint
-from democheck.data.demo import DemoSet
+from democheck.data.demo import DemoSet, camera_name
 from democheck.errors import DatasetError, DemocheckError
 from democheck.fsutil import to_json
 from democheck.petnet.checkpoint import Checkpoint
@@ -57,15 +59,12 @@ def for_model(ds: DemoSet, ckpt: Checkpoint) -> DemoSet:
 
 
 def cue_posteriors(ds: DemoSet, model, device, batch: int | None = None,
-                   on_progress: Callable[[int, int], None] | None = None, runner: Any = None) -> TaskPosterior:
+                   on_progress: Callable[[int, int], None] | None = None) -> TaskPosterior:
     """The task posterior of every demo's cue, in ``ds.episode_indices`` order, in batches of ``batch`` (default
-    ``shards.CUE_BATCH``); with ``runner`` (``shards.runner``: worker processes or Ray actors, each holding the
-    audit's PETNet -- which ``model`` must be) in shards of whole batches (``shards.parallel_cues``), the same
-    numbers."""
+    ``shards.CUE_BATCH``), in this process (the audit's own cue pass runs in shards: ``shards.sharded_cues``, the
+    same numbers)."""
     eps = ds.episode_indices
     batch = batch or shards.CUE_BATCH
-    if runner is not None and eps:
-        return shards.parallel_cues(ds, runner, batch, on_progress)
     parts = []
     for s in range(0, len(eps), batch):
         parts.append(encode_demos(model, ds, eps[s:s + batch], device))
@@ -111,14 +110,18 @@ def backwards_cues(sets: list[DemoSet], model, device) -> tuple[np.ndarray, Task
     return np.concatenate(rows) if rows else np.zeros(0, np.int64), TaskPosterior.concat(parts)
 
 
-def decoding_pass(ds: DemoSet, consumers: list, on_progress: Callable[[int, int], None] | None = None) -> None:
-    """Decode every demo of ``ds`` once, in ``ds.episode_indices`` order, and feed it to each consumer."""
-    n = len(ds)
-    for i, demo in enumerate(ds):
-        for c in consumers:
-            c.add(demo)
-        if on_progress and (i % 50 == 49 or i == n - 1):
-            on_progress(i + 1, n)
+def readable_cameras(ds: DemoSet, ev: Evidence) -> dict[str, DemoSet]:
+    """``ds``'s other cameras (``DemoSet.other_cameras``) whose video files are all there and whose sample decodes;
+    each of the others, and what is wrong with it, in ``ev.unread_cameras``."""
+    out = {}
+    for camera, seen in ds.other_cameras().items():
+        _, problems = seen.camera_files()
+        if problems:
+            ev.unread_cameras[camera] = f"{problems[0]}" + (f" (and {len(problems) - 1} more)" if len(problems) > 1
+                                                            else "")
+        else:
+            out[camera] = seen
+    return out
 
 
 def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[Scorer], device: Any,
@@ -126,17 +129,19 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
                     on_progress: Progress | None = None, timings: dict[str, float] | None = None,
                     workers: int = 1, engine: str = "local", ray_address: str | None = None,
                     still: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
-                    backwards: Callable[[], tuple[np.ndarray, TaskPosterior]] | None = None) -> Evidence:
+                    backwards: Callable[[], tuple[np.ndarray, TaskPosterior]] | None = None,
+                    journal: shards.Journal | None = None) -> Evidence:
     """Score the demos of ``sets``, pooled in order, with ``scorers``: the cue pass (PETNet, when ``ckpt`` is
-    given, and TecNets when given), one decoding pass per dataset for the scorers that need every frame, then
-    each scorer.
+    given, and TecNets when given), one decoding pass per dataset for the scorers that need every frame (every
+    camera for those that read the pictures alone), then each scorer.
 
     ``episodes``: the pooled demos' table (default: the datasets' episode tables one after the other).
-    ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).  ``workers`` > 1 runs both passes
-    of datasets large enough (``shards.PARALLEL_MIN_SHARDS``) in that many spawned processes, started once for
-    both (``shards.runner``), with the same results; ``engine`` "ray" runs them in that many Ray actors
-    (``pool.RayWorkers``) on the cluster at ``ray_address`` (default: a local instance), the same again.  The
-    TecNets baseline's cue pass (bench only) stays in this process.
+    ``timings`` gets ``score_s`` (cue pass) and ``actions_s`` (decoding pass).  Both passes run in shards
+    (``shards``): ``workers`` > 1 runs those of datasets large enough (``shards.pays``) in that many
+    spawned processes, started once for both (``shards.runner``); ``engine`` "ray" in that many Ray actors
+    (``pool.RayWorkers``) on the cluster at ``ray_address`` (default: a local instance); otherwise this process
+    runs them (``shards.Here``): the same results each way.  ``journal`` keeps each shard as it is done, and
+    skips those it holds (``--resume``).  The TecNets baseline's cue pass (bench only) stays in this process.
     """
     pool.check_engine(engine)
     t = timings if timings is not None else {}
@@ -146,19 +151,32 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
 
     model = str(ckpt.path) if ckpt is not None else None
 
-    def spread(ds: DemoSet, shard: int) -> bool:
-        return shards.pays(len(ds), shard, engine, workers)
+    def spread(ds: DemoSet, shard: int) -> bool:  # the cue pass reads two frames a demo, the decoding pass all
+        h, w, _ = ds.native_shape
+        frames = 2 * len(ds) if shard == shards.CUE_SHARD else int(ds.episodes["length"].sum())
+        return shards.pays(len(ds), shard, engine, workers, frames * max(h * w, 1) * (1 + len(ds.cameras[1:])))
 
     decodes = any(s.decode is not None for s in scorers)
     parallel = any(ckpt is not None and spread(ds, shards.CUE_SHARD) or decodes and spread(ds, shards.SHARD)
                    for ds in sets)
+    here = shards.Here(ckpt, device)
     with shards.runner(parallel, engine, workers, model, str(device), ray_address) as runner:
+        def run_on(spreads: bool) -> shards.Run:
+            by = runner if spreads and runner is not None else here
+            if journal is not None:
+                return lambda name, jobs, total, progress: journal.run(by, name, jobs, total, progress)
+            return lambda name, jobs, total, progress: by.run(jobs, shards._run_shard, total, progress)
+
         t0 = time.perf_counter()
         post = None
         if ckpt is not None:  # each model reads frames at its own size; the decoding pass, the camera's
-            post = TaskPosterior.concat([
-                cue_posteriors(ds.resized(ckpt.config.image_size), ckpt.model, device, on_progress=stage("PETNet", ds),
-                               runner=runner if spread(ds, shards.CUE_SHARD) else None) for ds in sets])
+            parts = []
+            for k, ds in enumerate(sets):
+                seen = ds.resized(ckpt.config.image_size)
+                here.know(seen)
+                parts.append(shards.sharded_cues(seen, run_on(spread(ds, shards.CUE_SHARD)), f"cues-{k}",
+                                                 shards.CUE_BATCH, stage("PETNet", ds)))
+            post = TaskPosterior.concat(parts)
         embedding = None
         if tecnet is not None:
             embedding = np.concatenate([cue_posteriors(ds.resized(tecnet.config.image_size), tecnet.model, device,
@@ -172,24 +190,28 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
         for s in scorers:  # scorers that share a behaviour key share its consumer
             if s.can_decode(ev):
                 decoding.setdefault(s.source, s)
+        views = [readable_cameras(ds, ev) if ev.frames and any(s.per_camera for s in decoding.values()) else {}
+                 for ds in sets]
+        ev.camera = camera_name(sets[0].camera) if ev.frames and sets[0].camera else ""
+        ev.cameras = tuple(c for c in views[0] if all(c in v for v in views)) if views else ()
+        for s in list(decoding.values()):
+            for camera in ev.cameras if s.per_camera else ():
+                decoding.setdefault(camera_column(s.source, camera), s)
         if decoding:
             t1 = time.perf_counter()
-            parts: dict[str, list] = {key: [] for key in decoding}
+            got: dict[str, list] = {key: [] for key in decoding}
             start = 0
-            for ds in sets:
+            for k, (ds, seen) in enumerate(zip(sets, views)):
                 rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
-                progress = stage("decoding" if ckpt is None else "actions", ds)
-                if runner is not None and spread(ds, shards.SHARD):
-                    for key, got in shards.parallel_decoding(ds, ev, rows, decoding, runner, progress).items():
-                        parts[key].append(got)
-                else:
-                    consumers = shards.consumers(decoding.values(), ev, rows, device)
-                    decoding_pass(ds, list(consumers.values()), progress)
-                    for key, consumer in consumers.items():
-                        parts[key].append(consumer.finish())
+                seen = {c: seen[c] for c in ev.cameras}
+                here.know(ds, *seen.values())
+                for key, part in shards.sharded_decoding(ds, ev, rows, decoding, run_on(spread(ds, shards.SHARD)),
+                                                         f"decode-{k}", stage("decoding" if ckpt is None
+                                                                               else "actions", ds), seen).items():
+                    got[key].append(part)
                 start += len(ds)
-            for key, got in parts.items():
-                ev.behaviour[key] = shards.concat(got)
+            for key, parts in got.items():
+                ev.behaviour[key] = shards.concat(parts)
             t["actions_s"] = time.perf_counter() - t1
     return registry.compute(ev, scorers)
 
@@ -212,9 +234,10 @@ def score_table(ev: Evidence, fpr: float = DEFAULT_FPR) -> pd.DataFrame:
     ``flagging.flagged_regardless``)."""
     eps = ev.episodes
     table = pd.DataFrame({"episode_index": eps["episode_index"].to_numpy(np.int64), "task": ev.tasks})
-    for name in registry.SCORERS:
-        if name in ev.scores:
-            table[name] = ev.scores[name]
+    for name in registry.SCORERS:  # each check, then its columns on the other cameras
+        for column in [name, *(camera_column(name, c) for c in ev.cameras)]:
+            if column in ev.scores:
+                table[column] = ev.scores[column]
     if "suspicion" not in table:
         table["suspicion"] = np.nan
     suspicion = table["suspicion"].to_numpy(np.float64)
@@ -257,14 +280,27 @@ def write_tables(folder: Path, table: pd.DataFrame, suspects: list[int]) -> None
     (folder / "suspects.txt").write_text("".join(f"{e}\n" for e in suspects))
 
 
+def journal_key(ds: DemoSet, ckpt: Checkpoint | None, actions: bool) -> dict[str, Any]:
+    """What an audit's shards depend on: the data (its files' fingerprint, the camera), the model (its weights'
+    digest), whether every demo is decoded, and how the passes are cut."""
+    weights = ckpt.path / "model.safetensors" if ckpt is not None else None
+    stat = ds.root.stat()
+    return {"dataset": str(ds.root.resolve()), "camera": ds.camera,
+            "fingerprint": dataset_fingerprint(ds) if ds.root.is_dir() else f"{stat.st_size}:{stat.st_mtime_ns}",
+            "model": None if weights is None else hashlib.sha256(weights.read_bytes()).hexdigest()[:16],
+            "actions": actions, "shards": [shards.CUE_SHARD, shards.CUE_BATCH, shards.SHARD]}
+
+
 def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cpu", actions: bool = True,
           fpr: float = DEFAULT_FPR, on_progress: Progress | None = None, timings: dict[str, float] | None = None,
           why_no_model: str | None = None, workers: int = 1, engine: str = "local",
-          ray_address: str | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
+          ray_address: str | None = None, work: Path | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Score every demo of ``ds`` with ``ckpt`` -- or, with ``ckpt`` None, with the model-free checks alone --
     and flag those whose combined tail probability is at most ``fpr``: the ScoreTable and the summary.
     ``actions`` adds the scores that decode every demo (the action error and the model-free checks: slower).
-    ``why_no_model``: the sentence the summary gives for auditing without a model."""
+    ``why_no_model``: the sentence the summary gives for auditing without a model.  ``work``: a folder where the
+    passes keep each shard as it is done (``shards.Journal``); an audit of the same data and options in it
+    continues from there."""
     if not 0 < fpr < 1:
         raise DemocheckError(f"--fpr {fpr:g}: the share of clean demos to flag must lie between 0 and 1")
     seen = for_model(ds, ckpt) if ckpt is not None else ds  # the frames the model reads
@@ -281,8 +317,9 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     if ckpt is not None and ds.has_camera:
         still = functools.cache(lambda: still_cues(seen, ckpt.model, device))
         backwards = functools.cache(lambda: backwards_cues([seen], ckpt.model, device))
+    journal = None if work is None else shards.Journal(work, journal_key(ds, ckpt, actions))
     ev = gather_evidence([ds], ckpt, chosen, device, on_progress=on_progress, timings=t, workers=workers,
-                         engine=engine, ray_address=ray_address, still=still, backwards=backwards)
+                         engine=engine, ray_address=ray_address, still=still, backwards=backwards, journal=journal)
     broken = registry.broken_rows(ev)
     if len(broken) and broken.all():  # nothing left to compare a demo with: the dataset, not a demo, is what is broken
         raise DatasetError(f"{ds.root}: every episode is broken, e.g. episode "
@@ -296,6 +333,8 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     flagged = int(table["is_anomaly"].sum())
     summary = {
         "dataset": str(ds.root), "format": ds.format, "camera": ds.camera, "dataset_fingerprint": fingerprint,
+        # every camera the picture checks read (short names), the first the one the model and the other checks read
+        "cameras": [c for c in (ev.camera, *ev.cameras) if c],
         "frames": {"camera": list(ds.native_shape), "model": list(seen.image_shape),
                    "resized": seen.image_size is not None, "count": int(ds.episodes["length"].sum())},
         "model": str(ckpt.path) if ckpt is not None else None,
@@ -304,6 +343,8 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
         "suspects_txt": flagged, "top": top,
         "flag": flag_summary(table, fpr, ev.untrusted),
         "scores": {n: registry.SCORERS[n].description for n in shown} | {
+            camera_column(n, c): f"{registry.SCORERS[n].description}; on the {c} camera" for n in shown
+            for c in ev.cameras if camera_column(n, c) in ev.scores} | {
             "p_value": "the combined tail probability of the ranking's scores (suspicion = -log10 p_value)",
             "reason": "what put the demo where it ranks: first what happened, in the words of a check beyond every "
                       "clean demo that says what the demo did (the check and how rare after), then others while it "
@@ -333,6 +374,7 @@ def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cp
     if "label" in table:
         summary["labels"] = table["label"].value_counts().to_dict()
     summary["warnings"] = (unreadable_files(ev.episodes["episode_index"].to_numpy(), ev.findings.get("broken"))
+                           + [f"the {c} camera is not read: {why}" for c, why in ev.unread_cameras.items()]
                            + warnings(table, ckpt, ev.untrusted, fpr))
     if "suspicion" in ev.scores:  # how the ranking was made, as data (``ranking.RankingConfig``)
         summary["ranking"] = registry.combination(ev).config.to_dict()

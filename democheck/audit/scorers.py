@@ -31,7 +31,7 @@ from democheck.audit import (colours, coupling, dynamics, frames, modelfree, out
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit.evidence import Evidence, Scorer, Scores
-from democheck.audit.findings import VOCABULARIES, Vocabulary, known
+from democheck.audit.findings import VOCABULARIES, Vocabulary, camera_column, check_of, known
 from democheck.audit.flagging import DEFAULT_FPR, is_broken
 from democheck.audit.ocsvm import ocsvm_margin
 from democheck.audit.scores import CONSISTENCY_K, consistency_parts, novelty
@@ -247,11 +247,11 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "NaN without timestamps)", ("demos",), _timing, behaviour="actions", decode=_traces, short="time"),
     Scorer("frozen_video", "model-free: the longest stretch of steps at which the camera frame repeats while the "
            "actions change, as a share of the demo's steps (a camera that stopped delivering)", ("demos", "frames"),
-           _frozen_video, decode=lambda ev, rows, device: frames.FrameChanges(), short="frozen"),
+           _frozen_video, decode=lambda ev, rows, device: frames.FrameChanges(), short="frozen", per_camera=True),
     Scorer("frame_jump", "model-free: how much more the camera frame changes at one step than at the "
            f"{frames.JUMP_NEIGHBOURS} steps either side (log of the largest ratio): frames dropped from the "
            "recording, or recordings spliced", ("demos", "frames"), _frame_jump, behaviour="frozen_video",
-           decode=lambda ev, rows, device: frames.FrameChanges(), short="jump"),
+           decode=lambda ev, rows, device: frames.FrameChanges(), short="jump", per_camera=True),
     Scorer("frozen_state", "model-free: the longest stretch of steps at which a state dimension repeats its "
            "value exactly while the actions change, as a share of the demo (the largest over the dimensions still "
            "in hardly any of its task's demos): a sensor that stopped updating", ("demos",), _frozen_state,
@@ -259,13 +259,13 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("view", "model-free: share of the demo's average picture (16x16) unlike its task's other demos' there "
            f"(over {view.VIEW_K:g} robust SD from their median): a covered or moved camera, another scene; "
            "robust z within its task", ("demos", "frames"), _view,
-           decode=lambda ev, rows, device: view.ViewStats(), short="view"),
+           decode=lambda ev, rows, device: view.ViewStats(), short="view", per_camera=True),
     Scorer("colours", "model-free: how differently from its task's other demos the frames are coloured, wherever "
            f"the colours are in the view (every {view.VIEW_EVERY}th frame's pixels in "
            f"{colours.COLOUR_LEVELS ** 3} colour bins, each bin's log share in robust SD within its task, RMS "
            "over the colours shown): an object missing or another one, a covered camera; robust z within its "
            "task", ("demos", "frames"), _colours,
-           decode=lambda ev, rows, device: colours.ColourStats(), short="colour"),
+           decode=lambda ev, rows, device: colours.ColourStats(), short="colour", per_camera=True),
     Scorer("outcome", "model-free: how differently from its task's other demos the demo left the world (the "
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "
            "z within its task)", ("demos",), _outcome,
@@ -355,19 +355,23 @@ def ranking_recipe(name_or_path: str = "default") -> dict[str, Any]:
 
 def ranked(available, tasks: np.ndarray, model_free: bool = False, untrusted=()) -> list[str]:
     """The scores the ranking combines, of those ``available`` (names, or columns by name): those of the ranking
-    recipe, less the task embedding's on a dataset of one task (``single_task``), less the model's with
-    ``model_free`` and those it did not earn (``untrusted``, ``trust.untrusted``), less a column with no score at
-    all (the outcome of a dataset whose tasks are all too small to compare): a look that cannot see anything must
-    not cost the others' correction."""
+    recipe, each followed by its columns on the dataset's other cameras (``findings.camera_column``), less the task
+    embedding's on a dataset of one task (``single_task``), less the model's with ``model_free`` and those it did
+    not earn (``untrusted``, ``trust.untrusted``), less a column with no score at all (the outcome of a dataset
+    whose tasks are all too small to compare): a look that cannot see anything must not cost the others'
+    correction."""
     one_task = len(np.unique(tasks)) == 1
     columns = isinstance(available, (dict, pd.DataFrame))
 
     def scored(n: str) -> bool:
         return not columns or bool(np.isfinite(np.asarray(available[n], np.float64)).any())
 
-    return [n for n, keys in ranking_recipe()["scores"].items() if n in available and n not in untrusted
-            and (SCORERS[n].model_free or not model_free) and (keys.get("single_task", True) or not one_task)
-            and scored(n)]
+    out = []
+    for n, keys in ranking_recipe()["scores"].items():
+        if n in available and n not in untrusted and (SCORERS[n].model_free or not model_free) \
+                and (keys.get("single_task", True) or not one_task):
+            out += [c for c in [n, *(c for c in available if c != n and check_of(c) == n)] if scored(c)]
+    return out
 
 
 def ranking_config(names: list[str]) -> ranking.RankingConfig:
@@ -378,13 +382,19 @@ def ranking_config(names: list[str]) -> ranking.RankingConfig:
     precedence = ranking.Precedence.from_dict(recipe.get("reasons", {}))
     order = precedence.order
 
+    checks = [check_of(n) for n in names]
+
     def spec(n: str) -> ranking.ScoreSpec:
-        keys = recipe["scores"][n]
+        check = check_of(n)
+        keys = recipe["scores"][check]
         alone = keys.get("alone", False)
-        lead = order.index(n) if n in order else len(order) + (0 if alone else 1 if SCORERS[n].model_free else 2)
+        lead = order.index(check) if check in order else len(order) + (0 if alone else 1 if SCORERS[check].model_free
+                                                                       else 2)
+        # One check on several cameras asks one question of a demo: its columns are one look.
+        look = keys.get("look", "") or (check if checks.count(check) > 1 else "")
         return ranking.ScoreSpec(n, log=keys.get("log", False), in_robust_sd=keys.get("in_robust_sd", False),
                                  floor=float(keys.get("floor", 0.0)), tail=keys.get("tail", "exponential"),
-                                 alone=alone, look=keys.get("look", ""), lead=lead)
+                                 alone=alone, look=look, lead=lead)
 
     return ranking.RankingConfig(tuple(spec(n) for n in names), core_p=recipe["core_p"],
                                  reason_p=recipe["reason_p"], precedence=precedence)
@@ -432,12 +442,19 @@ def select(names: list[str] | None = None, audit: bool = True) -> list[Scorer]:
 def compute(ev: Evidence, scorers: list[Scorer]) -> Evidence:
     """Run ``scorers`` (whose decoding pass, if any, has filled ``ev.behaviour``) in the registry's order, each
     that the evidence can feed; fills ``ev.scores``, ``ev.findings`` and their words, ``ev.reasons``."""
+    def keep(column: str, values: np.ndarray, found: list | None, camera: str = "") -> None:
+        ev.scores[column] = values  # as computed: float32 where the network's output is, float64 elsewhere
+        if found is not None:
+            ev.findings[column] = [f.on_camera(camera) for f in found] if camera else found
+            ev.reasons[column] = [f.words for f in ev.findings[column]]
+
     for s in scorers:
         if not s.can_run(ev):
             continue
-        values, found = s.score(ev)
-        ev.scores[s.name] = values  # as computed: float32 where the network's output is, float64 elsewhere
-        if found is not None:
-            ev.findings[s.name] = found
-            ev.reasons[s.name] = [f.words for f in found]
+        several = s.per_camera and bool(ev.cameras)
+        keep(s.name, *s.score(ev), camera=ev.camera if several else "")
+        for camera in ev.cameras if s.per_camera else ():
+            other = ev.on_camera(camera, s.source)
+            if other is not None:
+                keep(camera_column(s.name, camera), *s.score(other), camera=camera)
     return ev

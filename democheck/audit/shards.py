@@ -12,7 +12,12 @@ demo (``modelfree.PerDemo``) is merged in shard order before it finishes.
 
 from __future__ import annotations
 
+import json
+import os
+import pickle
 from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import numpy as np
@@ -22,35 +27,42 @@ from democheck import pool
 from democheck.audit import dynamics, modelfree, scorers as registry
 from democheck.audit.action_error import ACTION_BATCH
 from democheck.audit.evidence import Evidence, Scorer
-from democheck.data.demo import DemoSet
+from democheck.audit.findings import CAMERA_MARK
+from democheck.data.demo import Demo, DemoSet
+from democheck.errors import DemocheckError
+from democheck.fsutil import write_json
 from democheck.petnet.encode import encode_demos
 from democheck.petnet.posterior import TaskPosterior
 
 CUE_BATCH = 256  # cues encoded at a time, in one process and in a worker alike
 # Cues per shard of a parallel cue pass: whole batches of ``CUE_BATCH``, as one process encodes them.
 CUE_SHARD = 4 * CUE_BATCH
-# Demos per shard of a parallel decoding pass: a multiple of the action error's batch, so that every batch the
-# controller sees holds the same demos as in one process (and the numbers are the same), and of the dynamics
-# check's block (``dynamics.DYNAMICS_BLOCK``), for the same reason.
-SHARD = 4 * ACTION_BATCH
+# Demos per shard of the decoding pass: a multiple of the action error's batch, so that every batch the controller
+# sees holds the same demos as in one process (and the numbers are the same), and a multiple of the dynamics
+# check's block (``dynamics.DYNAMICS_BLOCK``) or smaller, for the same reason.  One batch: a hub dataset's hundred
+# long demos are four shards, enough to keep two workers busy and to lose little to an interruption.
+SHARD = ACTION_BATCH
 assert SHARD % dynamics.DYNAMICS_BLOCK == 0 or SHARD < dynamics.DYNAMICS_BLOCK, "see dynamics.DynamicsFit.merged"
-# Below this many shards per worker, starting the workers (each imports torch and loads the model, ~2 s) costs
-# more than it saves: on push-v1, 168 demos took 2.1 s in one process and 3.4 s in two, 768 demos 10.1 s and
-# 7.5 s, 6,048 demos 78.6 s and 47.8 s (identical scores each time; benchmarks/parallel_audit.py).
-PARALLEL_MIN_SHARDS = 2
+# Spreading a pass pays where each worker gets a shard and the pass decodes at least this many pixels (frames
+# times their size): starting the workers (each imports torch and loads the model) costs ~2 s, about what one
+# core decodes of this many pixels.  On push-v1 (64x64 frames), 168 demos (7e7 pixels) took 2.1 s in one process
+# and 3.4 s in two, 768 demos (3e8) 10.1 s and 7.5 s, 6,048 demos 78.6 s and 47.8 s (benchmarks/parallel_audit.py).
+PARALLEL_MIN_PIXELS = 2e8
 
 
-def pays(n_demos: int, shard: int, engine: str, workers: int) -> bool:
-    """Whether a pass over ``n_demos`` in shards of ``shard`` is worth spreading (always on Ray: asked for)."""
-    return engine == "ray" or workers > 1 and n_demos >= PARALLEL_MIN_SHARDS * shard * workers
+def pays(n_demos: int, shard: int, engine: str, workers: int, pixels: float = float("inf")) -> bool:
+    """Whether a pass over ``n_demos`` in shards of ``shard`` that decodes ``pixels`` (frames times their size) is
+    worth spreading over ``workers`` (always on Ray: asked for)."""
+    shards = -(-n_demos // shard)
+    return engine == "ray" or workers > 1 and shards >= workers and pixels >= PARALLEL_MIN_PIXELS
 
 
 @contextmanager
 def runner(parallel: bool, engine: str, workers: int, model: str | None, device: str, address: str | None
            ) -> Iterator[Any]:
-    """What runs an audit's shards (``run(jobs, _run_shard, total)``), started once for its cue pass and its
-    decoding pass: ``pool.workers_for(engine)`` -- spawned processes, each loading the model once, or Ray actors,
-    an actor pool per pass -- or None (this process, shard-free)."""
+    """What runs an audit's shards spread over workers (``run(jobs, _run_shard, total)``), started once for its cue
+    pass and its decoding pass: ``pool.workers_for(engine)`` -- spawned processes, each loading the model once, or
+    Ray actors, an actor pool per pass -- or None (nothing worth spreading: ``Here`` runs the shards)."""
     if not parallel:
         yield None
         return
@@ -58,34 +70,151 @@ def runner(parallel: bool, engine: str, workers: int, model: str | None, device:
         yield workers_
 
 
+class Here:
+    """The shards run in this process by the model it holds -- ``pool.Workers``'s ``run`` without workers -- on
+    the datasets it was given (``know``) as this process reads them: one process runs the shards its workers
+    would, so that a ``Journal`` can keep them."""
+
+    def __init__(self, ckpt: Any, device: Any):
+        self.ckpt, self.device, self.sets = ckpt, device, {}
+
+    def know(self, *sets: DemoSet) -> None:
+        for ds in sets:
+            self.sets[_key(where(ds))] = ds
+
+    def run(self, jobs: list, shard: Callable[[Any], list[dict[str, Any]]], total: int,
+            on_progress: Callable[[int, int], None] | None = None,
+            on_result: Callable[[int, list[dict[str, Any]]], None] | None = None) -> list[dict[str, Any]]:
+        ticks = _Ticks(on_progress, total)
+        pool.state.clear()
+        pool.state.update(ckpt=self.ckpt, device=self.device, sets=dict(self.sets), progress=ticks)
+        rows = []
+        for i, job in enumerate(jobs):
+            got = shard(job)
+            if on_result:
+                on_result(i, got)
+            rows += got
+        return rows
+
+
+class _Ticks:
+    """``pool.tick``'s queue in this process: each demo done moves the progress at once."""
+
+    def __init__(self, on_progress: Callable[[int, int], None] | None, total: int):
+        self.on_progress, self.total, self.done = on_progress, total, 0
+
+    def put(self, n: int) -> None:
+        self.done += n
+        if self.on_progress:
+            self.on_progress(min(self.done, self.total), self.total)
+
+
+class Journal:
+    """The shards of an audit done so far, in a folder beside its output (``fsutil.work_dir``), each written as it
+    comes back: ``--resume`` runs only the others, and the audit's numbers are those of a run that never stopped
+    (the same shards, merged in the same order).  ``key`` says what was audited and how; a folder of another key
+    is refused."""
+
+    def __init__(self, folder: Path, key: dict[str, Any]):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        path = self.folder / "journal.json"
+        key = json.loads(json.dumps(key))
+        if path.exists():
+            saved = json.loads(path.read_text())
+            differs = sorted(k for k in set(saved) | set(key) if saved.get(k) != key.get(k))
+            if differs:
+                raise DemocheckError(f"{self.folder}: an interrupted audit of other data or options "
+                                     f"({', '.join(differs)}); --force starts over")
+        else:
+            write_json(path, key)
+
+    def run(self, runner_: Any, name: str, jobs: list, total: int,
+            on_progress: Callable[[int, int], None] | None = None) -> list[dict[str, Any]]:
+        """``runner_.run(jobs, _run_shard, ...)`` for the jobs not done yet; the rows of every job, in order."""
+        def path(i: int) -> Path:
+            return self.folder / f"{name}-{jobs[i][0]:05d}.pkl"
+
+        done = {i: _load(path(i)) for i in range(len(jobs)) if path(i).exists()}
+        todo = [i for i in range(len(jobs)) if i not in done]
+        before = sum(len(jobs[i][2]) for i in done)
+        if before and on_progress:
+            on_progress(before, total)
+
+        def keep(k: int, rows: list[dict[str, Any]]) -> None:
+            i = todo[k]
+            tmp = path(i).with_suffix(".tmp")
+            tmp.write_bytes(pickle.dumps(rows, protocol=pickle.HIGHEST_PROTOCOL))
+            os.replace(tmp, path(i))
+            done[i] = rows
+
+        if todo:
+            runner_.run([jobs[i] for i in todo], _run_shard, total,
+                        on_progress and (lambda d, n: on_progress(before + d, n)), keep)
+        return [row for i in range(len(jobs)) for row in done[i]]
+
+
+class _OwnClasses(pickle.Unpickler):
+    """Unpickles numpy's and democheck's own classes alone: a shard file names no other code to run."""
+
+    SAFE_BUILTINS = {"list", "dict", "tuple", "set", "frozenset", "slice", "range", "complex", "bytearray"}
+
+    def find_class(self, module: str, name: str) -> Any:
+        if module.split(".")[0] in ("numpy", "democheck") or module in ("collections", "copyreg") or (
+                module == "builtins" and name in self.SAFE_BUILTINS):
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"{module}.{name} is not a class a shard holds")
+
+
+def _load(path: Path) -> list[dict[str, Any]]:
+    """A shard's rows as ``Journal`` wrote them (``_OwnClasses``); one clear line where the file is not one."""
+    try:
+        with path.open("rb") as f:
+            return _OwnClasses(f).load()
+    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, ValueError) as exc:
+        raise DemocheckError(f"{path}: not a shard this audit wrote ({exc}); --force starts over") from None
+
+
 def where(ds: DemoSet) -> dict[str, Any]:
     """How a worker opens ``ds`` as this process reads it."""
     return {"root": str(ds.root), "camera": ds.camera, "image_size": ds.image_size}
 
 
-def parallel_cues(ds: DemoSet, runner_: Any, batch: int, on_progress: Callable[[int, int], None] | None = None
-                  ) -> TaskPosterior:
-    """The cue pass of ``ds`` by ``runner_``'s workers, in shards of ``CUE_SHARD`` cues encoded in batches of
-    ``batch`` (the jobs carry it): what one process encoding in batches of ``batch`` gives."""
+def _key(spec: dict[str, Any]) -> tuple:
+    return spec["root"], spec["camera"], spec["image_size"]
+
+
+# How a pass's shards run: (its name in the journal, jobs, total demos, on_progress) -> the rows of every job.
+Run = Callable[[str, list, int, Callable[[int, int], None] | None], list[dict[str, Any]]]
+
+
+def sharded_cues(ds: DemoSet, run: Run, name: str, batch: int,
+                 on_progress: Callable[[int, int], None] | None = None) -> TaskPosterior:
+    """The cue pass of ``ds`` by ``run``, in shards of ``CUE_SHARD`` cues encoded in batches of ``batch`` (the
+    jobs carry it): what one process encoding in batches of ``batch`` gives."""
     eps = ds.episode_indices
     jobs = [(i, {"pass": "cues", "batch": batch, **where(ds)}, eps[s:s + CUE_SHARD])
             for i, s in enumerate(range(0, len(eps), CUE_SHARD))]
-    got = sorted(runner_.run(jobs, _run_shard, len(eps), on_progress), key=lambda r: r["shard"])
+    got = sorted(run(name, jobs, len(eps), on_progress), key=lambda r: r["shard"])
     return TaskPosterior.concat([r["post"] for r in got])
 
 
-def parallel_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str, Scorer], runner_: Any,
-                      on_progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
-    """The decoding pass of ``ds`` (its rows ``rows`` of the evidence) by ``runner_``'s workers: each decodes
-    shards of ``SHARD`` consecutive demos with its own copy of the model; what a consumer keeps per demo
-    (``modelfree.PerDemo``) is merged before it finishes, what it finishes per demo is pooled after."""
+def sharded_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str, Scorer], run: Run, name: str,
+                     on_progress: Callable[[int, int], None] | None = None,
+                     views: dict[str, DemoSet] | None = None) -> dict[str, Any]:
+    """The decoding pass of ``ds`` (its rows ``rows`` of the evidence; ``views``: its other cameras, by short
+    name) by ``run``: shards of ``SHARD`` consecutive demos, each decoded with its worker's copy of the model; what
+    a consumer keeps per demo (``modelfree.PerDemo``) is merged before it finishes, what it finishes per demo is
+    pooled after."""
     eps = ds.episode_indices
     z = ev.task_variables()[rows] if ev.posterior is not None else None
+    cameras = {c: where(v) for c, v in (views or {}).items()}
     jobs = [(i, {"pass": "decode", **where(ds), "tasks": ds.episodes.loc[eps[s:s + SHARD], "task"].tolist(),
-                 "names": [x.name for x in decoding.values()], "z": None if z is None else z[s:s + SHARD]},
+                 "consumers": {k: x.name for k, x in decoding.items()}, "views": cameras,
+                 "z": None if z is None else z[s:s + SHARD]},
              eps[s:s + SHARD])
             for i, s in enumerate(range(0, len(eps), SHARD))]
-    got = sorted(runner_.run(jobs, _run_shard, len(eps), on_progress), key=lambda r: r["shard"])
+    got = sorted(run(name, jobs, len(eps), on_progress), key=lambda r: r["shard"])
     out = {}
     for key in decoding:
         parts = [r["parts"][key] for r in got]
@@ -94,13 +223,21 @@ def parallel_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str
     return out
 
 
-def consumers(scorers, ev: Evidence, rows: slice, device: Any) -> dict[str, Any]:
-    """One consumer per behaviour key of ``scorers`` (scorers that share a key share it), for ``rows``."""
-    out: dict[str, Any] = {}
-    for s in scorers:
-        if s.source not in out:
-            out[s.source] = s.decode(ev, rows, device)
-    return out
+def consumers(decoding: dict[str, Scorer], ev: Evidence, rows: slice, device: Any) -> dict[str, Any]:
+    """One consumer per behaviour key of ``decoding`` (the scorer that decodes for it), for ``rows``."""
+    return {key: s.decode(ev, rows, device) for key, s in decoding.items()}
+
+
+def feed(demo: Demo, got: dict[str, Any], views: dict[str, DemoSet]) -> None:
+    """``demo`` to each consumer of ``got`` (by behaviour key); a key on another camera
+    (``findings.camera_column``) gets the same demo with that camera's pictures, read from ``views``."""
+    mine: dict[str, list] = {}
+    for key, c in got.items():
+        mine.setdefault(key.partition(CAMERA_MARK)[2], []).append(c)
+    for camera, fed in mine.items():
+        seen = demo if not camera else replace(demo, frames=views[camera][demo.episode_index].frames)
+        for c in fed:
+            c.add(seen)
 
 
 def concat(parts: list) -> Any:
@@ -131,7 +268,7 @@ def _opened(spec: dict[str, Any]) -> DemoSet:
     """The dataset a shard's ``spec`` names (``where``), opened once per worker."""
     from democheck.data import open_dataset
 
-    key = (spec["root"], spec["camera"], spec["image_size"])
+    key = _key(spec)
     sets = pool.state["sets"]
     if key not in sets:
         sets[key] = open_dataset(spec["root"], camera=spec["camera"]).resized(spec["image_size"])
@@ -153,11 +290,11 @@ def _decode_shard(job: tuple) -> list[dict[str, Any]]:
     ds = _opened(spec)
     ev = Evidence(episodes=pd.DataFrame({"episode_index": eps, "task": spec["tasks"]}), model=pool.state["ckpt"])
     ev._z = spec["z"]
-    got = consumers([registry.SCORERS[n] for n in spec["names"]], ev, slice(0, len(eps)), pool.state["device"])
+    decoding = {k: registry.SCORERS[n] for k, n in spec["consumers"].items()}
+    got = consumers(decoding, ev, slice(0, len(eps)), pool.state["device"])
+    views = {c: _opened(v) for c, v in spec["views"].items()}
     for e in eps:
-        demo = ds[e]
-        for c in got.values():
-            c.add(demo)
+        feed(ds[e], got, views)
         pool.tick()
     parts = {k: c if isinstance(c, modelfree.PerDemo) else ("done", c.finish()) for k, c in got.items()}
     return [{"shard": index, "parts": parts}]

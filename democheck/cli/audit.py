@@ -29,7 +29,9 @@ def audit(
     top: Annotated[int, typer.Option(help="How many top suspects to show and to record with their evidence.")] = 20,
     fail_on: Annotated[Optional[int], typer.Option(help="Exit with status 3 when more than this many demos are flagged (for CI gates).")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="Print the summary as JSON instead of a table.")] = False,
-    camera: Annotated[Optional[str], typer.Option(help="Image feature to use when there are several.")] = None,
+    camera: Annotated[Optional[str], typer.Option(
+        help="The camera the model and the time checks read, where there are several (default: the first); the "
+             "picture checks (frozen video, frame jumps, view, colours) read every camera.")] = None,
     task: Annotated[Optional[str], typer.Option(help="Task string for robomimic files that do not name their task.")] = None,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     actions: Annotated[bool, typer.Option("--actions/--no-actions", help="Also score how badly the model's controller explains each demo's actions (catches arms that never moved, flailed or stopped half-way). Decodes every demo in full: --no-actions is the fast pass on cue frames only.")] = True,
@@ -41,7 +43,12 @@ def audit(
     engine: Annotated[str, typer.Option(help="Who reads the cues and decodes the demos: local (worker processes on this machine) or ray (Ray Data actors, one CPU each, --workers of them: a local Ray instance, or the cluster at --ray-address; every node needs democheck and the dataset at the same path). Needs pip install 'democheck\\[ray]'. The scores are the same.")] = "local",
     ray_address: Annotated[Optional[str], typer.Option(help="With --engine ray: the Ray cluster's address (e.g. ray://head:10001 or auto); default: start a local instance.")] = None,
     revision: Annotated[Optional[str], typer.Option(help=REVISION_HELP)] = None,
-    force: Annotated[bool, typer.Option("--force", help="Replace --out if it exists.")] = False,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="Continue an interrupted audit of the same data and options from the shards it finished "
+                         "(kept beside --out until the report is written): the scores of a run that never stopped.")
+                      ] = False,
+    force: Annotated[bool, typer.Option(
+        "--force", help="Replace --out if it exists (and discard an interrupted audit's work).")] = False,
 ) -> None:
     """Score every demonstration -- task uncertainty, novelty, consistency, action error and model-free checks --
     combine them into one tail probability, rank the suspects and flag those below --fpr.  A model's score votes
@@ -57,12 +64,12 @@ def audit(
         from democheck.workflows import audit_dataset
 
         dataset = local_dataset(dataset, revision)
-        with Bar("audit", "demos") as bar:
+        with Bar("audit", "demos", info=True) as bar:
             summary = audit_dataset(dataset, out, model=model, top=top, camera=camera, task=task, device=device,
-                                    force=force, on_progress=lambda stage, d, n: bar.update(d, n, stage),
+                                    force=force, on_progress=lambda stage, d, n, info="": bar.update(d, n, stage, info),
                                     actions=actions, fpr=fpr, no_model=no_model, keep_list=keep_list,
                                     drop_list=drop_list, workers=workers or usable_cores(), engine=engine,
-                                    ray_address=ray_address)
+                                    ray_address=ray_address, resume=resume)
     if json_out:
         console.print_json(json.dumps(summary))
     else:

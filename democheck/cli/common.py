@@ -67,6 +67,12 @@ def user_errors() -> Iterator[None]:
         raise typer.Exit(130) from None
 
 
+def clock(seconds: float) -> str:
+    """A duration as people say it: 45 s, 12 min, 3.5 h."""
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.0f} min" if seconds < 5400 else \
+        f"{seconds / 3600:.1f} h"
+
+
 class Bar:
     """Progress of one command: a rich progress bar on a terminal; elsewhere (a log file, CI) a line on stderr
     at every tenth of a stage and at least every 30 s, so long work is never silent."""
@@ -74,6 +80,7 @@ class Bar:
     def __init__(self, label: str, unit: str = "", info: bool = False):
         self.label, self.unit, self.tty = label, unit, err_console.is_terminal
         self.stage, self.last, self.info = label, (0.0, -1), ""
+        self.began = (time.monotonic(), 0)  # when the stage began, and how far it was
         self.progress = self.job = None
         if self.tty:
             from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
@@ -96,7 +103,7 @@ class Bar:
 
     def update(self, done: int, total: int | None, stage: str | None = None, info: str | None = None) -> None:
         if stage is not None and stage != self.stage:
-            self.stage, self.last = stage, (0.0, -1)
+            self.stage, self.last, self.began = stage, (0.0, -1), (time.monotonic(), done)
         if info is not None:
             self.info = info
         if self.progress is not None:
@@ -106,7 +113,17 @@ class Bar:
         if done == total or tenth > self.last[1] or now - self.last[0] > 30:
             self.last = (now, tenth)
             of = f"/{total}" if total else ""
-            err_console.print(f"{self.stage}: {done}{of} {self.unit} {self.info}".rstrip(), highlight=False)
+            err_console.print(f"{self.stage}: {done}{of} {self.unit} {self.info}{self.pace(done, total, now)}".rstrip(),
+                              highlight=False)
+
+    def pace(self, done: int, total: int | None, now: float) -> str:
+        """How fast the stage goes and, where its total is known, how long it has left: " (12.3/s, 4 min left)"."""
+        began, at = self.began
+        if now - began < 1 or done <= at:
+            return ""
+        rate = (done - at) / (now - began)
+        left = f", {clock((total - done) / rate)} left" if total and done < total else ""
+        return f" ({rate:.3g}/s{left})"
 
     def callback(self, stage: str | None = None) -> Callable[[int, int], None]:
         """An ``on_progress(done, total)`` for library functions, optionally naming the stage."""
@@ -114,7 +131,7 @@ class Bar:
 
     def say(self, text: str) -> None:
         """A line above the bar (a new stage of a long command)."""
-        self.stage, self.last = text, (time.monotonic(), 0)
+        self.stage, self.last, self.began = text, (time.monotonic(), 0), (time.monotonic(), 0)
         if self.progress is not None:
             self.progress.update(self.job, completed=0, total=None, description=text)
         err_console.print(text, highlight=False)

@@ -113,9 +113,14 @@ def info(
         table.add_row("episodes / tasks", f"{len(ds)} / {len(ds.tasks)}")
         table.add_row("frames", f"{int(eps['length'].sum())} at {ds.fps:g} fps")
         h, w, c = ds.image_shape
-        table.add_row("camera", f"{ds.camera} ({h}x{w}x{c})" if ds.has_camera else
+        others = ds.other_cameras() if ds.has_camera else {}
+        table.add_row("camera", (f"{ds.camera} ({h}x{w}x{c})" + (f"; the picture checks also read {', '.join(others)}"
+                                                                 if others else "")) if ds.has_camera else
                       "none (states and actions only: democheck audit --no-model)")
-        n_files, problems = ds.camera_files()
+        n_files, problems = 0, []
+        for seen in (ds, *others.values()):  # every camera's files
+            files, wrong = seen.camera_files()
+            n_files, problems = n_files + files, problems + wrong
         if n_files:
             table.add_row("video files", f"{n_files}, " + ("every one there; a sample decodes" if not problems else
                                                           f"[red]{len(problems)} problem(s)[/], below"))

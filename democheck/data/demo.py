@@ -157,6 +157,17 @@ def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
     return out.reshape(*frames.shape[:-3], size, size, frames.shape[-1])
 
 
+# What ``democheck info`` says of a camera other than the one read first: the checks of the pictures alone read it.
+OTHER_CAMERA = "another camera: its pictures checked too"
+
+
+def camera_name(key: str) -> str:
+    """A camera's short name, as the audit's columns and words give it: LeRobot's ``observation.images.wrist`` is
+    ``wrist``, robomimic's ``agentview_image`` is ``agentview``."""
+    key = key.rpartition("observation.images.")[2] if "observation.images." in key else key
+    return key[:-len("_image")] if key.endswith("_image") and len(key) > len("_image") else key
+
+
 class DemoSet:
     """A lazily loaded collection of Demos, indexed by episode.
 
@@ -204,6 +215,16 @@ class DemoSet:
     def camera(self) -> str | None:
         """The camera read (None: the dataset records none, ``NO_CAMERA``)."""
         return self._src.camera
+
+    @property
+    def cameras(self) -> list[str]:
+        """Every camera the dataset records, the one read (``camera``) among them."""
+        return list(getattr(self._src, "cameras", [self.camera] if self.camera else []))
+
+    def other_cameras(self) -> dict[str, "DemoSet"]:
+        """Each camera but the one read, by its short name (``camera_name``), as a set that reads it at its own
+        size: for the checks that read every camera."""
+        return {camera_name(c): DemoSet(self._src.with_camera(c)) for c in self.cameras if c != self.camera}
 
     @property
     def has_camera(self) -> bool:

@@ -31,8 +31,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import democheck.data.video as video
-from democheck.data.demo import (NO_CAMERA, Damage, Demo, check_arrays, check_episodes, no_frames, readable_frames,
-                                 repair_non_finite)
+from democheck.data.demo import (NO_CAMERA, OTHER_CAMERA, Damage, Demo, check_arrays, check_episodes, no_frames,
+                                 readable_frames, repair_non_finite)
 from democheck.errors import DatasetError
 
 CODEBASE_VERSION = "v3.0"
@@ -179,7 +179,10 @@ class LeRobotBase:
             raise DatasetError(f"{root / 'meta/info.json'}: needs 'fps' and 'features'") from None
         if not (np.isfinite(self.fps) and self.fps > 0):
             raise DatasetError(f"{root / 'meta/info.json'}: fps must be a positive number, not {info['fps']!r}")
+        self.cameras = [k for k, f in self.features.items()
+                        if isinstance(f, dict) and f.get("dtype") in ("video", "image")]
         self.camera = self._pick_camera(camera)
+        self._keys = {"state_key": state_key, "action_key": action_key}
         feat = self.features[self.camera] if self.camera else {}
         self.camera_dtype = feat.get("dtype")  # None: the dataset records no camera (``NO_CAMERA``)
         self.image_shape = self._hwc(feat.get("shape", []), feat.get("names")) if self.camera else NO_CAMERA
@@ -206,13 +209,19 @@ class LeRobotBase:
             shape = [int(v) for v in f.get("shape", [1])]
             if f.get("dtype") in ("video", "image"):
                 h, w, c = self._hwc(shape, f.get("names"))
-                out.append((key, f"{h}x{w}x{c}", "the camera" if key == self.camera else "not read (another camera)"))
+                out.append((key, f"{h}x{w}x{c}", "the camera" if key == self.camera else OTHER_CAMERA))
             else:
                 out.append((key, str(int(np.prod(shape))), roles.get(key, "not read")))
         return out
 
+    def with_camera(self, camera: str) -> "LeRobotBase":
+        """The same dataset read through another of its cameras."""
+        other = type(self)(self.root, self.info, camera=camera, **self._keys)
+        other.strict = self.strict
+        return other
+
     def _pick_camera(self, camera: str | None) -> str | None:
-        cams = [k for k, f in self.features.items() if isinstance(f, dict) and f.get("dtype") in ("video", "image")]
+        cams = self.cameras
         if not cams and camera is not None:
             raise DatasetError(f"{self.root / 'meta/info.json'}: no camera {camera!r}: no image or video feature")
         if camera is None:

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from democheck.data.demo import (NO_CAMERA, Demo, check_arrays, check_episodes, no_frames, readable_frames,
-                                 repair_non_finite)
+from democheck.data.demo import (NO_CAMERA, OTHER_CAMERA, Demo, check_arrays, check_episodes, no_frames,
+                                 readable_frames, repair_non_finite)
 from democheck.errors import DatasetError
 
 
@@ -39,6 +39,7 @@ class Robomimic:
 
         self.root = path
         self._h5 = h5py
+        self._keys = {"state_key": state_key, "action_key": action_key, "task": task}
         try:
             f = h5py.File(path, "r")
         except OSError as exc:
@@ -61,6 +62,7 @@ class Robomimic:
             obs_keys = list(obs) if obs is not None else []
             images = {k: g[k] for g in groups for k in g if g[k].ndim == 4 and g[k].shape[-1] == 3}
             cams = sorted(images)
+            self.cameras = cams
             if camera is None:
                 self.camera = cams[0] if cams else None  # none: robomimic's low-dimensional files (``NO_CAMERA``)
             else:
@@ -118,6 +120,12 @@ class Robomimic:
         self.episodes = eps
         check_episodes(path, eps)
 
+    def with_camera(self, camera: str) -> "Robomimic":
+        """The same file read through another of its cameras."""
+        other = Robomimic(self.root, camera=camera, **self._keys)
+        other.strict = self.strict
+        return other
+
     def streams(self) -> list[tuple[str, str, str]]:
         """Every recorded stream of the first demo: (name, width or frame shape, what the audit reads it as)."""
         def role(k: str) -> str:
@@ -129,7 +137,7 @@ class Robomimic:
                 return "the actions"
             if k == self.env_key:
                 return "the environment state (where the objects are)"
-            return "not read (another camera)" if "x" in self._widths[k] else "not read"
+            return OTHER_CAMERA if "x" in self._widths[k] else "not read"
 
         return [(k, w, role(k)) for k, w in self._widths.items()]
 

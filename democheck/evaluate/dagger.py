@@ -48,13 +48,13 @@ from democheck.data import open_dataset
 from democheck.data.cache import build_cache
 from democheck.errors import DemocheckError, RecipeError
 from democheck.evaluate.rollout import ControllerPolicy, init_worker
-from democheck.fsutil import atomic_output_dir
+from democheck.fsutil import atomic_output_dir, work_dir
 from democheck.petnet.batches import Batches, task_rows, uniform_steps
 from democheck.petnet.card import git_commit, model_card
 from democheck.petnet.checkpoint import load_checkpoint, save_checkpoint
 from democheck.petnet.encode import encode_rows
 from democheck.petnet.recipe import parse_set
-from democheck.petnet.run_state import load_state, save_state, work_dir
+from democheck.petnet.run_state import load_state, save_state
 from democheck.petnet.train import resolve_device
 from democheck.sim.catalog import OBJECTS
 from democheck.sim.expert import MarkovianExpert

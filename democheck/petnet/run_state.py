@@ -1,6 +1,6 @@
 """A training run's state on disk, for ``--resume``: weights, Adam moments, both RNGs and the run's record.
 
-The state lives in a work folder beside the output (``work_dir``) and is
+The state lives in a work folder beside the output (``fsutil.work_dir``) and is
 replaced atomically: written as ``state.tmp``, then renamed over ``state``
 (the previous one kept as ``state.old`` until then, so a kill between the two
 renames loses nothing).  ``democheck train`` saves it every ``ckpt_every``
@@ -20,23 +20,6 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from democheck.errors import DemocheckError
-from democheck.fsutil import refuse_existing
-
-
-def work_dir(out: Path, resume: bool, force: bool) -> Path:
-    """The folder beside ``out`` where a run keeps its state for ``--resume``, after checking ``out`` and it.
-
-    Refuses an existing ``out`` without ``force``, and an interrupted run's folder without ``resume`` (or
-    ``force``, which discards it).
-    """
-    work = out.parent / f".{out.name}.partial"
-    refuse_existing(out, force)
-    if work.exists() and not resume:
-        if not force:
-            raise DemocheckError(f"{work}: an interrupted run of this model is there; pass --resume to continue it "
-                                 "or --force to start over")
-        shutil.rmtree(work)
-    return work
 
 
 def save_state(work: Path, model, opt, step: int, rng: np.random.Generator, info: dict[str, Any]) -> None:

@@ -28,14 +28,14 @@ import torch
 
 from democheck.data.cache import EpisodeArrays
 from democheck.errors import DemocheckError
-from democheck.fsutil import atomic_output_dir
+from democheck.fsutil import atomic_output_dir, work_dir
 from democheck.petnet import regularisers
 from democheck.petnet.batches import Batches, ResidentArrays, augment, task_rows, to_device, val_pairs
 from democheck.petnet.checkpoint import Normalisation, load_checkpoint, save_checkpoint
 from democheck.petnet.finish import finish_petnet
 from democheck.petnet.model import TASK_FUSIONS, ModelConfig, build_model
 from democheck.petnet.posterior import TaskPosterior
-from democheck.petnet.run_state import load_state, save_state, work_dir
+from democheck.petnet.run_state import load_state, save_state
 
 MODEL_TYPES = ("petnet", "tecnet")
 LR_SCHEDULES = ("constant", "cosine")

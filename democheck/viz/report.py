@@ -4,6 +4,7 @@ Entities:
     suspects                      the ranked list (markdown): rank, episode, suspicion, flagged, why, task, scores
     suspects/<rank>_ep<e>/about   the suspect's scores, flag and full reason (markdown)
     suspects/<rank>_ep<e>/video   its camera video on the ``frame`` timeline
+    suspects/<rank>_ep<e>/cameras/<name>  each other camera's video, where the dataset records several
     suspects/<rank>_ep<e>/sigma   its task standard deviation per embedding dimension over the median of the
                                   unflagged demos' (1 = typical), with a model
     suspects/<rank>_ep<e>/actions its actions, one series per dimension, named as the dataset names them
@@ -41,6 +42,7 @@ import pandas as pd
 import rerun as rr
 import rerun.blueprint as rrb
 
+from democheck.audit.findings import check_of
 from democheck.audit.flagging import flag_level
 from democheck.audit.scorers import SCORERS, ranking_recipe
 from democheck.data.demo import Demo
@@ -197,6 +199,8 @@ def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray 
     t = np.arange(len(demo))
     if demo.frames.size:  # else a dataset without a camera (``NO_CAMERA``): its state and actions alone
         _log_video(rec, f"{base}/video", _fit(demo.frames), fps, t)
+    for camera, frames in demo.extra.get("cameras", {}).items():
+        _log_video(rec, f"{base}/cameras/{camera}", _fit(frames), fps, t)
     if sigma is not None:
         rec.log(f"{base}/sigma", rr.BarChart(sigma), static=True)
     frame = [rr.TimeColumn("frame", sequence=t)]
@@ -282,7 +286,8 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: Sequence[Demo], 
     for k, (task, demo) in enumerate((typical or {}).items()):
         shown[task] = (f"typical/{k:03d}", demo.episode_index, bool(demo.frames.size))
         _log_demo(rec, shown[task][0], demo, None, fps, names)
-    cols = [n for n in ranking_recipe()["scores"] if n in table]
+    recipe = ranking_recipe()["scores"]
+    cols = [c for c in table.columns if check_of(c) in recipe]  # each ranked check, on every camera
     tabs = []
     for demo, row in zip(suspects, table.head(top).to_dict(orient="records")):
         base = suspect_path(row["rank"], row["episode_index"])
@@ -299,6 +304,10 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: Sequence[Demo], 
         top_row = [rrb.TextDocumentView(origin=f"{base}/about", name="why")]
         if demo.frames.size:
             top_row.append(rrb.Spatial2DView(origin=f"{base}/video", name=f"ep {row['episode_index']}"))
+        cameras = [rrb.Spatial2DView(origin=f"{base}/cameras/{c}", name=f"ep {row['episode_index']}: {c}")
+                   for c in demo.extra.get("cameras", {})]
+        if cameras:  # the other cameras one above the other, beside the first
+            top_row.append(rrb.Vertical(*cameras))
         if other is not None:
             plots.append(rrb.TimeSeriesView(origin=f"{other[0]}/actions", name=f"clean ep {other[1]}: actions",
                                             plot_legend=rrb.PlotLegend(visible=False)))
