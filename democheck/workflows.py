@@ -228,12 +228,19 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
     ds = open_dataset(dataset, camera=camera, task=task)
     dev = resolve_device(device)
     t0 = time.perf_counter()
-    ckpt, why = None, None
+    ckpt, why, lost = None, None, None
+    files = ds.video_files()
+    if files and not any(path.exists() for path in files):  # said before any long work, not after it
+        gone = f"every video file of the camera {ds.camera} is missing (e.g. {next(iter(files))})"
+        if model is not None and not no_model:
+            raise DatasetError(f"{ds.root}: {gone}, and the model reads a demo by its frames")
+        lost = f"{gone}: audited on its states and actions alone; democheck info lists the files"
+        ds = ds.without_camera()
     if no_model:
         why = "audited with the model-free checks alone (--no-model)"
     elif model is None and not ds.has_camera:
-        why = ("the dataset records no camera, and the model reads a demo by its frames: audited with the model-free "
-               "checks of its states and actions alone")
+        why = lost or ("the dataset records no camera, and the model reads a demo by its frames: audited with the "
+                       "model-free checks of its states and actions alone")
     else:
         ckpt = load_checkpoint(model, device=dev)
         if model is None:
@@ -249,8 +256,8 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
     table, summary = audit(ds, ckpt, top=top, device=dev, actions=actions, fpr=fpr, timings=t,
                            on_progress=on_progress and in_frames(ds, on_progress), why_no_model=why,
                            workers=workers, engine=engine, ray_address=ray_address, work=work)
-    if why and not no_model:
-        summary["warnings"].insert(0, why)
+    if why and not no_model or lost:
+        summary["warnings"].insert(0, lost or why)
     t.update(summary.pop("timing"))
     with atomic_output_dir(out, force=force) as tmp:
         write_tables(tmp, table, suspects(table))

@@ -152,3 +152,21 @@ def test_a_camera_whose_files_are_missing_is_left_unread_with_a_warning(two_came
     table, summary = audit(open_dataset(tmp_path / "d"), None)
     assert not any("@" in c for c in table.columns) and summary["cameras"] == ["main"]
     assert any(w.startswith("the wrist camera is not read: ") and "missing" in w for w in summary["warnings"])
+
+
+def test_a_dataset_whose_videos_are_all_missing_is_audited_on_its_states_at_once(two_cameras, tmp_path):
+    """Said before any decoding, not after it: the audit reads the states and actions and warns why."""
+    from democheck.data import video
+    from democheck.workflows import audit_dataset
+
+    root, _ = two_cameras
+    shutil.copytree(root, tmp_path / "d")
+    shutil.rmtree(tmp_path / "d" / "videos")
+    before = video.frames_decoded
+    summary = audit_dataset(tmp_path / "d", tmp_path / "r")
+    assert video.frames_decoded == before and summary["cameras"] == [] and summary["model"] is None
+    assert summary["warnings"][0].startswith("every video file of the camera observation.images.main is missing")
+    table = pd.read_parquet(tmp_path / "r" / "scores.parquet")
+    assert {"idle", "motion", "jerk"} <= set(table) and "view" not in table
+    with pytest.raises(Exception, match="the model reads a demo by its frames"):
+        audit_dataset(tmp_path / "d", tmp_path / "r2", model="petnet-push-v1")

@@ -157,6 +157,7 @@ def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
     return out.reshape(*frames.shape[:-3], size, size, frames.shape[-1])
 
 
+NO_CAMERA_KEY = ""  # the camera a reader is asked for to read none (``DemoSet.without_camera``)
 # What ``democheck info`` says of a camera other than the one read first: the checks of the pictures alone read it.
 OTHER_CAMERA = "another camera: its pictures checked too"
 
@@ -226,6 +227,11 @@ class DemoSet:
         size: for the checks that read every camera."""
         return {camera_name(c): DemoSet(self._src.with_camera(c)) for c in self.cameras if c != self.camera}
 
+    def without_camera(self) -> "DemoSet":
+        """The same demos, their states and actions alone (``NO_CAMERA``): for a dataset whose frames cannot be
+        read at all."""
+        return DemoSet(self._src.with_camera(NO_CAMERA_KEY))
+
     @property
     def has_camera(self) -> bool:
         return self._src.image_shape[:2] != NO_CAMERA[:2]
@@ -244,18 +250,24 @@ class DemoSet:
             return self._src.image_shape
         return self.image_size, self.image_size, self._src.image_shape[2]
 
+    def video_files(self) -> dict[Path, list[int]]:
+        """Each video file the metadata names for the camera, and the episodes it holds ({} for a camera that is not
+        a video)."""
+        files: dict[Path, list[int]] = {}
+        if not hasattr(self._src, "video_file") or not self.has_camera:
+            return files
+        for e in self.episodes.index:
+            path = self._src.video_file(int(e))
+            if path is not None:
+                files.setdefault(path, []).append(int(e))
+        return files
+
     def camera_files(self) -> tuple[int, list[str]]:
         """Before any long work: how many video files the metadata names for the camera, and what is wrong with
         them -- each file that is missing (with how many episodes it holds), and a sample that does not decode
         (the first and last frame of the first episode in a file that is there, read strictly).  (0, []) for a
         camera that is not a video."""
-        if not hasattr(self._src, "video_file") or not self.has_camera:
-            return 0, []
-        files: dict[Path, list[int]] = {}  # each file and the episodes it holds
-        for e in self.episodes.index:
-            path = self._src.video_file(int(e))
-            if path is not None:
-                files.setdefault(path, []).append(int(e))
+        files = self.video_files()
         there = {path: path.exists() for path in files}
         problems = [f"{path}: missing ({len(eps)} episode{'s' * (len(eps) > 1)})" for path, eps in files.items()
                     if not there[path]]

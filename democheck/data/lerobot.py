@@ -31,7 +31,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import democheck.data.video as video
-from democheck.data.demo import (NO_CAMERA, OTHER_CAMERA, Damage, Demo, check_arrays, check_episodes, no_frames,
+from democheck.data.demo import (NO_CAMERA, NO_CAMERA_KEY, OTHER_CAMERA, Damage, Demo, check_arrays, check_episodes, no_frames,
                                  readable_frames, repair_non_finite)
 from democheck.errors import DatasetError
 
@@ -222,6 +222,8 @@ class LeRobotBase:
 
     def _pick_camera(self, camera: str | None) -> str | None:
         cams = self.cameras
+        if camera == NO_CAMERA_KEY:
+            return None
         if not cams and camera is not None:
             raise DatasetError(f"{self.root / 'meta/info.json'}: no camera {camera!r}: no image or video feature")
         if camera is None:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from democheck.data.demo import (NO_CAMERA, OTHER_CAMERA, Demo, check_arrays, check_episodes, no_frames,
+from democheck.data.demo import (NO_CAMERA, NO_CAMERA_KEY, OTHER_CAMERA, Demo, check_arrays, check_episodes, no_frames,
                                  readable_frames, repair_non_finite)
 from democheck.errors import DatasetError
 
@@ -63,7 +63,9 @@ class Robomimic:
             images = {k: g[k] for g in groups for k in g if g[k].ndim == 4 and g[k].shape[-1] == 3}
             cams = sorted(images)
             self.cameras = cams
-            if camera is None:
+            if camera == NO_CAMERA_KEY:
+                self.camera = None
+            elif camera is None:
                 self.camera = cams[0] if cams else None  # none: robomimic's low-dimensional files (``NO_CAMERA``)
             else:
                 matches = [c for c in (camera, f"{camera}_image") if c in cams]
