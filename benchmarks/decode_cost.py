@@ -3,7 +3,7 @@ alone (to RGB, as the audit asks for frames), then the audit's decoding pass in 
 -- reading a demo (decoding, conversion, its state and actions), and each check's consumer -- and the whole audit
 without a model.  The ratio the issue of hub-sized data asks for is the audit's time over PyAV's, in the same run.
 
-    python benchmarks/decode_cost.py DATA [--camera KEY] [--repeats 1]
+    python benchmarks/decode_cost.py DATA [--camera KEY] [--repeats 1] [--workers 1] [--model M] [--parts]
 """
 
 from __future__ import annotations
@@ -85,23 +85,27 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--camera")
     ap.add_argument("--repeats", type=int, default=1, help="interleaved repeats of PyAV and the audit; medians")
     ap.add_argument("--parts", action="store_true", help="also time each part of the decoding pass")
+    ap.add_argument("--workers", type=int, default=1, help="the audit's workers (PyAV decodes on one thread)")
+    ap.add_argument("--model", help="audit with this model (default: the model-free checks alone)")
     args = ap.parse_args(argv)
     from democheck.audit.run import audit
     from democheck.data import open_dataset
+    from democheck.petnet.checkpoint import load_checkpoint
 
     ds = open_dataset(args.data, camera=args.camera)
-    cameras = ds.cameras
+    cameras = getattr(ds, "cameras", [ds.camera])  # a democheck that reads one camera: its own
     files = video_files(args.data, cameras)
     runs = defaultdict(list)
+    ckpt = load_checkpoint(args.model) if args.model else None
     for _ in range(args.repeats):
         runs["pyav_rgb_s"].append(pyav_decode(files)[0])
         runs["pyav_s"].append(pyav_decode(files, rgb=False)[0])
         t0 = time.perf_counter()
-        audit(open_dataset(args.data, camera=args.camera), None, workers=1)
+        audit(open_dataset(args.data, camera=args.camera), ckpt, workers=args.workers)
         runs["audit_s"].append(time.perf_counter() - t0)
     out = {k: round(float(np.median(v)), 2) for k, v in runs.items()}
     frames = int(ds.episodes["length"].sum())
-    out.update(demos=len(ds), frames=frames, cameras=len(cameras), video_files=len(files),
+    out.update(demos=len(ds), frames=frames, cameras=len(cameras), video_files=len(files), workers=args.workers,
                audit_frames_per_s=round(frames * len(cameras) / out["audit_s"], 1),
                pyav_rgb_frames_per_s=round(frames * len(cameras) / out["pyav_rgb_s"], 1),
                audit_over_pyav_rgb=round(out["audit_s"] / out["pyav_rgb_s"], 2),

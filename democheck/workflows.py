@@ -31,7 +31,7 @@ from democheck.audit.run import audit, finish_summary, for_model, suspects, writ
 from democheck.audit.ocsvm import reference
 from democheck.audit.flagging import DEFAULT_FPR, flagged_regardless, flags
 from democheck.data import open_dataset
-from democheck.data.demo import DemoSet
+from democheck.data.demo import DemoSet, camera_name
 from democheck.data.cache import build_cache, dataset_fingerprint
 from democheck.data.subset import write_subset
 from democheck.errors import DatasetError, DemocheckError
@@ -166,6 +166,7 @@ class Suspects(Sequence):
     def __getitem__(self, i):
         demo = self.ds[int(self.episodes[i])]
         if self.others:
+            demo.extra["camera"] = camera_name(self.ds.camera)
             demo.extra["cameras"] = {c: v[demo.episode_index].frames for c, v in self.others.items()}
         return demo
 

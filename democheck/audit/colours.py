@@ -9,6 +9,7 @@ from __future__ import annotations
 import colorsys
 import warnings
 
+import cv2
 import numpy as np
 
 from democheck.audit.findings import Finding, Vocabulary
@@ -37,9 +38,14 @@ class ColourStats(PerDemo):
             self.shares.append(np.full(bins, np.nan))
             self.pixel.append(np.nan)
             return
-        q = (rgb.astype(np.int32) * COLOUR_LEVELS) >> 8
-        index = (q[..., 0] * COLOUR_LEVELS + q[..., 1]) * COLOUR_LEVELS + q[..., 2]
-        self.shares.append(np.bincount(index.ravel(), minlength=bins) / index.size)
+        # Each channel's value v falls in range (v * COLOUR_LEVELS) >> 8: OpenCV's histogram of equal ranges over
+        # [0, 256), counted frame by frame (exact in its float32 counts) and summed.
+        counts = np.zeros(bins, np.int64)
+        levels = [COLOUR_LEVELS] * 3
+        for frame in rgb:
+            counts += cv2.calcHist([np.ascontiguousarray(frame)], [0, 1, 2], None, levels, [0, 256] * 3
+                                   ).astype(np.int64).ravel()
+        self.shares.append(counts / (len(rgb) * rgb.shape[1] * rgb.shape[2]))
         self.pixel.append(1.0 / (rgb.shape[1] * rgb.shape[2]))
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:

@@ -303,7 +303,8 @@ def write_report_rrd(path: Path, table: pd.DataFrame, suspects: Sequence[Demo], 
                                              plot_legend=rrb.PlotLegend(visible=False)))
         top_row = [rrb.TextDocumentView(origin=f"{base}/about", name="why")]
         if demo.frames.size:
-            top_row.append(rrb.Spatial2DView(origin=f"{base}/video", name=f"ep {row['episode_index']}"))
+            first = f": {demo.extra['camera']}" if demo.extra.get("camera") else ""
+            top_row.append(rrb.Spatial2DView(origin=f"{base}/video", name=f"ep {row['episode_index']}{first}"))
         cameras = [rrb.Spatial2DView(origin=f"{base}/cameras/{c}", name=f"ep {row['episode_index']}: {c}")
                    for c in demo.extra.get("cameras", {})]
         if cameras:  # the other cameras one above the other, beside the first
