@@ -77,7 +77,7 @@ CHILD = """
 import json, resource, sys, time
 from democheck.workflows import audit_dataset
 s = audit_dataset(sys.argv[1], sys.argv[2], model=sys.argv[3] if sys.argv[3] != '-' else None, device=sys.argv[4],
-                  force=True, actions=sys.argv[5] == "actions")
+                  force=True, actions=sys.argv[5] != "cues", no_model=sys.argv[5] == "no-model")
 # VmHWM, not ru_maxrss: Linux carries ru_maxrss across execve, so a child of a parent that once held a large
 # memmap (benchmarks/run.py after the training benchmark) would report the parent's peak.
 try:
@@ -88,17 +88,20 @@ print(json.dumps({"demos": s["demos"], "timing": s["timing"], "peak_rss_mb": pea
 """
 
 
-def run_audit(dataset: Path, out: Path, model: str, device: str = "cpu", actions: bool = False) -> dict:
-    """One audit in a fresh process; the cue pass (``--no-actions``) unless ``actions``."""
-    res = subprocess.run([sys.executable, "-c", CHILD, str(dataset), str(out), model, device,
-                          "actions" if actions else "cues"], capture_output=True, text=True)
+def run_audit(dataset: Path, out: Path, model: str, device: str = "cpu", actions: bool = False,
+              no_model: bool = False) -> dict:
+    """One audit in a fresh process; the cue pass (``--no-actions``) unless ``actions``; the decoding pass alone
+    with ``no_model``."""
+    how = "no-model" if no_model else "actions" if actions else "cues"
+    res = subprocess.run([sys.executable, "-c", CHILD, str(dataset), str(out), model, device, how],
+                         capture_output=True, text=True)
     if res.returncode:
         raise SystemExit(res.stderr)
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
 def measure(dataset: Path, times: int = 10, model: str = "-", repeats: int = 1, workdir: Path | None = None,
-            device: str = "cpu", verbose: bool = False) -> dict:
+            device: str = "cpu", verbose: bool = False, no_model: bool = False) -> dict:
     """Audit ``dataset`` and its ``times``-fold replica, each ``repeats`` times in a fresh process; medians.
 
     The cue pass (``audit --no-actions``): the action error decodes every frame and is timed on its own
@@ -110,7 +113,8 @@ def measure(dataset: Path, times: int = 10, model: str = "-", repeats: int = 1, 
         big = Path(tmp) / f"x{times}"
         replicate(dataset, big, times)
         for name, ds in (("1x", dataset), (f"{times}x", big)):
-            runs = [run_audit(ds, Path(tmp) / f"report-{name}-{i}", model, device) for i in range(repeats)]
+            runs = [run_audit(ds, Path(tmp) / f"report-{name}-{i}", model, device, no_model=no_model)
+                    for i in range(repeats)]
             med = lambda f: statistics.median(f(r) for r in runs)  # noqa: E731
             out[name] = {"demos": runs[0]["demos"], "demos_per_s": med(lambda r: r["timing"]["demos_per_s"]),
                          "model_load_s": med(lambda r: r["timing"]["model_load_s"]),
@@ -142,13 +146,16 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--workdir", type=Path, default=None, help="where to put the replica (default: a temp folder)")
     ap.add_argument("--actions", action="store_true", help="time the default audit, with the action error, instead")
+    ap.add_argument("--no-model", action="store_true",
+                    help="the audit without a model (every demo decoded), at both sizes: what grows with the data")
     args = ap.parse_args()
     if args.actions:
         r = audit_actions(args.dataset, args.model)
         print(f"{r['demos']} demos: cue pass {r['cue_demos_per_s']:.0f} demos/s, action pass "
               f"{r['action_demos_per_s']:.0f} demos/s, peak memory {r['peak_rss_mb']:.0f} MB")
         return
-    res = measure(args.dataset, args.times, args.model, args.repeats, args.workdir, verbose=True)
+    res = measure(args.dataset, args.times, args.model, args.repeats, args.workdir, verbose=True,
+                  no_model=args.no_model)
     print(f"peak memory ratio {args.times}x / 1x: {res['memory_ratio']:.2f}")
 
 

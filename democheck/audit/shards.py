@@ -292,7 +292,9 @@ def _decode_shard(job: tuple) -> list[dict[str, Any]]:
     ev._z = spec["z"]
     decoding = {k: registry.SCORERS[n] for k, n in spec["consumers"].items()}
     got = consumers(decoding, ev, slice(0, len(eps)), pool.state["device"])
-    views = {c: _opened(v) for c, v in spec["views"].items()}
+    # Every camera's frames decoded into memory reused demo after demo: the consumers keep none of them.
+    ds = ds.reusing()
+    views = {c: _opened(v).reusing() for c, v in spec["views"].items()}
     for e in eps:
         feed(ds[e], got, views)
         pool.tick()

@@ -139,7 +139,7 @@ class DemoSource(Protocol):
     action_dim: int
     episodes: pd.DataFrame  # index: episode_index; columns: task, length (+ split, success, label when known)
 
-    def load(self, episode_index: int) -> Demo: ...
+    def load(self, episode_index: int, arena: Any = None) -> Demo: ...
 
     def cue_frames(self, episode_index: int) -> np.ndarray: ...
 
@@ -178,6 +178,7 @@ class DemoSet:
 
     def __init__(self, source: DemoSource, image_size: int | None = None):
         self._src = source
+        self._arena = None  # where its demos' frames are decoded to, in a set that ``reuses`` memory
         native = source.image_shape
         self.image_size = (None if image_size is None or native[:2] in ((image_size, image_size), NO_CAMERA[:2])
                            else int(image_size))
@@ -189,6 +190,15 @@ class DemoSet:
         if hasattr(self._src, "strict"):
             self._src.strict = True
         return self
+
+    def reusing(self) -> "DemoSet":
+        """The same demos, each one's frames decoded into the memory of the one before (``video.FrameArena``):
+        for a pass that is done with a demo before it reads the next, and keeps none of its frames."""
+        from democheck.data.video import FrameArena  # PyAV: not at import, so that --help stays light
+
+        out = DemoSet(self._src, self.image_size)
+        out._arena = FrameArena()
+        return out
 
     def resized(self, image_size: int | None) -> "DemoSet":
         """The same demos, frames at ``image_size`` (None: the camera's own)."""
@@ -322,7 +332,8 @@ class DemoSet:
         return episode_index in self._src.episodes.index
 
     def _load(self, episode_index: int) -> Demo:
-        demo = self._src.load(episode_index)
+        demo = self._src.load(episode_index, arena=self._arena) if self._arena is not None else \
+            self._src.load(episode_index)
         if self.image_size is not None:
             demo.frames = resize_frames(demo.frames, self.image_size)
         return demo

@@ -31,8 +31,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import democheck.data.video as video
-from democheck.data.demo import (NO_CAMERA, NO_CAMERA_KEY, OTHER_CAMERA, Damage, Demo, check_arrays, check_episodes, no_frames,
-                                 readable_frames, repair_non_finite)
+from democheck.data.demo import (NO_CAMERA, NO_CAMERA_KEY, OTHER_CAMERA, Damage, Demo, check_arrays, check_episodes,
+                                 no_frames, readable_frames, repair_non_finite)
 from democheck.errors import DatasetError
 
 CODEBASE_VERSION = "v3.0"
@@ -432,14 +432,15 @@ class LeRobotV3(LeRobotBase):
         """The video file that holds the episode's camera frames (None where the camera is not a video)."""
         return self._video_span(episode_index)[0] if self.camera is not None and self.camera_dtype == "video" else None
 
-    def load(self, episode_index: int) -> Demo:
+    def load(self, episode_index: int, arena: video.FrameArena | None = None) -> Demo:
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
         if self.camera is None:
             frames, unreadable = no_frames(e - s), []
         elif self.camera_dtype == "video":
             vpath, start, stop = self._video_span(episode_index)
-            frames, unreadable = self._readable(lambda: video.read_range(vpath, start, stop, self.fps), e - s, vpath)
+            frames, unreadable = self._readable(lambda: video.read_range(vpath, start, stop, self.fps, arena), e - s,
+                                                vpath)
         else:
             frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s, path)
         return self._make_demo(episode_index, frames, entry, s, e, unreadable)

@@ -56,14 +56,14 @@ class LeRobotV21(LeRobotBase):
         return self._path("video_path", episode_index) if self.camera is not None and self.camera_dtype == "video" \
             else None
 
-    def load(self, episode_index: int) -> Demo:
+    def load(self, episode_index: int, arena: video.FrameArena | None = None) -> Demo:
         path = self._data_path(episode_index)
         entry, s, e = self._rows(path, episode_index)
         if self.camera is None:
             frames, unreadable = no_frames(e - s), []
         elif self.camera_dtype == "video":
             vpath = self._path("video_path", episode_index)
-            frames, unreadable = self._readable(lambda: video.read_range(vpath, 0, e - s, self.fps), e - s, vpath)
+            frames, unreadable = self._readable(lambda: video.read_range(vpath, 0, e - s, self.fps, arena), e - s, vpath)
         else:
             frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s, path)
         return self._make_demo(episode_index, frames, entry, s, e, unreadable)

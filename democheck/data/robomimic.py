@@ -169,7 +169,8 @@ class Robomimic:
         """Where a demo's state keys are: its obs group, or the demo itself in a raw file (its ``states``)."""
         return g["obs"] if self.obs else g
 
-    def load(self, episode_index: int) -> Demo:
+    def load(self, episode_index: int, arena: object = None) -> Demo:
+        """One demo (``arena``: LeRobot's video reuse, unused for images in the file)."""
         with self._h5.File(self.root, "r") as f:
             g = self._group(f, episode_index)
             actions = np.asarray(g[self.action_key][()], np.float32)

@@ -93,8 +93,27 @@ def through_codec(frames: np.ndarray, fps: int, pix_fmt: str = DEFAULT_PIX_FMT, 
         return read_frames(path, np.arange(len(frames)), fps)
 
 
-def read_frames(path: str | Path, indices: list[int] | np.ndarray, fps: float) -> np.ndarray:
-    """Decode the given frame numbers (ascending) of a file; uint8 [N, H, W, 3].
+class FrameArena:
+    """One block of memory that successive reads decode into (``read_frames``'s ``arena``): writing a hub camera's
+    frames into fresh memory costs five times writing them into memory written before (the pages are mapped on
+    first touch), so a pass that reads one demo after another reuses it.  What a read returns is valid until the
+    next read into the same arena."""
+
+    def __init__(self) -> None:
+        self._block = np.zeros(0, np.uint8)
+
+    def take(self, n: int, h: int, w: int) -> np.ndarray:
+        """An uninitialised uint8 [n, h, w, 3] view of the block, grown when it is too small."""
+        size = n * h * w * 3
+        if self._block.size < size:
+            self._block = np.empty(max(size, int(self._block.size * 1.25)), np.uint8)
+        return self._block[:size].reshape(n, h, w, 3)
+
+
+def read_frames(path: str | Path, indices: list[int] | np.ndarray, fps: float, arena: FrameArena | None = None
+                ) -> np.ndarray:
+    """Decode the given frame numbers (ascending) of a file; uint8 [N, H, W, 3] (in ``arena`` where given: valid
+    until its next read).
 
     Seeks to the keyframe before each wanted frame that is far from the last
     decoded one, so sparse reads cost O(GOP) decoded frames each.
@@ -131,7 +150,8 @@ def read_frames(path: str | Path, indices: list[int] | np.ndarray, fps: float) -
                     pos = int(round(float(frame.pts * tb) * fps))
                     if pos == k:
                         if out is None:
-                            out = np.empty((len(want), frame.height, frame.width, 3), np.uint8)
+                            out = (arena.take(len(want), frame.height, frame.width) if arena is not None else
+                                   np.empty((len(want), frame.height, frame.width, 3), np.uint8))
                         if (frame.height, frame.width) != out.shape[1:3]:
                             raise DatasetError(f"{path}: frame {k} is {frame.width}x{frame.height}, the frames "
                                                f"before it {out.shape[2]}x{out.shape[1]}")
@@ -164,6 +184,6 @@ def _to_rgb(frame: av.VideoFrame, into: np.ndarray) -> None:
     into[:] = np.frombuffer(plane, np.uint8).reshape(h, plane.line_size)[:, :3 * w].reshape(h, w, 3)
 
 
-def read_range(path: str | Path, start: int, stop: int, fps: float) -> np.ndarray:
-    """Decode frames ``start..stop-1`` of a file in one sequential pass."""
-    return read_frames(path, np.arange(start, stop), fps)
+def read_range(path: str | Path, start: int, stop: int, fps: float, arena: FrameArena | None = None) -> np.ndarray:
+    """Decode frames ``start..stop-1`` of a file in one sequential pass (into ``arena`` where given)."""
+    return read_frames(path, np.arange(start, stop), fps, arena)
