@@ -27,46 +27,56 @@ import pyarrow.parquet as pq
 
 
 def replicate(src: Path, dst: Path, times: int) -> None:
+    """``src`` (LeRobot v3.0) ``times`` over at ``dst``: every camera's video files hard-linked, the data files and
+    the episode tables (and democheck's sidecar, where there is one) rewritten with new episode and frame indices."""
     info = json.loads((src / "meta/info.json").read_text())
-    eps = pd.read_parquet(src / "meta/episodes/chunk-000/file-000.parquet")
-    side = pd.read_parquet(src / "meta/democheck/episodes.parquet")
+    eps = pd.concat([pd.read_parquet(p) for p in sorted((src / "meta/episodes").glob("chunk-*/file-*.parquet"))],
+                    ignore_index=True)
+    sidecar = src / "meta/democheck/episodes.parquet"
+    side = pd.read_parquet(sidecar) if sidecar.exists() else None
     n_eps, n_frames = int(info["total_episodes"]), int(info["total_frames"])
-    n_files = int(eps["data/file_index"].max()) + 1
-    key = "observation.images.main"
+    cameras = [k for k, f in info["features"].items() if isinstance(f, dict) and f.get("dtype") == "video"]
+    files = {kind: int(eps[f"{kind}/file_index"].max()) + 1 for kind in ["data", *(f"videos/{k}" for k in cameras)]}
     (dst / "meta/episodes/chunk-000").mkdir(parents=True)
-    (dst / "meta/democheck").mkdir(parents=True)
-    shutil.copy(src / "meta/tasks.parquet", dst / "meta/tasks.parquet")
-    shutil.copy(src / "meta/stats.json", dst / "meta/stats.json")
+    for name in ("tasks.parquet", "stats.json"):
+        if (src / "meta" / name).exists():
+            shutil.copy(src / "meta" / name, dst / "meta" / name)
     all_eps, all_side = [], []
     for c in range(times):
         e = eps.copy()
         e["episode_index"] += c * n_eps
         e["dataset_from_index"] += c * n_frames
         e["dataset_to_index"] += c * n_frames
-        for kind in ("data", f"videos/{key}"):
-            e[f"{kind}/file_index"] += c * n_files
+        for kind, n in files.items():
+            e[f"{kind}/file_index"] += c * n
             e[f"{kind}/chunk_index"] = e[f"{kind}/file_index"] // 1000
-        s = side.copy()
-        s["episode_index"] += c * n_eps
+        e["meta/episodes/chunk_index"], e["meta/episodes/file_index"] = 0, 0
         all_eps.append(e)
-        all_side.append(s)
-        for f in range(n_files):
-            new = f + c * n_files
-            chunk = new // 1000
-            vsrc = src / f"videos/{key}/chunk-{f // 1000:03d}/file-{f:03d}.mp4"
-            vdst = dst / f"videos/{key}/chunk-{chunk:03d}/file-{new:03d}.mp4"
-            vdst.parent.mkdir(parents=True, exist_ok=True)
-            os.link(vsrc, vdst)  # hard link: a symlink out of the dataset is (rightly) refused by the reader
+        if side is not None:
+            s = side.copy()
+            s["episode_index"] += c * n_eps
+            all_side.append(s)
+        for key in cameras:
+            for f in range(files[f"videos/{key}"]):
+                new = f + c * files[f"videos/{key}"]
+                vdst = dst / f"videos/{key}/chunk-{new // 1000:03d}/file-{new:03d}.mp4"
+                vdst.parent.mkdir(parents=True, exist_ok=True)
+                # a hard link: a symlink out of the dataset is (rightly) refused by the reader
+                os.link(src / f"videos/{key}/chunk-{f // 1000:03d}/file-{f:03d}.mp4", vdst)
+        for f in range(files["data"]):
+            new = f + c * files["data"]
             t = pq.read_table(src / f"data/chunk-{f // 1000:03d}/file-{f:03d}.parquet")
             t = t.set_column(t.column_names.index("episode_index"), "episode_index",
                              pc.add(t.column("episode_index"), pa.scalar(c * n_eps, pa.int64())))
             t = t.set_column(t.column_names.index("index"), "index",
                              pc.add(t.column("index"), pa.scalar(c * n_frames, pa.int64())))
-            ddst = dst / f"data/chunk-{chunk:03d}/file-{new:03d}.parquet"
+            ddst = dst / f"data/chunk-{new // 1000:03d}/file-{new:03d}.parquet"
             ddst.parent.mkdir(parents=True, exist_ok=True)
             pq.write_table(t, ddst)
     pd.concat(all_eps).to_parquet(dst / "meta/episodes/chunk-000/file-000.parquet", index=False)
-    pd.concat(all_side).to_parquet(dst / "meta/democheck/episodes.parquet", index=False)
+    if all_side:
+        (dst / "meta/democheck").mkdir(parents=True)
+        pd.concat(all_side).to_parquet(dst / "meta/democheck/episodes.parquet", index=False)
     info["total_episodes"] = n_eps * times
     info["total_frames"] = n_frames * times
     info["splits"] = {"train": f"0:{n_eps * times}"}

@@ -170,3 +170,12 @@ def test_a_dataset_whose_videos_are_all_missing_is_audited_on_its_states_at_once
     assert {"idle", "motion", "jerk"} <= set(table) and "view" not in table
     with pytest.raises(Exception, match="the model reads a demo by its frames"):
         audit_dataset(tmp_path / "d", tmp_path / "r2", model="petnet-push-v1")
+
+
+def test_a_set_that_reuses_memory_reads_the_same_frames(two_cameras):
+    """``DemoSet.reusing`` decodes each demo into the memory of the one before: the same frames, read for read."""
+    root, _ = two_cameras
+    plain, reused = open_dataset(root), open_dataset(root).reusing()
+    for e in plain.episode_indices[:4]:
+        frames = reused[e].frames
+        assert np.array_equal(frames, plain[e].frames) and frames.base is not None  # a view of the arena

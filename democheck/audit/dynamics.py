@@ -33,7 +33,7 @@ from democheck.audit.modelfree import PerDemo, steps_text
 from democheck.data.demo import Demo
 
 DYNAMICS_RIDGE = 1e-3  # ridge penalty per step, on standardised features: a near-constant feature cannot blow up
-DYNAMICS_BLOCK = 128  # demos per fit (= the audit's decoding shard, ``shards.SHARD``)
+DYNAMICS_BLOCK = 128  # demos per fit (= the audit's decoding shard of a large set, ``shards.SHARD``)
 DYNAMICS_MIN_BLOCK = 32  # a last block of fewer demos is judged by the fit of the block before it
 DYNAMICS_WINDOW = 10  # the reason names the stretch of this many steps the state follows the actions worst
 LAG_MAX = 16  # steps either way the ``lag`` check moves a demo's actions (0.2 s at 80 fps, 0.5 s at 30 fps)
@@ -176,7 +176,7 @@ class DynamicsFit(PerDemo):
     def merged(cls, parts: list["PerDemo"]) -> "DynamicsFit":
         """The shards' scores in order, and their waiting demos scored in blocks as they fill up -- what one
         consumer fed every demo would hold, as long as each shard's blocks line up with the whole's
-        (``shards.SHARD`` is a multiple of ``DYNAMICS_BLOCK``, or smaller)."""
+        (``shards.decode_shard`` is a multiple of ``DYNAMICS_BLOCK``, or smaller)."""
         out = cls()
         for part in parts:
             if part.errors and out.actions:

@@ -205,7 +205,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
                 rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
                 seen = {c: seen[c] for c in ev.cameras}
                 here.know(ds, *seen.values())
-                for key, part in shards.sharded_decoding(ds, ev, rows, decoding, run_on(spread(ds, shards.SHARD)),
+                for key, part in shards.sharded_decoding(ds, ev, rows, decoding, run_on(spread(ds, shards.decode_shard(len(ds)))),
                                                          f"decode-{k}", stage("decoding" if ckpt is None
                                                                                else "actions", ds), seen).items():
                     got[key].append(part)
@@ -288,7 +288,7 @@ def journal_key(ds: DemoSet, ckpt: Checkpoint | None, actions: bool) -> dict[str
     return {"dataset": str(ds.root.resolve()), "camera": ds.camera,
             "fingerprint": dataset_fingerprint(ds) if ds.root.is_dir() else f"{stat.st_size}:{stat.st_mtime_ns}",
             "model": None if weights is None else hashlib.sha256(weights.read_bytes()).hexdigest()[:16],
-            "actions": actions, "shards": [shards.CUE_SHARD, shards.CUE_BATCH, shards.SHARD]}
+            "actions": actions, "shards": [shards.CUE_SHARD, shards.CUE_BATCH, shards.decode_shard(len(ds))]}
 
 
 def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cpu", actions: bool = True,

@@ -38,11 +38,19 @@ CUE_BATCH = 256  # cues encoded at a time, in one process and in a worker alike
 # Cues per shard of a parallel cue pass: whole batches of ``CUE_BATCH``, as one process encodes them.
 CUE_SHARD = 4 * CUE_BATCH
 # Demos per shard of the decoding pass: a multiple of the action error's batch, so that every batch the controller
-# sees holds the same demos as in one process (and the numbers are the same), and a multiple of the dynamics
-# check's block (``dynamics.DYNAMICS_BLOCK``) or smaller, for the same reason.  One batch: a hub dataset's hundred
-# long demos are four shards, enough to keep two workers busy and to lose little to an interruption.
-SHARD = ACTION_BATCH
+# sees holds the same demos as in one process (and the numbers are the same), and of the dynamics check's block
+# (``dynamics.DYNAMICS_BLOCK``), for the same reason -- a shard then scores its own blocks and hands back no states.
+SHARD = 4 * ACTION_BATCH
 assert SHARD % dynamics.DYNAMICS_BLOCK == 0 or SHARD < dynamics.DYNAMICS_BLOCK, "see dynamics.DynamicsFit.merged"
+# A set of fewer than this many shards is cut into shards of one batch instead (the dynamics check's states then wait
+# for the merge, a few hundred demos' worth): a hub dataset's hundred long demos are four shards, enough to keep two
+# workers busy and to lose little to an interruption.
+FEW_SHARDS = 4
+
+
+def decode_shard(n_demos: int) -> int:
+    """Demos per shard of a decoding pass over ``n_demos``: ``SHARD``, or one action-error batch in a small set."""
+    return SHARD if n_demos >= FEW_SHARDS * SHARD else min(SHARD, ACTION_BATCH)
 # Spreading a pass pays where each worker gets a shard and the pass decodes at least this many pixels (frames
 # times their size): starting the workers (each imports torch and loads the model) costs ~2 s, about what one
 # core decodes of this many pixels.  On push-v1 (64x64 frames), 168 demos (7e7 pixels) took 2.1 s in one process
@@ -203,17 +211,18 @@ def sharded_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str,
                      on_progress: Callable[[int, int], None] | None = None,
                      views: dict[str, DemoSet] | None = None) -> dict[str, Any]:
     """The decoding pass of ``ds`` (its rows ``rows`` of the evidence; ``views``: its other cameras, by short
-    name) by ``run``: shards of ``SHARD`` consecutive demos, each decoded with its worker's copy of the model; what
+    name) by ``run``: shards of ``decode_shard`` consecutive demos, each decoded with its worker's copy of the model; what
     a consumer keeps per demo (``modelfree.PerDemo``) is merged before it finishes, what it finishes per demo is
     pooled after."""
     eps = ds.episode_indices
     z = ev.task_variables()[rows] if ev.posterior is not None else None
     cameras = {c: where(v) for c, v in (views or {}).items()}
-    jobs = [(i, {"pass": "decode", **where(ds), "tasks": ds.episodes.loc[eps[s:s + SHARD], "task"].tolist(),
+    size = decode_shard(len(eps))
+    jobs = [(i, {"pass": "decode", **where(ds), "tasks": ds.episodes.loc[eps[s:s + size], "task"].tolist(),
                  "consumers": {k: x.name for k, x in decoding.items()}, "views": cameras,
-                 "z": None if z is None else z[s:s + SHARD]},
-             eps[s:s + SHARD])
-            for i, s in enumerate(range(0, len(eps), SHARD))]
+                 "z": None if z is None else z[s:s + size]},
+             eps[s:s + size])
+            for i, s in enumerate(range(0, len(eps), size))]
     got = sorted(run(name, jobs, len(eps), on_progress), key=lambda r: r["shard"])
     out = {}
     for key in decoding:
