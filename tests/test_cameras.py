@@ -112,14 +112,20 @@ def test_the_cameras_of_one_check_count_once(two_cameras):
 
 
 def test_workers_read_every_camera_as_one_process_does(two_cameras, monkeypatch):
+    """A small set is cut into small shards (24 demos without a model: three of 8), which two workers share."""
+    from democheck import pool
     from democheck.audit import shards
     from democheck.audit.run import audit
 
     root, _ = two_cameras
-    monkeypatch.setattr(shards, "SHARD", 4)  # 24 demos: six shards, three per worker
     monkeypatch.setattr(shards, "PARALLEL_MIN_PIXELS", 0)  # spread however little they decode
+    jobs = []
+    monkeypatch.setattr(pool.Workers, "run", lambda self, js, shard, total, on_progress=None, on_result=None,
+                        real=pool.Workers.run: jobs.extend(js) or real(self, js, shard, total, on_progress, on_result))
     one, _ = audit(open_dataset(root), None, workers=1)
+    assert not jobs
     two, _ = audit(open_dataset(root), None, workers=2)
+    assert [len(j[2]) for j in jobs] == [8, 8, 8]
     for col in one.columns:
         assert one[col].equals(two[col]), col
 

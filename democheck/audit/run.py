@@ -157,8 +157,8 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
         return shards.pays(len(ds), shard, engine, workers, frames * max(h * w, 1) * (1 + len(ds.cameras[1:])))
 
     decodes = any(s.decode is not None for s in scorers)
-    parallel = any(ckpt is not None and spread(ds, shards.CUE_SHARD) or decodes and spread(ds, shards.SHARD)
-                   for ds in sets)
+    parallel = any(ckpt is not None and spread(ds, shards.CUE_SHARD)
+                   or decodes and spread(ds, shards.decode_shard(len(ds), ckpt is not None)) for ds in sets)
     here = shards.Here(ckpt, device)
     with shards.runner(parallel, engine, workers, model, str(device), ray_address) as runner:
         def run_on(spreads: bool) -> shards.Run:
@@ -205,7 +205,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
                 rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
                 seen = {c: seen[c] for c in ev.cameras}
                 here.know(ds, *seen.values())
-                for key, part in shards.sharded_decoding(ds, ev, rows, decoding, run_on(spread(ds, shards.decode_shard(len(ds)))),
+                for key, part in shards.sharded_decoding(ds, ev, rows, decoding, run_on(spread(ds, shards.decode_shard(len(ds), ckpt is not None))),
                                                          f"decode-{k}", stage("decoding" if ckpt is None
                                                                                else "actions", ds), seen).items():
                     got[key].append(part)
@@ -288,7 +288,8 @@ def journal_key(ds: DemoSet, ckpt: Checkpoint | None, actions: bool) -> dict[str
     return {"dataset": str(ds.root.resolve()), "camera": ds.camera,
             "fingerprint": dataset_fingerprint(ds) if ds.root.is_dir() else f"{stat.st_size}:{stat.st_mtime_ns}",
             "model": None if weights is None else hashlib.sha256(weights.read_bytes()).hexdigest()[:16],
-            "actions": actions, "shards": [shards.CUE_SHARD, shards.CUE_BATCH, shards.decode_shard(len(ds))]}
+            "actions": actions,
+            "shards": [shards.CUE_SHARD, shards.CUE_BATCH, shards.decode_shard(len(ds), ckpt is not None)]}
 
 
 def audit(ds: DemoSet, ckpt: Checkpoint | None, top: int = 20, device: Any = "cpu", actions: bool = True,

@@ -42,15 +42,18 @@ CUE_SHARD = 4 * CUE_BATCH
 # (``dynamics.DYNAMICS_BLOCK``), for the same reason -- a shard then scores its own blocks and hands back no states.
 SHARD = 4 * ACTION_BATCH
 assert SHARD % dynamics.DYNAMICS_BLOCK == 0 or SHARD < dynamics.DYNAMICS_BLOCK, "see dynamics.DynamicsFit.merged"
-# A set of fewer than this many shards is cut into shards of one batch instead (the dynamics check's states then wait
-# for the merge, a few hundred demos' worth): a hub dataset's hundred long demos are four shards, enough to keep two
-# workers busy and to lose little to an interruption.
+# A set of fewer than this many shards is cut into smaller shards instead (the dynamics check's states then wait for
+# the merge, a few hundred demos' worth): one action-error batch where a model reads the demos, a quarter of one
+# where none does, so that a hub dataset's few dozen long demos keep two workers equally busy and an interruption
+# loses little.
 FEW_SHARDS = 4
 
 
-def decode_shard(n_demos: int) -> int:
-    """Demos per shard of a decoding pass over ``n_demos``: ``SHARD``, or one action-error batch in a small set."""
-    return SHARD if n_demos >= FEW_SHARDS * SHARD else min(SHARD, ACTION_BATCH)
+def decode_shard(n_demos: int, model: bool = True) -> int:
+    """Demos per shard of a decoding pass over ``n_demos`` (``model``: the action error reads them in batches):
+    ``SHARD``, or smaller in a small set."""
+    small = ACTION_BATCH if model else ACTION_BATCH // 4
+    return SHARD if n_demos >= FEW_SHARDS * SHARD else min(SHARD, small)
 # Spreading a pass pays where each worker gets a shard and the pass decodes at least this many pixels (frames
 # times their size): starting the workers (each imports torch and loads the model) costs ~2 s, about what one
 # core decodes of this many pixels.  On push-v1 (64x64 frames), 168 demos (7e7 pixels) took 2.1 s in one process
@@ -217,7 +220,7 @@ def sharded_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str,
     eps = ds.episode_indices
     z = ev.task_variables()[rows] if ev.posterior is not None else None
     cameras = {c: where(v) for c, v in (views or {}).items()}
-    size = decode_shard(len(eps))
+    size = decode_shard(len(eps), ev.model is not None)
     jobs = [(i, {"pass": "decode", **where(ds), "tasks": ds.episodes.loc[eps[s:s + size], "task"].tolist(),
                  "consumers": {k: x.name for k, x in decoding.items()}, "views": cameras,
                  "z": None if z is None else z[s:s + size]},
