@@ -217,27 +217,35 @@ def _view_part(query: list, groups: np.ndarray, cross: list | None = None
     return share, calibrated(share, groups, min_scale=VIEW_MIN_SCALE), masks, cross_share
 
 
-def _state_part(query: np.ndarray, groups: np.ndarray, floor: np.ndarray | float, cross: np.ndarray | None = None,
-                pooled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per demo of a path's part (``query`` [N, PATH_POINTS * m]), the RMS distance to its nearest task-mates over
-    the whole path (in units; ``pooled``: one unit for every feature, as for a picture's pixels, where a still
-    background's tiny spread would make any shadow far); the larger robust z within its group, on a log scale, of
-    its ``PATH_DISTANCES``; the per-feature distance; and the whole path's RMS distance against ``cross``."""
-    n, m = query.shape
+def _state_part(query: np.ndarray, groups: np.ndarray, floor: np.ndarray | float, backwards: bool = False,
+                pooled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per demo of a path's part (``query`` [N, PATH_POINTS, ...], any dtype), the RMS distance to its nearest
+    task-mates over the whole path (in units; ``pooled``: one unit for every feature, as for a picture's pixels,
+    where a still background's tiny spread would make any shadow far); the larger robust z within its group, on a
+    log scale, of its ``PATH_DISTANCES``; where it is furthest, as the mean distance at each point [N, PATH_POINTS]
+    and in each feature of a point [N, m]; and, with ``backwards``, the whole path's RMS distance against the
+    mates' paths played backwards.  One group's paths in float64 at a time: memory grows with the largest group."""
+    n = len(query)
+    m = int(np.prod(query.shape[2:]))
     dist = {name: np.full(n, np.nan) for name in ("whole", "furthest")}
-    cross_dist, per = np.full(n, np.nan), np.full((n, m), np.nan)
+    cross_dist, at_point, in_feature = np.full(n, np.nan), np.full((n, PATH_POINTS), np.nan), np.full((n, m), np.nan)
     for rows in _grouped(groups):
-        z = _in_units(query[rows], query[rows], floor, pooled)
+        x = np.asarray(query[rows], np.float64)
+        flat = x.reshape(len(rows), -1)
+        z = _in_units(flat, flat, floor, pooled)
         diff = _nearest(z, z, exclude_self=True)
-        per[rows], dist["whole"][rows] = diff, _rms(diff)
-        dist["furthest"][rows] = _rms(diff.reshape(len(rows), PATH_POINTS, -1).transpose(0, 2, 1)).max(axis=1)
-        if cross is not None:
-            cz = _in_units(cross[rows], query[rows], floor, pooled)
+        dist["whole"][rows] = _rms(diff)
+        points = diff.reshape(len(rows), PATH_POINTS, -1)
+        dist["furthest"][rows] = _rms(points.transpose(0, 2, 1)).max(axis=1)
+        at_point[rows], in_feature[rows] = np.nan_to_num(points).mean(axis=2), np.nan_to_num(points).mean(axis=1)
+        del diff, points
+        if backwards:
+            cz = _in_units(x[:, ::-1].reshape(len(rows), -1), flat, floor, pooled)
             cross_dist[rows] = _rms(_nearest(z, cz, exclude_self=True))
     score = np.full(n, np.nan)
     for name in PATH_DISTANCES:
         score = np.fmax(score, calibrated(np.log1p(dist[name]), groups, min_scale=STATE_MIN_SCALE))
-    return dist["whole"], score, per, cross_dist
+    return dist["whole"], score, at_point, in_feature, cross_dist
 
 
 def _ordinary(x: np.ndarray, usual: np.ndarray, groups: np.ndarray, min_scale: float, log: bool = False
@@ -298,18 +306,13 @@ def path(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """How far a demo's path in normalised time (its state's and its camera's) lies from its nearest task-mates'
     (robust z of the log RMS distance, the larger part's), and whether it runs backwards."""
     n = len(t.state_path)
-    state = _stack_state(t.state_path, slice(None))
-    floor = np.tile(_state_floor(t.state_path), PATH_POINTS)
-    flat = state.reshape(n, -1)
-    back = state[:, ::-1].reshape(n, -1)
-    parts = {"state": (flat, back, floor)}
+    parts = {"state": (_stack_state(t.state_path, slice(None)), np.tile(_state_floor(t.state_path), PATH_POINTS))}
     if all(v is not None for v in t.view_path):
-        views = np.stack([np.asarray(v, np.float64) for v in t.view_path])
-        parts["view"] = (views.reshape(n, -1), views[:, ::-1].reshape(n, -1), VIEW_FLOOR)
-    z, own, reversed_, where = {}, {}, {}, {}
-    for name, (x, xb, fl) in parts.items():
-        own[name], z[name], per, reversed_[name] = _state_part(x, groups, fl, xb, pooled=name == "view")
-        where[name] = per.reshape(n, PATH_POINTS, -1)
+        parts["view"] = (np.stack(t.view_path), VIEW_FLOOR)  # as kept (uint8): a group at a time in float64
+    z, own, reversed_, at_point, in_feature = {}, {}, {}, {}, {}
+    for name, (x, fl) in parts.items():
+        own[name], z[name], at_point[name], in_feature[name], reversed_[name] = _state_part(
+            x, groups, fl, backwards=True, pooled=name == "view")
     # nearer its mates' paths played backwards than forwards, and as near as their paths are to each other
     ordinary = {name: _ordinary(reversed_[name], own[name], groups, STATE_MIN_SCALE, True) for name in z}
     score = np.full(n, np.nan)
@@ -325,12 +328,11 @@ def path(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
             found.append(PATH("backwards", part="state" if name == "state" else "picture", own=float(own[name][i]),
                               backwards=float(reversed_[name][i])))
             continue
-        per_point = np.nan_to_num(where[name][i])
-        at = float(np.argmax(per_point.mean(axis=1)) / (PATH_POINTS - 1))
+        at = float(np.argmax(np.nan_to_num(at_point[name][i])) / (PATH_POINTS - 1))
         if name == "view":
             found.append(PATH("view", at=at, distance=float(own[name][i])))
         else:
-            dims = np.argsort(-per_point.mean(axis=0))[:2]
+            dims = np.argsort(-np.nan_to_num(in_feature[name][i]))[:2]
             found.append(PATH("state", dims=_names(t.names[i], dims, "state"), at=at, distance=float(own[name][i])))
     return score, found
 
