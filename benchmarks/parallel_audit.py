@@ -70,7 +70,8 @@ def measure(dataset, model=None, ray: bool = False, verbose: bool = False, nodes
         if verbose:
             cues = (f"cues {timing['score_s']:5.1f} s (x{base[2]['score_s'] / timing['score_s']:.2f}), "
                     if ckpt is not None else "")
-            print(f"  {name:<14} {cues}decoding {timing['actions_s']:6.1f} s (x{base[2]['actions_s'] / timing['actions_s']:.2f}),"
+            ratio = base[2]["actions_s"] / timing["actions_s"]
+            print(f"  {name:<14} {cues}decoding {timing['actions_s']:6.1f} s (x{ratio:.2f}),"
                   f" whole audit {wall:6.1f} s (x{base[1] / wall:.2f}); scores identical to 1 worker: {not differ}"
                   + (f" (differ: {differ})" if differ else ""), flush=True)
     return out

@@ -205,9 +205,10 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
                 rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
                 seen = {c: seen[c] for c in ev.cameras}
                 here.know(ds, *seen.values())
-                for key, part in shards.sharded_decoding(ds, ev, rows, decoding, run_on(spread(ds, shards.decode_shard(len(ds), ckpt is not None))),
-                                                         f"decode-{k}", stage("decoding" if ckpt is None
-                                                                               else "actions", ds), seen).items():
+                run = run_on(spread(ds, shards.decode_shard(len(ds), ckpt is not None)))
+                progress = stage("decoding" if ckpt is None else "actions", ds)
+                for key, part in shards.sharded_decoding(ds, ev, rows, decoding, run, f"decode-{k}", progress,
+                                                         seen).items():
                     got[key].append(part)
                 start += len(ds)
             for key, parts in got.items():

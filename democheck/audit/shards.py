@@ -214,9 +214,9 @@ def sharded_decoding(ds: DemoSet, ev: Evidence, rows: slice, decoding: dict[str,
                      on_progress: Callable[[int, int], None] | None = None,
                      views: dict[str, DemoSet] | None = None) -> dict[str, Any]:
     """The decoding pass of ``ds`` (its rows ``rows`` of the evidence; ``views``: its other cameras, by short
-    name) by ``run``: shards of ``decode_shard`` consecutive demos, each decoded with its worker's copy of the model; what
-    a consumer keeps per demo (``modelfree.PerDemo``) is merged before it finishes, what it finishes per demo is
-    pooled after."""
+    name) by ``run``: shards of ``decode_shard`` consecutive demos, each decoded with its worker's copy of the model;
+    what a consumer keeps per demo (``modelfree.PerDemo``) is merged before it finishes, what it finishes per demo
+    is pooled after."""
     eps = ds.episode_indices
     z = ev.task_variables()[rows] if ev.posterior is not None else None
     cameras = {c: where(v) for c, v in (views or {}).items()}

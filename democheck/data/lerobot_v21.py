@@ -63,7 +63,8 @@ class LeRobotV21(LeRobotBase):
             frames, unreadable = no_frames(e - s), []
         elif self.camera_dtype == "video":
             vpath = self._path("video_path", episode_index)
-            frames, unreadable = self._readable(lambda: video.read_range(vpath, 0, e - s, self.fps, arena), e - s, vpath)
+            frames, unreadable = self._readable(lambda: video.read_range(vpath, 0, e - s, self.fps, arena), e - s,
+                                                vpath)
         else:
             frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s, path)
         return self._make_demo(episode_index, frames, entry, s, e, unreadable)
