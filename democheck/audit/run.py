@@ -151,14 +151,14 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
 
     model = str(ckpt.path) if ckpt is not None else None
 
-    def spread(ds: DemoSet, shard: int) -> bool:  # the cue pass reads two frames a demo, the decoding pass all
+    def spread(ds: DemoSet, cues: bool) -> bool:  # the cue pass reads two frames a demo, the decoding pass all
         h, w, _ = ds.native_shape
-        frames = 2 * len(ds) if shard == shards.CUE_SHARD else int(ds.episodes["length"].sum())
+        frames = 2 * len(ds) if cues else int(ds.episodes["length"].sum())
+        shard = shards.CUE_SHARD if cues else shards.decode_shard(len(ds), ckpt is not None)
         return shards.pays(len(ds), shard, engine, workers, frames * max(h * w, 1) * (1 + len(ds.cameras[1:])))
 
     decodes = any(s.decode is not None for s in scorers)
-    parallel = any(ckpt is not None and spread(ds, shards.CUE_SHARD)
-                   or decodes and spread(ds, shards.decode_shard(len(ds), ckpt is not None)) for ds in sets)
+    parallel = any(ckpt is not None and spread(ds, cues=True) or decodes and spread(ds, cues=False) for ds in sets)
     here = shards.Here(ckpt, device)
     with shards.runner(parallel, engine, workers, model, str(device), ray_address) as runner:
         def run_on(spreads: bool) -> shards.Run:
@@ -174,7 +174,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
             for k, ds in enumerate(sets):
                 seen = ds.resized(ckpt.config.image_size)
                 here.know(seen)
-                parts.append(shards.sharded_cues(seen, run_on(spread(ds, shards.CUE_SHARD)), f"cues-{k}",
+                parts.append(shards.sharded_cues(seen, run_on(spread(ds, cues=True)), f"cues-{k}",
                                                  shards.CUE_BATCH, stage("PETNet", ds)))
             post = TaskPosterior.concat(parts)
         embedding = None
@@ -205,7 +205,7 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
                 rows = slice(start, start + len(ds))  # each dataset's rows of the pooled evidence
                 seen = {c: seen[c] for c in ev.cameras}
                 here.know(ds, *seen.values())
-                run = run_on(spread(ds, shards.decode_shard(len(ds), ckpt is not None)))
+                run = run_on(spread(ds, cues=False))
                 progress = stage("decoding" if ckpt is None else "actions", ds)
                 for key, part in shards.sharded_decoding(ds, ev, rows, decoding, run, f"decode-{k}", progress,
                                                          seen).items():

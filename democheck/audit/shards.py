@@ -54,6 +54,8 @@ def decode_shard(n_demos: int, model: bool = True) -> int:
     ``SHARD``, or smaller in a small set."""
     small = ACTION_BATCH if model else ACTION_BATCH // 4
     return SHARD if n_demos >= FEW_SHARDS * SHARD else min(SHARD, small)
+
+
 # Spreading a pass pays where each worker gets a shard and the pass decodes at least this many pixels (frames
 # times their size): starting the workers (each imports torch and loads the model) costs ~2 s, about what one
 # core decodes of this many pixels.  On push-v1 (64x64 frames), 168 demos (7e7 pixels) took 2.1 s in one process
