@@ -210,7 +210,7 @@ def in_frames(ds: DemoSet, on_progress: Callable[..., None]) -> Callable[[str, i
 
 def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None = None, top: int = 20,
                   camera: str | None = None, task: str | None = None, device: str = "auto", force: bool = False,
-                  on_progress: Callable[[str, int, int], None] | None = None, actions: bool = True,
+                  on_progress: Callable[..., None] | None = None, actions: bool = True,
                   fpr: float = DEFAULT_FPR, no_model: bool = False, keep_list: str | Path | None = None,
                   drop_list: str | Path | None = None, workers: int = 1, engine: str = "local",
                   ray_address: str | None = None, resume: bool = False) -> dict[str, Any]:
@@ -223,7 +223,8 @@ def audit_dataset(dataset: str | Path, out: str | Path, model: str | Path | None
     (other state or action dimensions) is audited model-free too, and the summary says why.
     ``keep_list``/``drop_list``: files listing the unflagged/flagged episode indices as ``[0, 2, 5]``, the form
     a dataset-editing tool takes (e.g. ``lerobot-edit-dataset --operation.episode_indices``).
-    ``on_progress(stage, done, total)``: the cue pass, then the decoding pass."""
+    ``on_progress(stage, done, total, info="")``: the cue pass, then the decoding pass; ``info`` is the frames a
+    second, once a pass has run for a second."""
     out = Path(out)
     work = work_dir(out, resume, force, what="audit")
     ds = open_dataset(dataset, camera=camera, task=task)
@@ -449,7 +450,7 @@ def run_demo(out: str | Path, model: str | Path | None = None, workers: int = 2,
     if on_stage:
         on_stage("auditing with the model")
     summary = audit_dataset(out / "data", out / "report", model=model, force=True,
-                            on_progress=(lambda stage, d, n: on_progress(d, n)) if on_progress else None)
+                            on_progress=(lambda stage, d, n, info="": on_progress(d, n)) if on_progress else None)
     table = pd.read_parquet(out / "report" / "scores.parquet")
     summary["planted"] = DEMO_PLANT
     summary["detection"] = {col: by_label(table, col)

@@ -34,7 +34,8 @@ def bench(
 
         with Bar("bench", "demos") as bar:
             summary = bench_datasets(datasets, out, model=model, tecnet=tecnet, device=device, seed=seed, force=force,
-                                     camera=camera, labels=labels, on_progress=lambda stage, d, n: bar.update(d, n, stage))
+                                     camera=camera, labels=labels,
+                                     on_progress=lambda stage, d, n, info="": bar.update(d, n, stage, info))
     # A row per scorer and a column per kind: there are more scorers than kinds, and rows need not fit 80 columns.
     table = Table(title="AUROC, each kind versus clean (bench.md: AUPRC, precision at k, scorers explained)")
     table.add_column("scorer", no_wrap=True)
