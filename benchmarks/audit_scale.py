@@ -7,6 +7,7 @@ its own process, and prints demos/s (model load and t-SNE reported apart)
 and peak resident memory.
 
     python benchmarks/audit_scale.py data/push-v1 --times 10
+    python benchmarks/audit_scale.py data/fetch-hub1-s80 --times 209 --first 24 --no-model --workdir runs
 """
 
 from __future__ import annotations
@@ -20,22 +21,50 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 
-def replicate(src: Path, dst: Path, times: int) -> None:
+def trimmed(eps: pd.DataFrame, cameras: list[str], fps: float, first: int) -> pd.DataFrame:
+    """The episode table of the same episodes cut to their first ``first`` frames: lengths, frame ranges and each
+    camera's end timestamp."""
+    e = eps.copy()
+    e["length"] = np.minimum(e["length"], first)
+    e["dataset_to_index"] = np.cumsum(e["length"])
+    e["dataset_from_index"] = e["dataset_to_index"] - e["length"]
+    for key in cameras:
+        e[f"videos/{key}/to_timestamp"] = e[f"videos/{key}/from_timestamp"] + e["length"] / fps
+    return e
+
+
+def trimmed_data(table: pa.Table, eps: pd.DataFrame) -> pa.Table:
+    """A data file's rows of the frames ``eps`` (``trimmed``) keeps, their global ``index`` renumbered."""
+    start = dict(zip(eps["episode_index"], eps["dataset_from_index"]))
+    length = dict(zip(eps["episode_index"], eps["length"]))
+    ep, frame = table.column("episode_index").to_numpy(), table.column("frame_index").to_numpy()
+    keep = frame < np.array([length[int(e)] for e in ep])
+    table = table.filter(pa.array(keep))
+    index = np.array([start[int(e)] for e in ep[keep]], np.int64) + frame[keep]
+    return table.set_column(table.column_names.index("index"), "index", pa.array(index))
+
+
+def replicate(src: Path, dst: Path, times: int, first: int | None = None) -> None:
     """``src`` (LeRobot v3.0) ``times`` over at ``dst``: every camera's video files hard-linked, the data files and
-    the episode tables (and democheck's sidecar, where there is one) rewritten with new episode and frame indices."""
+    the episode tables (and democheck's sidecar, where there is one) rewritten with new episode and frame indices.
+    ``first``: each episode cut to its first frames (the videos stay whole; the episodes end earlier in them)."""
     info = json.loads((src / "meta/info.json").read_text())
     eps = pd.concat([pd.read_parquet(p) for p in sorted((src / "meta/episodes").glob("chunk-*/file-*.parquet"))],
                     ignore_index=True)
     sidecar = src / "meta/democheck/episodes.parquet"
     side = pd.read_parquet(sidecar) if sidecar.exists() else None
-    n_eps, n_frames = int(info["total_episodes"]), int(info["total_frames"])
     cameras = [k for k, f in info["features"].items() if isinstance(f, dict) and f.get("dtype") == "video"]
+    if first:
+        eps = trimmed(eps, cameras, float(info["fps"]), first)
+        info["total_frames"] = int(eps["length"].sum())
+    n_eps, n_frames = int(info["total_episodes"]), int(info["total_frames"])
     files = {kind: int(eps[f"{kind}/file_index"].max()) + 1 for kind in ["data", *(f"videos/{k}" for k in cameras)]}
     (dst / "meta/episodes/chunk-000").mkdir(parents=True)
     for name in ("tasks.parquet", "stats.json"):
@@ -66,6 +95,7 @@ def replicate(src: Path, dst: Path, times: int) -> None:
         for f in range(files["data"]):
             new = f + c * files["data"]
             t = pq.read_table(src / f"data/chunk-{f // 1000:03d}/file-{f:03d}.parquet")
+            t = trimmed_data(t, eps) if first else t
             t = t.set_column(t.column_names.index("episode_index"), "episode_index",
                              pc.add(t.column("episode_index"), pa.scalar(c * n_eps, pa.int64())))
             t = t.set_column(t.column_names.index("index"), "index",
@@ -111,8 +141,9 @@ def run_audit(dataset: Path, out: Path, model: str, device: str = "cpu", actions
 
 
 def measure(dataset: Path, times: int = 10, model: str = "-", repeats: int = 1, workdir: Path | None = None,
-            device: str = "cpu", verbose: bool = False, no_model: bool = False) -> dict:
+            device: str = "cpu", verbose: bool = False, no_model: bool = False, first: int | None = None) -> dict:
     """Audit ``dataset`` and its ``times``-fold replica, each ``repeats`` times in a fresh process; medians.
+    ``first``: both with every episode cut to its first frames (many episodes in little time).
 
     The cue pass (``audit --no-actions``): the action error decodes every frame and is timed on its own
     (``audit_actions``)."""
@@ -121,7 +152,10 @@ def measure(dataset: Path, times: int = 10, model: str = "-", repeats: int = 1, 
     out = {}
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         big = Path(tmp) / f"x{times}"
-        replicate(dataset, big, times)
+        replicate(dataset, big, times, first)
+        if first:
+            replicate(dataset, Path(tmp) / "x1", 1, first)
+            dataset = Path(tmp) / "x1"
         for name, ds in (("1x", dataset), (f"{times}x", big)):
             runs = [run_audit(ds, Path(tmp) / f"report-{name}-{i}", model, device, no_model=no_model)
                     for i in range(repeats)]
@@ -158,6 +192,8 @@ def main() -> None:
     ap.add_argument("--actions", action="store_true", help="time the default audit, with the action error, instead")
     ap.add_argument("--no-model", action="store_true",
                     help="the audit without a model (every demo decoded), at both sizes: what grows with the data")
+    ap.add_argument("--first", type=int, default=None,
+                    help="cut every episode to its first FIRST frames, at both sizes: many episodes in little time")
     args = ap.parse_args()
     if args.actions:
         r = audit_actions(args.dataset, args.model)
@@ -165,7 +201,7 @@ def main() -> None:
               f"{r['action_demos_per_s']:.0f} demos/s, peak memory {r['peak_rss_mb']:.0f} MB")
         return
     res = measure(args.dataset, args.times, args.model, args.repeats, args.workdir, verbose=True,
-                  no_model=args.no_model)
+                  no_model=args.no_model, first=args.first)
     print(f"peak memory ratio {args.times}x / 1x: {res['memory_ratio']:.2f}")
 
 

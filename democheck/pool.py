@@ -70,6 +70,23 @@ def tick(n: int = 1) -> None:
         state["progress"].put(n)
 
 
+class _Ticks:
+    """``tick``'s queue in this process (one worker): the progress moves with each episode."""
+
+    def __init__(self, on_progress: Callable[[int, int], None] | None, total: int):
+        self.on_progress, self.total, self.done = on_progress, total, 0
+
+    def put(self, n: int) -> None:
+        self.reach(self.done + n)
+
+    def reach(self, done: int) -> None:
+        done = min(done, self.total)
+        if done > self.done:
+            self.done = done
+            if self.on_progress:
+                self.on_progress(done, self.total)
+
+
 @contextlib.contextmanager
 def _workers_ignore_ctrl_c() -> Iterator[None]:
     """Processes started inside never see Ctrl-C: SIGINT is blocked while they start, and a blocked signal stays
@@ -92,10 +109,12 @@ class Workers:
         self.workers, self._init, self._args = max(int(workers), 1), init, args
         self._pool: Any = None
         self._progress: Any = None
+        self._state: dict[str, Any] = {}
 
     def __enter__(self) -> "Workers":
         if self.workers <= 1:
             _start(None, self._init, self._args)
+            self._state = dict(state)  # put back at each run: another pool in this process may have used ``state``
         else:
             ctx = mp.get_context("spawn")
             self._progress = ctx.Queue()
@@ -117,14 +136,16 @@ class Workers:
         rows)`` as each job ``i`` finishes."""
         results: list[Any] = [None] * len(jobs)
         done = 0
-        if self._pool is None:
+        if self._pool is None:  # each episode's tick moves the progress at once; a job's end, to its episodes
+            ticks = _Ticks(on_progress, total)
+            state.clear()
+            state.update(self._state, progress=ticks)
             for i, job in enumerate(jobs):
                 results[i] = _guarded(shard, job)
                 if on_result:
                     on_result(i, results[i])
                 done += len(job[2])
-                if on_progress:
-                    on_progress(done, total)
+                ticks.reach(done)
             return [row for rows in results for row in rows]
         while True:  # ticks of an earlier run that arrived after its results
             try:

@@ -159,8 +159,8 @@ def gather_evidence(sets: list[DemoSet], ckpt: Checkpoint | None, scorers: list[
 
     decodes = any(s.decode is not None for s in scorers)
     parallel = any(ckpt is not None and spread(ds, cues=True) or decodes and spread(ds, cues=False) for ds in sets)
-    here = shards.Here(ckpt, device)
-    with shards.runner(parallel, engine, workers, model, str(device), ray_address) as runner:
+    with shards.runner(parallel, engine, workers, model, str(device), ray_address) as runner, \
+            shards.Here(ckpt, device) as here:
         def run_on(spreads: bool) -> shards.Run:
             by = runner if spreads and runner is not None else here
             if journal is not None:

@@ -83,43 +83,21 @@ def runner(parallel: bool, engine: str, workers: int, model: str | None, device:
         yield workers_
 
 
-class Here:
-    """The shards run in this process by the model it holds -- ``pool.Workers``'s ``run`` without workers -- on
-    the datasets it was given (``know``) as this process reads them: one process runs the shards its workers
-    would, so that a ``Journal`` can keep them."""
+class Here(pool.Workers):
+    """One worker, this process, holding the model the audit already loaded: it runs the shards its workers would,
+    on the datasets it was given (``know``) as this process reads them, so that a ``Journal`` can keep them."""
 
     def __init__(self, ckpt: Any, device: Any):
-        self.ckpt, self.device, self.sets = ckpt, device, {}
+        self.sets: dict[str, DemoSet] = {}
+        super().__init__(1, _here_init, (ckpt, device, self.sets))
 
     def know(self, *sets: DemoSet) -> None:
         for ds in sets:
             self.sets[_key(where(ds))] = ds
 
-    def run(self, jobs: list, shard: Callable[[Any], list[dict[str, Any]]], total: int,
-            on_progress: Callable[[int, int], None] | None = None,
-            on_result: Callable[[int, list[dict[str, Any]]], None] | None = None) -> list[dict[str, Any]]:
-        ticks = _Ticks(on_progress, total)
-        pool.state.clear()
-        pool.state.update(ckpt=self.ckpt, device=self.device, sets=dict(self.sets), progress=ticks)
-        rows = []
-        for i, job in enumerate(jobs):
-            got = shard(job)
-            if on_result:
-                on_result(i, got)
-            rows += got
-        return rows
 
-
-class _Ticks:
-    """``pool.tick``'s queue in this process: each demo done moves the progress at once."""
-
-    def __init__(self, on_progress: Callable[[int, int], None] | None, total: int):
-        self.on_progress, self.total, self.done = on_progress, total, 0
-
-    def put(self, n: int) -> None:
-        self.done += n
-        if self.on_progress:
-            self.on_progress(min(self.done, self.total), self.total)
+def _here_init(ckpt: Any, device: Any, sets: dict[str, DemoSet]) -> None:
+    pool.state.update(ckpt=ckpt, device=device, sets=sets)
 
 
 class Journal:
