@@ -2,6 +2,9 @@
 
     python benchmarks/visual_bc.py data/push-v2 --out runs/visual-bc [--steps 20000] [--aux 1] [--resume]
         [--rollouts 200] [--device cpu|cuda]
+    python benchmarks/visual_bc.py data/push-v2 --out runs/locate --steps 3000 --objects-only [--sharp]
+    python benchmarks/visual_bc.py data/push-v2 --out runs/on-points --steps 6000 --aux 0 --points-from runs/locate
+        [--tune-points --aux 1]
 
 Behaviour cloning on the train split's clean demos: the current 64x64 frame, the robot state and the task given
 as an oracle code (the target's and the distractor's shape, colour and size, one-hot: which object to push is
@@ -12,6 +15,11 @@ the mean squared error of a linear read-out of the objects' positions (``observa
 and distractor x, y, normalised) from the feature points -- the supervision that should make them find the
 objects rather than the arm.  ``--shift N`` shifts each training frame by its own random offset of up to N
 pixels (``petnet.batches.random_shift``).
+
+The perception apart: ``--objects-only`` trains the convolutions and points on where the objects are alone (the
+points and the task code through an MLP: which object is the target is the task's to say) and reports how far they
+miss, in cm, on training frames and on the val split's; ``--points-from`` puts such a localiser under the controller,
+frozen (or, with ``--tune-points``, trained on with it, ``--aux`` x its read-out's loss keeping it on the objects).
 
 Then closed loop: ``--rollouts`` episodes of 100 steps on train tasks, each on a layout no demo had (the same
 layouts for every run with the same ``--seed``), success rate with its 95% interval, against the scripted
@@ -55,17 +63,31 @@ def task_code(target: str, distractor: str) -> np.ndarray:
     return np.concatenate([object_code(target), object_code(distractor)])
 
 
+class SharpPoints(SpatialSoftmax):
+    """The spatial softmax with a learnt temperature per channel (``--sharp``): a channel can make its softmax as
+    peaked as its object is small, rather than its weights having to grow for it."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.log_temperature = nn.Parameter(torch.zeros(channels))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return super().forward(x * self.log_temperature.exp()[None, :, None, None])
+
+
 class VisualPolicy(nn.Module):
-    def __init__(self, state_dim: int, code_dim: int, action_dim: int, channels: int = 32):
+    def __init__(self, state_dim: int, code_dim: int, action_dim: int, channels: int = 32, sharp: bool = False):
         super().__init__()
         self.conv = nn.Sequential(nn.Conv2d(3, channels, 5, stride=2, padding=2), nn.ReLU(),
                                   nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(),
                                   nn.Conv2d(channels, channels, 3, padding=1))
-        self.points = SpatialSoftmax()
+        self.points = SharpPoints(channels) if sharp else SpatialSoftmax()
         self.mlp = nn.Sequential(nn.Linear(2 * channels + state_dim + code_dim, 256), nn.ReLU(),
                                  nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU(),
                                  nn.Linear(256, action_dim))
         self.objects = nn.Linear(2 * channels, len(OBJECT_XY))
+        # --objects-only: which point is the target is the task's to say, so the points and the code go through an MLP
+        self.locate = nn.Sequential(nn.Linear(2 * channels + code_dim, 256), nn.ReLU(), nn.Linear(256, len(OBJECT_XY)))
 
     def forward(self, frames: torch.Tensor, state: torch.Tensor, code: torch.Tensor):
         """frames uint8 [B, H, W, 3]; returns (normalised actions, normalised object positions)."""
@@ -73,9 +95,14 @@ class VisualPolicy(nn.Module):
         kp = self.points(self.conv(x))
         return self.mlp(torch.cat([kp, state, code], 1)), self.objects(kp)
 
+    def where(self, frames: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
+        """The objects' normalised positions from the feature points and the task code (``--objects-only``)."""
+        x = frames.permute(0, 3, 1, 2).float() / 127.5 - 1.0
+        return self.locate(torch.cat([self.points(self.conv(x)), code], 1))
 
-def load(suite: Path):
-    """The train split's clean demos: frames (memmap), state, actions, object positions, task codes, per frame;
+
+def load(suite: Path, split: str = "train"):
+    """The ``split``'s clean demos: frames (memmap), state, actions, object positions, task codes, per frame;
     and those demos' rows of the episode table (with their sim records)."""
     import pandas as pd
 
@@ -84,7 +111,7 @@ def load(suite: Path):
     table = ds.episodes
     clean = table["label"].fillna("clean") == "clean"
     order = arrays.episodes["episode_index"].to_numpy()  # the cache's episodes, in its order
-    keep = [i for i, e in enumerate(order) if table.loc[e, "split"] == "train" and clean[e]]
+    keep = [i for i, e in enumerate(order) if table.loc[e, "split"] == split and clean[e]]
     rows = np.concatenate([np.arange(arrays.offsets[i], arrays.offsets[i] + arrays.lengths[i]) for i in keep])
     env_state = {}
     for f in sorted((suite / "data").glob("*/*.parquet")):
@@ -125,6 +152,20 @@ def rollouts(policy: VisualPolicy | None, norm: dict, tasks: list[tuple[str, str
     return wins
 
 
+def miss_cm(policy: VisualPolicy, arrays, rows: np.ndarray, codes: torch.Tensor, objs: np.ndarray, norm: dict,
+            device, n: int = 4096) -> list[float]:
+    """RMS error of the read-out of the objects' positions on ``n`` frames spread over ``rows``, cm per
+    coordinate."""
+    pick = np.linspace(0, len(rows) - 1, min(n, len(rows))).astype(int)
+    out = []
+    with torch.no_grad():
+        for chunk in np.array_split(pick, max(1, len(pick) // 512)):
+            frames = torch.from_numpy(np.asarray(arrays.frames[rows[chunk]])).to(device)
+            out.append(policy.where(frames, codes[chunk].to(device)).cpu().numpy())
+    where = np.concatenate(out) * norm["os"] + norm["om"]
+    return [round(float(v), 2) for v in 100 * np.sqrt(((where - objs[pick]) ** 2).mean(0))]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("suite", type=Path)
@@ -140,6 +181,16 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--sharp", action="store_true", help="a learnt temperature per channel in the spatial softmax")
+    ap.add_argument("--points-from", type=Path, default=None,
+                    help="the --out of an --objects-only run: its convolutions and feature points, frozen; only the "
+                         "controller on top of them is trained")
+    ap.add_argument("--tune-points", action="store_true",
+                    help="with --points-from: the points train on with the controller, --aux x the localiser's "
+                         "read-out of the objects keeping them on the objects")
+    ap.add_argument("--objects-only", action="store_true",
+                    help="train the feature points on the objects' positions alone (no actions), then report how far "
+                         "they miss, in cm, on training frames and on the val split's (held-out objects)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -154,8 +205,14 @@ def main() -> None:
     on = torch.from_numpy((objs - norm["om"]) / norm["os"])
     cn = torch.from_numpy(codes)
     torch.manual_seed(args.seed)
-    policy = VisualPolicy(state.shape[1], codes.shape[1], actions.shape[1]).to(device)
-    opt = torch.optim.Adam(policy.parameters(), args.lr)
+    policy = VisualPolicy(state.shape[1], codes.shape[1], actions.shape[1], sharp=args.sharp).to(device)
+    if args.points_from:  # a localiser's convolutions and points (``--objects-only``), kept as they are
+        saved = torch.load(args.points_from / "checkpoint.pt", map_location=device, weights_only=True)["policy"]
+        policy.load_state_dict({k: v for k, v in saved.items() if k.startswith(("conv.", "points.", "locate."))},
+                               strict=False)
+        for p in [*policy.conv.parameters(), *policy.points.parameters()] if not args.tune_points else ():
+            p.requires_grad_(False)
+    opt = torch.optim.Adam([p for p in policy.parameters() if p.requires_grad], args.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.steps)
     step, log = 0, []
     ckpt = args.out / "checkpoint.pt"
@@ -176,10 +233,17 @@ def main() -> None:
         i = np.sort(rng.integers(0, len(rows), args.batch))
         frames = random_shift(torch.from_numpy(np.asarray(arrays.frames[rows[i]]))[:, None], args.shift)[:, 0]
         j = torch.from_numpy(i)
-        pred, where = policy(frames.to(device), sn[j].to(device), cn[j].to(device))
-        act_loss = ((pred - an[j].to(device)) ** 2).mean()
+        if args.objects_only:
+            where, act_loss = policy.where(frames.to(device), cn[j].to(device)), torch.zeros(())
+        elif args.tune_points:
+            pred, _ = policy(frames.to(device), sn[j].to(device), cn[j].to(device))
+            where = policy.where(frames.to(device), cn[j].to(device))
+            act_loss = ((pred - an[j].to(device)) ** 2).mean()
+        else:
+            pred, where = policy(frames.to(device), sn[j].to(device), cn[j].to(device))
+            act_loss = ((pred - an[j].to(device)) ** 2).mean()
         obj_loss = ((where - on[j].to(device)) ** 2).mean()
-        loss = act_loss + args.aux * obj_loss
+        loss = obj_loss if args.objects_only else act_loss + args.aux * obj_loss
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -200,6 +264,17 @@ def main() -> None:
     train_s = time.perf_counter() - t0
 
     policy.eval()
+    if args.objects_only:
+        res = {"suite": str(args.suite), "steps": args.steps, "batch": args.batch,
+               "train_s_this_run": round(train_s, 1),
+               "miss_cm": {"train": miss_cm(policy, arrays, rows, cn, objs, norm, device)},
+               "spread_cm": [round(float(v), 2) for v in 100 * norm["os"]]}  # the miss of guessing the mean
+        varrays, vrows, vcodes, vobjs, _ = load(args.suite, "val")
+        res["miss_cm"]["val"] = miss_cm(policy, varrays, vrows, torch.from_numpy(vcodes), vobjs, norm, device)
+        (args.out / "results.json").write_text(json.dumps(res, indent=2))
+        print(f"feature points read the objects' positions, RMS miss in cm (target x, y, distractor x, y): "
+              f"train {res['miss_cm']['train']}, val {res['miss_cm']['val']}")
+        return
     draw = np.random.default_rng([args.seed, 0xE7A1])
     picks = draw.choice(len(eps), size=args.rollouts, replace=True)
     tasks = [(json.loads(eps.iloc[k]["sim"])["target"], json.loads(eps.iloc[k]["sim"])["distractor"]) for k in picks]
