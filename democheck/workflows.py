@@ -17,6 +17,7 @@ import shutil
 import sys
 import time
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable
 
@@ -169,6 +170,16 @@ class Suspects(Sequence):
             demo.extra["camera"] = camera_name(self.ds.camera)
             demo.extra["cameras"] = {c: v[demo.episode_index].frames for c, v in self.others.items()}
         return demo
+
+    def __iter__(self):
+        """Each demo in turn, the next one read in a thread while the report writes this one (decoding and the
+        report's resizing and encoding overlap on two cores): two demos' frames held at most."""
+        with ThreadPoolExecutor(1) as reader:
+            ahead = reader.submit(self.__getitem__, 0) if len(self) else None
+            for i in range(len(self)):
+                demo = ahead.result()
+                ahead = reader.submit(self.__getitem__, i + 1) if i + 1 < len(self) else None
+                yield demo
 
 
 class Typical(Mapping):

@@ -609,3 +609,20 @@ def test_a_reference_too_small_for_the_rate_asked_for_is_said():
     assert (conformal_p(suspicion, core)[40:] <= 0.01).tolist() == [True, False]
     assert not [w for w in warnings(table(200), None, fpr=0.01) if "reference holds" in w]
     assert not [w for w in warnings(table(40), None, fpr=0.05) if "reference holds" in w]
+
+
+def test_the_reports_suspects_read_ahead_give_the_demos_in_order(tiny_dataset):
+    """The report reads the next suspect in a thread while it writes this one: the same demos, in order."""
+    from democheck.data import open_dataset
+    from democheck.workflows import Suspects
+
+    ds = open_dataset(tiny_dataset[0])
+    episodes = ds.episode_indices[::-1][:5]
+    suspects = Suspects(ds, episodes)
+    read = list(suspects)
+    assert [d.episode_index for d in read] == episodes
+    for demo, e in zip(read, episodes):
+        assert np.array_equal(demo.frames, ds[e].frames) and np.array_equal(demo.actions, ds[e].actions)
+    assert list(Suspects(ds, [])) == []
+    first = next(iter(suspects))  # a report that stops early leaves no reader behind
+    assert first.episode_index == episodes[0]
