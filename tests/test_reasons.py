@@ -97,6 +97,10 @@ def test_a_shaking_arm_in_another_picture_gives_the_lead_to_the_world_it_left():
 
 def test_a_camera_that_stopped_or_a_sensor_that_stopped_leads():
     assert _lead(["view", "frozen_video"], [1e-20, 1e-3], {"frozen_video": "stopped camera"}) == "frozen_video"
+    # a camera that stopped explains its own pictures, not another camera's
+    stopped = {"frozen_video@side": "stopped camera"}
+    assert _lead(["view@side", "frozen_video@side"], [1e-20, 1e-3], stopped) == "frozen_video@side"
+    assert _lead(["view", "frozen_video@side"], [1e-20, 1e-3], stopped) == "view"
     assert _lead(["view", "frozen_video"], [1e-20, 1e-3], {"frozen_video": "still picture"}) == "view"
     assert _lead(["idle", "frozen_state"], [1e-20, 1e-3], {"frozen_state": "stopped"}) == "frozen_state"
     assert _lead(["idle", "frozen_state"], [1e-20, 1e-3], {"frozen_state": "held"}) == "idle"

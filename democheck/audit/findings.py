@@ -82,6 +82,11 @@ def check_of(column: str) -> str:
     return column.partition(CAMERA_MARK)[0]
 
 
+def camera_of(column: str) -> str:
+    """The other camera a score column was read on ("" for the first camera, or a check of no camera)."""
+    return column.partition(CAMERA_MARK)[2]
+
+
 def known(name: str) -> bool:
     """Whether ``name`` is a registered 'check' or 'check:kind'."""
     check, _, kind = name.partition(":")

@@ -38,12 +38,14 @@ class Rule:
     """An exception to the precedence's order: where the lead would be ``over`` (each 'check' or 'check:kind')
     and ``first`` is beyond every clean demo too, ``first`` leads -- where every finding of ``when`` is beyond
     too and none of ``unless`` is named in the reason (a rule applies on clear evidence; any evidence against it
-    stops it)."""
+    stops it).  ``same_camera``: only over a finding read from the camera ``first`` was read from (a camera that
+    stopped explains its own pictures, not another camera's)."""
 
     first: str
     over: tuple[str, ...]
     when: tuple[str, ...] = ()
     unless: tuple[str, ...] = ()
+    same_camera: bool = False
 
 
 @dataclass(frozen=True)

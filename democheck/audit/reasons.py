@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from democheck.audit.findings import Finding, check_of
+from democheck.audit.findings import Finding, camera_of, check_of
 from democheck.audit.ranking import Ranking, RankingConfig
 from democheck.audit.scores import merge_looks
 
@@ -135,7 +135,8 @@ def lead_of(config: RankingConfig, row: np.ndarray, found: list[Finding | None],
             continue
         if not all(holds(c, beyond) for c in rule.when) or any(holds(c, order) for c in rule.unless):
             continue
-        other = next((j for j in beyond if _matches(found[j], rule.first, names[j])), None)
+        other = next((j for j in beyond if _matches(found[j], rule.first, names[j])
+                      and (not rule.same_camera or camera_of(names[j]) == camera_of(names[lead]))), None)
         if other is not None:
             lead = other
             break
@@ -203,7 +204,8 @@ def precedence_table(config: RankingConfig, kinds: Mapping[str, tuple[str, ...]]
     for rule in pre.rules:
         when = f"; when {', '.join(rule.when)} is beyond too" if rule.when else ""
         unless = f"; unless {', '.join(rule.unless)} is named" if rule.unless else ""
-        lines.append(f"| rule | {rule.first} leads over {', '.join(rule.over)}{when}{unless} |")
+        same = " on its own camera" if rule.same_camera else ""
+        lines.append(f"| rule | {rule.first} leads over {', '.join(rule.over)}{same}{when}{unless} |")
     lines += ["", "| check | kinds |", "|---|---|"]
     lines += [f"| `{check}` | {', '.join(found)} |" for check, found in kinds.items()]
     return "\n".join(lines) + "\n"

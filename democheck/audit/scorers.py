@@ -315,7 +315,7 @@ TAILS = ("exponential", "normal")  # the families a score's clean right tail may
 RANKING_KEYS = {"log": bool, "in_robust_sd": bool, "floor": float, "tail": str, "alone": bool, "look": str,
                 "single_task": bool}
 REASON_KEYS = {"order", "demoted", "behaviour", "rules"}
-RULE_KEYS = {"first", "over", "when", "unless"}
+RULE_KEYS = {"first", "over", "when", "unless", "same_camera"}
 
 
 def _precedence_errors(section: dict, scores: dict) -> list[str]:
@@ -326,6 +326,8 @@ def _precedence_errors(section: dict, scores: dict) -> list[str]:
     for r in section.get("rules", []):
         bad += [f"reasons.rules.{k}" for k in sorted(set(r) - RULE_KEYS)]
         names += [r.get("first", "")] + [n for k in ("over", "when", "unless") for n in r.get(k, [])]
+        if not isinstance(r.get("same_camera", False), bool):
+            bad.append(f"reasons.rules.same_camera: {r['same_camera']!r}")
     bad += [f"reasons: {n!r}" for n in names if not known(n) or n.partition(":")[0] not in scores]
     return bad
 
