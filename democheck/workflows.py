@@ -47,7 +47,7 @@ from democheck.petnet.encode import encode_demos
 from democheck.petnet.recipe import DEFAULT_RECIPE, load_recipe, training_config
 from democheck.petnet.train import TrainConfig, TrainResult, finish_rows, resolve_device, train
 from democheck.sim.suite import generate, load_recipe as load_suite
-from democheck.viz.report import MAX_TABS, embed_2d, write_bench_rrd, write_eval_rrd, write_report_rrd
+from democheck.viz.report import MAX_TABS, embed_2d, fit_frames, write_bench_rrd, write_eval_rrd, write_report_rrd
 
 
 def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: bool = False, force: bool = False,
@@ -155,7 +155,8 @@ def object_pair_groups(ds) -> dict[str, str]:
 
 class Suspects(Sequence):
     """The top demos, each read from the dataset when the report reaches it (twenty hub-sized demos held at once
-    are gigabytes of frames), with every other camera's pictures (``Demo.extra["cameras"]``, by short name)."""
+    are gigabytes of frames), with every other camera's pictures (``Demo.extra["cameras"]``, by short name), every
+    camera's frames shrunk to the recording's size as they are read (``report.fit_frames``)."""
 
     def __init__(self, ds: DemoSet, episodes: list[int]):
         self.ds, self.episodes = ds, episodes
@@ -166,14 +167,15 @@ class Suspects(Sequence):
 
     def __getitem__(self, i):
         demo = self.ds[int(self.episodes[i])]
+        demo.frames = fit_frames(demo.frames)
         if self.others:
             demo.extra["camera"] = camera_name(self.ds.camera)
-            demo.extra["cameras"] = {c: v[demo.episode_index].frames for c, v in self.others.items()}
+            demo.extra["cameras"] = {c: fit_frames(v[demo.episode_index].frames) for c, v in self.others.items()}
         return demo
 
     def __iter__(self):
-        """Each demo in turn, the next one read in a thread while the report writes this one (decoding and the
-        report's resizing and encoding overlap on two cores): two demos' frames held at most."""
+        """Each demo in turn, the next one read (and shrunk) in a thread while the report writes this one: decoding
+        and the report's encoding overlap on two cores."""
         with ThreadPoolExecutor(1) as reader:
             ahead = reader.submit(self.__getitem__, 0) if len(self) else None
             for i in range(len(self)):

@@ -182,14 +182,14 @@ def _histogram(rec: rr.RecordingStream, path: str, values: np.ndarray, flagged: 
                                              color=LEVEL_GREY), static=True)
 
 
-def _fit(frames: np.ndarray) -> np.ndarray:
-    """Frames no larger than ``MAX_SIDE`` on either side, for the recording."""
+def fit_frames(frames: np.ndarray) -> np.ndarray:
+    """Frames no larger than ``MAX_SIDE`` on either side, for the recording (frames that fit, as they are)."""
     h, w = frames.shape[1:3]
-    k = MAX_SIDE / max(h, w)
-    if k >= 1:
+    if not frames.size or max(h, w) <= MAX_SIDE:  # no camera (``NO_CAMERA``), or frames that fit
         return frames
     import cv2
 
+    k = MAX_SIDE / max(h, w)
     size = (max(2, int(round(w * k / 2)) * 2), max(2, int(round(h * k / 2)) * 2))
     return np.stack([cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in frames])
 
@@ -198,9 +198,9 @@ def _log_demo(rec: rr.RecordingStream, base: str, demo: Demo, sigma: np.ndarray 
               names: dict[str, list[str]] | None = None) -> None:
     t = np.arange(len(demo))
     if demo.frames.size:  # else a dataset without a camera (``NO_CAMERA``): its state and actions alone
-        _log_video(rec, f"{base}/video", _fit(demo.frames), fps, t)
+        _log_video(rec, f"{base}/video", fit_frames(demo.frames), fps, t)
     for camera, frames in demo.extra.get("cameras", {}).items():
-        _log_video(rec, f"{base}/cameras/{camera}", _fit(frames), fps, t)
+        _log_video(rec, f"{base}/cameras/{camera}", fit_frames(frames), fps, t)
     if sigma is not None:
         rec.log(f"{base}/sigma", rr.BarChart(sigma), static=True)
     frame = [rr.TimeColumn("frame", sequence=t)]
