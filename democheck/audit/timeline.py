@@ -237,8 +237,9 @@ def _state_part(query: np.ndarray, groups: np.ndarray, floor: np.ndarray | float
         dist["whole"][rows] = _rms(diff)
         points = diff.reshape(len(rows), PATH_POINTS, -1)
         dist["furthest"][rows] = _rms(points.transpose(0, 2, 1)).max(axis=1)
-        at_point[rows], in_feature[rows] = np.nan_to_num(points).mean(axis=2), np.nan_to_num(points).mean(axis=1)
-        del diff, points
+        filled = np.nan_to_num(points)
+        at_point[rows], in_feature[rows] = filled.mean(axis=2), filled.mean(axis=1)
+        del diff, points, filled
         if backwards:
             cz = _in_units(x[:, ::-1].reshape(len(rows), -1), flat, floor, pooled)
             cross_dist[rows] = _rms(_nearest(z, cz, exclude_self=True))

@@ -332,8 +332,7 @@ class DemoSet:
         return episode_index in self._src.episodes.index
 
     def _load(self, episode_index: int) -> Demo:
-        demo = self._src.load(episode_index, arena=self._arena) if self._arena is not None else \
-            self._src.load(episode_index)
+        demo = self._src.load(episode_index, arena=self._arena)
         if self.image_size is not None:
             demo.frames = resize_frames(demo.frames, self.image_size)
         return demo
