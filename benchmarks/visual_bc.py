@@ -89,16 +89,20 @@ class VisualPolicy(nn.Module):
         # --objects-only: which point is the target is the task's to say, so the points and the code go through an MLP
         self.locate = nn.Sequential(nn.Linear(2 * channels + code_dim, 256), nn.ReLU(), nn.Linear(256, len(OBJECT_XY)))
 
+    def keypoints(self, frames: torch.Tensor) -> torch.Tensor:
+        """frames uint8 [B, H, W, 3] -> the feature points [B, 2C]."""
+        return self.points(self.conv(frames.permute(0, 3, 1, 2).float() / 127.5 - 1.0))
+
     def forward(self, frames: torch.Tensor, state: torch.Tensor, code: torch.Tensor):
-        """frames uint8 [B, H, W, 3]; returns (normalised actions, normalised object positions)."""
-        x = frames.permute(0, 3, 1, 2).float() / 127.5 - 1.0
-        kp = self.points(self.conv(x))
+        """Returns (normalised actions, normalised object positions by the linear read-out)."""
+        kp = self.keypoints(frames)
         return self.mlp(torch.cat([kp, state, code], 1)), self.objects(kp)
 
-    def where(self, frames: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
-        """The objects' normalised positions from the feature points and the task code (``--objects-only``)."""
-        x = frames.permute(0, 3, 1, 2).float() / 127.5 - 1.0
-        return self.locate(torch.cat([self.points(self.conv(x)), code], 1))
+    def where(self, frames: torch.Tensor, code: torch.Tensor, kp: torch.Tensor | None = None) -> torch.Tensor:
+        """The objects' normalised positions from the feature points (``kp``, where computed already) and the task
+        code (``--objects-only``)."""
+        kp = self.keypoints(frames) if kp is None else kp
+        return self.locate(torch.cat([kp, code], 1))
 
 
 def load(suite: Path, split: str = "train"):
@@ -235,9 +239,10 @@ def main() -> None:
         j = torch.from_numpy(i)
         if args.objects_only:
             where, act_loss = policy.where(frames.to(device), cn[j].to(device)), torch.zeros(())
-        elif args.tune_points:
-            pred, _ = policy(frames.to(device), sn[j].to(device), cn[j].to(device))
-            where = policy.where(frames.to(device), cn[j].to(device))
+        elif args.tune_points:  # the controller and the localiser's read-out on the same points
+            kp = policy.keypoints(frames.to(device))
+            pred = policy.mlp(torch.cat([kp, sn[j].to(device), cn[j].to(device)], 1))
+            where = policy.where(frames, cn[j].to(device), kp)
             act_loss = ((pred - an[j].to(device)) ** 2).mean()
         else:
             pred, where = policy(frames.to(device), sn[j].to(device), cn[j].to(device))
