@@ -16,8 +16,6 @@ import shlex
 import shutil
 import sys
 import time
-from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable
 
@@ -32,7 +30,7 @@ from democheck.audit.run import audit, finish_summary, for_model, suspects, writ
 from democheck.audit.ocsvm import reference
 from democheck.audit.flagging import DEFAULT_FPR, flagged_regardless, flags
 from democheck.data import open_dataset
-from democheck.data.demo import DemoSet, camera_name
+from democheck.data.demo import DemoSet
 from democheck.data.cache import build_cache, dataset_fingerprint
 from democheck.data.subset import write_subset
 from democheck.errors import DatasetError, DemocheckError
@@ -47,7 +45,8 @@ from democheck.petnet.encode import encode_demos
 from democheck.petnet.recipe import DEFAULT_RECIPE, load_recipe, training_config
 from democheck.petnet.train import TrainConfig, TrainResult, finish_rows, resolve_device, train
 from democheck.sim.suite import generate, load_recipe as load_suite
-from democheck.viz.report import MAX_TABS, embed_2d, fit_frames, write_bench_rrd, write_eval_rrd, write_report_rrd
+from democheck.viz.report import MAX_TABS, embed_2d, write_bench_rrd, write_eval_rrd, write_report_rrd
+from democheck.viz.suspects import Suspects, Typical
 
 
 def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: bool = False, force: bool = False,
@@ -151,58 +150,6 @@ def object_pair_groups(ds) -> dict[str, str]:
         except (TypeError, ValueError, KeyError):
             continue
     return out
-
-
-class Suspects(Sequence):
-    """The top demos, each read from the dataset when the report reaches it (twenty hub-sized demos held at once
-    are gigabytes of frames), with every other camera's pictures (``Demo.extra["cameras"]``, by short name), every
-    camera's frames shrunk to the recording's size as they are read (``report.fit_frames``)."""
-
-    def __init__(self, ds: DemoSet, episodes: list[int]):
-        self.ds, self.episodes = ds, episodes
-        self.others = ds.other_cameras() if ds.has_camera else {}
-
-    def __len__(self) -> int:
-        return len(self.episodes)
-
-    def __getitem__(self, i):
-        demo = self.ds[int(self.episodes[i])]
-        demo.frames = fit_frames(demo.frames)
-        if self.others:
-            demo.extra["camera"] = camera_name(self.ds.camera)
-            demo.extra["cameras"] = {c: fit_frames(v[demo.episode_index].frames) for c, v in self.others.items()}
-        return demo
-
-    def __iter__(self):
-        """Each demo in turn, the next one read (and shrunk) in a thread while the report writes this one: decoding
-        and the report's encoding overlap on two cores."""
-        with ThreadPoolExecutor(1) as reader:
-            ahead = reader.submit(self.__getitem__, 0) if len(self) else None
-            for i in range(len(self)):
-                demo = ahead.result()
-                ahead = reader.submit(self.__getitem__, i + 1) if i + 1 < len(self) else None
-                yield demo
-
-
-class Typical(Mapping):
-    """Per task of the report's suspects, its unflagged demo the ranking finds least suspect (read when the report
-    reaches it): what a demo of that task looks like, to compare a suspect with."""
-
-    def __init__(self, ds: DemoSet, table: pd.DataFrame, shown: int):
-        self.ds = ds
-        clean = table[~table["is_anomaly"].to_numpy(bool)]
-        least = clean.loc[clean.groupby("task", sort=False)["suspicion"].idxmin()] if len(clean) else clean
-        tasks = set(table.head(shown)["task"])
-        self.episodes = {t: int(e) for t, e in zip(least["task"], least["episode_index"]) if t in tasks}
-
-    def __len__(self) -> int:
-        return len(self.episodes)
-
-    def __iter__(self):
-        return iter(self.episodes)
-
-    def __getitem__(self, task):
-        return self.ds[self.episodes[task]]
 
 
 def in_frames(ds: DemoSet, on_progress: Callable[..., None]) -> Callable[[str, int, int], None]:

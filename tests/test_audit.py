@@ -615,7 +615,7 @@ def test_the_reports_suspects_read_ahead_give_the_demos_in_order(tiny_dataset):
     """The report reads the next suspect in a thread while it writes this one: the same demos, in order."""
     from democheck.data import open_dataset
     from democheck.viz.report import fit_frames
-    from democheck.workflows import Suspects
+    from democheck.viz.suspects import Suspects
 
     ds = open_dataset(tiny_dataset[0])
     episodes = ds.episode_indices[::-1][:5]
