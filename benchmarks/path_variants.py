@@ -1,6 +1,8 @@
 """The path check's AUROC per planted kind under each way of scoring a path: at 16 or 32 points, by the RMS distance
 over the whole path, at its furthest point, or the larger robust z of the two (``timeline.PATH_DISTANCES``, what
-the audit does).  Each dataset's timelines are decoded once, at 64 points, and subsampled.
+the audit does); and its state part in normalised time against dynamic time warping (``dtw_scores``), with how much
+each reads the episode's length (the clean demos' Spearman correlation with it, within task).  Each dataset's
+timelines are decoded once, at 64 points, and subsampled.
 
     python benchmarks/path_variants.py DATA LABELS.csv [DATA LABELS.csv ...]
 """
@@ -38,6 +40,56 @@ def path_scores(t: timeline.Timeline, groups: np.ndarray, points: int, distances
         timeline.PATH_POINTS, timeline.PATH_DISTANCES = saved
 
 
+def dtw_scores(t: timeline.Timeline, groups: np.ndarray, points: int, band: float | None = None) -> np.ndarray:
+    """The path's state part by dynamic time warping instead of normalised time: each state dimension in units of
+    its task's robust SD over every point (at least ``timeline.STATE_FLOOR`` of its range), the mean cost of the best
+    monotone alignment of two paths (steps of one point on either or both; within ``band`` x ``points`` of the
+    diagonal where given), the median over the ``timeline.NEAR`` nearest task-mates, and its robust z of log1p
+    within the task, as the audit scores its distances."""
+    from democheck.audit.scores import calibrated
+
+    at = np.rint(np.linspace(0, DECODED - 1, points)).astype(int)
+    x_all = timeline._stack_state([p[at] if len(p) else p for p in t.state_path], slice(None))[:, :points]
+    floor = timeline._state_floor(t.state_path)
+    dist = np.full(len(x_all), np.nan)
+    for rows in timeline._grouped(groups):
+        x = np.nan_to_num(x_all[rows])
+        med = np.median(x.reshape(-1, x.shape[2]), axis=0)
+        unit = np.fmax(1.4826 * np.median(np.abs(x.reshape(-1, x.shape[2]) - med), axis=0), floor)
+        x = np.clip((x - med) / unit, -timeline.CLIP, timeline.CLIP)
+        n = len(rows)
+        i, j = np.triu_indices(n, 1)
+        cost = ((x[i][:, :, None, :] - x[j][:, None, :, :]) ** 2).mean(axis=3)  # [pairs, T, T]
+        if band is not None:
+            off = np.abs(np.arange(points)[:, None] - np.arange(points)[None, :]) > max(1, int(band * points))
+            cost = np.where(off[None], np.inf, cost)
+        acc = np.full((len(i), points + 1, points + 1), np.inf)
+        acc[:, 0, 0] = 0.0
+        for a in range(1, points + 1):
+            for b in range(1, points + 1):
+                acc[:, a, b] = cost[:, a - 1, b - 1] + np.minimum(np.minimum(acc[:, a - 1, b], acc[:, a, b - 1]),
+                                                                  acc[:, a - 1, b - 1])
+        d = np.zeros((n, n))
+        d[i, j] = d[j, i] = np.sqrt(acc[:, points, points] / (2 * points))
+        np.fill_diagonal(d, np.inf)
+        k = max(1, min(timeline.NEAR, (n - 1) // 2))
+        dist[rows] = np.median(np.sort(d, axis=1)[:, :k], axis=1)
+    return calibrated(np.log1p(dist), groups, min_scale=timeline.STATE_MIN_SCALE)
+
+
+def state_only_scores(t: timeline.Timeline, groups: np.ndarray, points: int) -> np.ndarray:
+    """The path's state part alone in normalised time, as the audit scores it (both distances): the baseline
+    ``dtw_scores`` is set against (the audit's path also reads the camera's)."""
+    at = np.rint(np.linspace(0, DECODED - 1, points)).astype(int)
+    x = timeline._stack_state([p[at] if len(p) else p for p in t.state_path], slice(None))[:, :points]
+    saved = timeline.PATH_POINTS
+    timeline.PATH_POINTS = points
+    try:
+        return timeline._state_part(x, groups, np.tile(timeline._state_floor(t.state_path), points))[1]
+    finally:
+        timeline.PATH_POINTS = saved
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("pairs", nargs="+", type=Path, metavar="DATA LABELS.csv",
@@ -65,8 +117,22 @@ def main(argv: list[str] | None = None) -> None:
                 table[f"{points} {'+'.join(distances)}"] = {
                     k: round(detection(np.r_[np.ones((y == k).sum(), bool), np.zeros(clean.sum(), bool)],
                                        np.r_[s[y == k], s[clean]])["auroc"], 3) for k in sorted(set(y) - {"clean"})}
+        lengths = ds.episodes["length"].to_numpy(np.float64)
+        state = {}
+        for name, s in (("32 state, normalised time", state_only_scores(t, groups, 32)),
+                        ("32 state, DTW", dtw_scores(t, groups, 32)),
+                        ("32 state, DTW within 10%", dtw_scores(t, groups, 32, band=0.1))):
+            s = np.nan_to_num(s, nan=-1e9)
+            row = {k: round(detection(np.r_[np.ones((y == k).sum(), bool), np.zeros(clean.sum(), bool)],
+                                      np.r_[s[y == k], s[clean]])["auroc"], 3) for k in sorted(set(y) - {"clean"})}
+            # does the score read the length? Spearman of the clean demos' scores with their length, within task
+            rho = pd.DataFrame({"s": s[clean], "n": lengths[clean], "g": groups[clean]}).groupby("g").apply(
+                lambda d: d["s"].rank().corr(d["n"].rank()), include_groups=False)
+            state[name] = {**row, "clean: rho with length": round(float(np.nanmean(rho)), 2) if np.isfinite(rho).any() else None}
         print(f"{data} ({time.perf_counter() - t0:.0f} s): AUROC of the path check against the clean demos")
         print(pd.DataFrame(table).to_string())
+        print("the state part alone: normalised time against dynamic time warping")
+        print(pd.DataFrame(state).to_string())
 
 
 if __name__ == "__main__":

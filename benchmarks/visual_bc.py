@@ -76,11 +76,14 @@ class SharpPoints(SpatialSoftmax):
 
 
 class VisualPolicy(nn.Module):
-    def __init__(self, state_dim: int, code_dim: int, action_dim: int, channels: int = 32, sharp: bool = False):
+    def __init__(self, state_dim: int, code_dim: int, action_dim: int, channels: int = 32, sharp: bool = False,
+                 context: int = 0):
         super().__init__()
-        self.conv = nn.Sequential(nn.Conv2d(3, channels, 5, stride=2, padding=2), nn.ReLU(),
-                                  nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(),
-                                  nn.Conv2d(channels, channels, 3, padding=1))
+        layers = [nn.Conv2d(3, channels, 5, stride=2, padding=2), nn.ReLU(),
+                  nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU()]
+        for d in range(context):  # ``--context``: dilated layers that let a point's channel see around its object
+            layers += [nn.Conv2d(channels, channels, 3, padding=2 ** (d + 1), dilation=2 ** (d + 1)), nn.ReLU()]
+        self.conv = nn.Sequential(*layers, nn.Conv2d(channels, channels, 3, padding=1))
         self.points = SharpPoints(channels) if sharp else SpatialSoftmax()
         self.mlp = nn.Sequential(nn.Linear(2 * channels + state_dim + code_dim, 256), nn.ReLU(),
                                  nn.Linear(256, 256), nn.ReLU(), nn.Linear(256, 256), nn.ReLU(),
@@ -130,6 +133,32 @@ def load(suite: Path, split: str = "train"):
     return arrays, rows, np.concatenate(codes), np.concatenate(objs).astype(np.float32), table.loc[order[keep]]
 
 
+def posed_frames(arrays, rows: np.ndarray, eps, per_demo: int, seed: int) -> tuple[np.ndarray, ...]:
+    """Frames in which the arm says nothing of where the objects are: each demo's layout (its objects where they
+    began) rendered with the arm posed as at a random frame of another demo.  In a demo the arm heads for the
+    target, so a localiser can read the objects off the arm; on these frames it cannot.  Returns frames, task codes
+    and the objects' (target x, y, distractor x, y)."""
+    from democheck.sim.env import Layout
+
+    rng = np.random.default_rng([seed, 0x905E])
+    frames, codes, objs, env = [], [], [], None
+    for k in range(len(eps)):
+        sim = json.loads(eps.iloc[k]["sim"])
+        pair = (OBJECTS[sim["target"]], OBJECTS[sim["distractor"]])
+        if env is None:
+            env = PushEnv(pair, image_size=int(sim["image_size"]))
+        else:
+            env.set_task(pair)
+        lay = Layout.from_dict(sim["layout"])
+        for r in rng.choice(rows, per_demo):
+            arm = tuple(float(a) for a in np.asarray(arrays.state[r])[:7])
+            frames.append(env.reset(options={"layout": Layout(lay.target, lay.distractor, arm)})[0]["image"])
+        codes.append(np.repeat(task_code(sim["target"], sim["distractor"])[None], per_demo, 0))
+        objs.append(np.repeat(np.array([lay.target[:2] + lay.distractor[:2]], np.float32), per_demo, 0))
+    env.close()
+    return np.stack(frames), np.concatenate(codes), np.concatenate(objs)
+
+
 def rollouts(policy: VisualPolicy | None, norm: dict, tasks: list[tuple[str, str]], seeds: list[int], device,
              image_size: int, expert: str) -> list[bool]:
     """Success of the policy (None: the scripted ``expert`` the demos were recorded with) on each task, each on
@@ -170,6 +199,29 @@ def miss_cm(policy: VisualPolicy, arrays, rows: np.ndarray, codes: torch.Tensor,
     return [round(float(v), 2) for v in 100 * np.sqrt(((where - objs[pick]) ** 2).mean(0))]
 
 
+def miss_by_step(policy: VisualPolicy, arrays, rows: np.ndarray, codes: torch.Tensor, objs: np.ndarray, norm: dict,
+                 device, n: int = 8192) -> dict:
+    """The distance by which the target and the distractor are missed, cm, by the step of the demo: median and 90th
+    percentile of each, on ``n`` frames spread over ``rows``."""
+    pick = np.linspace(0, len(rows) - 1, min(n, len(rows))).astype(int)
+    with torch.no_grad():
+        where = np.concatenate([policy.where(torch.from_numpy(np.asarray(arrays.frames[rows[c]])).to(device),
+                                             codes[c].to(device)).cpu().numpy()
+                                for c in np.array_split(pick, max(1, len(pick) // 512))])
+    miss = 100 * (where * norm["os"] + norm["om"] - objs[pick]).reshape(len(pick), 2, 2)
+    dist = np.sqrt((miss ** 2).sum(2))  # [frames, (target, distractor)]
+    step = rows[pick] - np.asarray(arrays.offsets)[np.searchsorted(arrays.offsets, rows[pick], "right") - 1]
+    out = {}
+    for lo, hi in ((0, 10), (10, 30), (30, 60), (60, 10 ** 6)):
+        d = dist[(step >= lo) & (step < hi)]
+        out[f"steps {lo}-{hi - 1 if hi < 10 ** 6 else ''}"] = {
+            "median": [round(float(v), 2) for v in np.median(d, 0)],
+            "p90": [round(float(v), 2) for v in np.percentile(d, 90, 0)]}
+    out["all"] = {"median": [round(float(v), 2) for v in np.median(dist, 0)],
+                  "p90": [round(float(v), 2) for v in np.percentile(dist, 90, 0)]}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("suite", type=Path)
@@ -186,12 +238,19 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--sharp", action="store_true", help="a learnt temperature per channel in the spatial softmax")
+    ap.add_argument("--channels", type=int, default=32, help="channels of every convolution (one feature point each)")
+    ap.add_argument("--context", type=int, default=0,
+                    help="dilated 3x3 layers (dilation 2, 4, ...) added before the last convolution")
     ap.add_argument("--points-from", type=Path, default=None,
                     help="the --out of an --objects-only run: its convolutions and feature points, frozen; only the "
                          "controller on top of them is trained")
     ap.add_argument("--tune-points", action="store_true",
                     help="with --points-from: the points train on with the controller, --aux x the localiser's "
                          "read-out of the objects keeping them on the objects")
+    ap.add_argument("--posed", type=int, default=0,
+                    help="render this many frames a demo with the arm posed as in another demo (the objects where "
+                         "they began), and train the localiser on them for half of each batch: the arm then cannot "
+                         "stand in for the objects")
     ap.add_argument("--objects-only", action="store_true",
                     help="train the feature points on the objects' positions alone (no actions), then report how far "
                          "they miss, in cm, on training frames and on the val split's (held-out objects)")
@@ -209,7 +268,12 @@ def main() -> None:
     on = torch.from_numpy((objs - norm["om"]) / norm["os"])
     cn = torch.from_numpy(codes)
     torch.manual_seed(args.seed)
-    policy = VisualPolicy(state.shape[1], codes.shape[1], actions.shape[1], sharp=args.sharp).to(device)
+    if args.points_from:  # the localiser's shape: its channels and layers
+        arch = torch.load(args.points_from / "checkpoint.pt", map_location=device, weights_only=True).get("arch", {})
+        args.channels, args.context = arch.get("channels", 32), arch.get("context", 0)
+        args.sharp = arch.get("sharp", args.sharp)
+    policy = VisualPolicy(state.shape[1], codes.shape[1], actions.shape[1], channels=args.channels, sharp=args.sharp,
+                          context=args.context).to(device)
     if args.points_from:  # a localiser's convolutions and points (``--objects-only``), kept as they are
         saved = torch.load(args.points_from / "checkpoint.pt", map_location=device, weights_only=True)["policy"]
         policy.load_state_dict({k: v for k, v in saved.items() if k.startswith(("conv.", "points.", "locate."))},
@@ -231,13 +295,25 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     if args.resume and ckpt.exists() and "batch_rng" in saved:
         rng.bit_generator.state = saved["batch_rng"]
+    posed = None
+    if args.posed:
+        t = time.perf_counter()
+        pf, pc, po = posed_frames(arrays, rows, eps, args.posed, args.seed)
+        posed = (torch.from_numpy(pf), torch.from_numpy(pc), torch.from_numpy((po - norm["om"]) / norm["os"]))
+        print(f"{len(pf)} posed frames rendered in {time.perf_counter() - t:.0f} s", flush=True)
     print(f"{len(rows)} frames of {len(eps)} demos; training from step {step} to {args.steps}", flush=True)
     t0, seen = time.perf_counter(), 0
     while step < args.steps:
         i = np.sort(rng.integers(0, len(rows), args.batch))
         frames = random_shift(torch.from_numpy(np.asarray(arrays.frames[rows[i]]))[:, None], args.shift)[:, 0]
         j = torch.from_numpy(i)
-        if args.objects_only:
+        if args.objects_only and posed is not None:  # half the batch from the posed frames
+            half = len(i) // 2
+            k = torch.from_numpy(rng.integers(0, len(posed[0]), half))
+            frames = torch.cat([frames[:half], posed[0][k]])
+            code, target = torch.cat([cn[j[:half]], posed[1][k]]), torch.cat([on[j[:half]], posed[2][k]])
+            where, act_loss = policy.where(frames.to(device), code.to(device)), torch.zeros(())
+        elif args.objects_only:
             where, act_loss = policy.where(frames.to(device), cn[j].to(device)), torch.zeros(())
         elif args.tune_points:  # the controller and the localiser's read-out on the same points
             kp = policy.keypoints(frames.to(device))
@@ -247,7 +323,7 @@ def main() -> None:
         else:
             pred, where = policy(frames.to(device), sn[j].to(device), cn[j].to(device))
             act_loss = ((pred - an[j].to(device)) ** 2).mean()
-        obj_loss = ((where - on[j].to(device)) ** 2).mean()
+        obj_loss = ((where - (target if posed is not None and args.objects_only else on[j]).to(device)) ** 2).mean()
         loss = obj_loss if args.objects_only else act_loss + args.aux * obj_loss
         opt.zero_grad()
         loss.backward()
@@ -264,7 +340,8 @@ def main() -> None:
             tmp = ckpt.with_suffix(".tmp")
             torch.save({"policy": policy.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
                         "step": step, "log": log, "torch_rng": torch.get_rng_state(),
-                        "batch_rng": rng.bit_generator.state}, tmp)
+                        "batch_rng": rng.bit_generator.state,
+                        "arch": {"channels": args.channels, "context": args.context, "sharp": args.sharp}}, tmp)
             tmp.replace(ckpt)
     train_s = time.perf_counter() - t0
 
@@ -274,11 +351,23 @@ def main() -> None:
                "train_s_this_run": round(train_s, 1),
                "miss_cm": {"train": miss_cm(policy, arrays, rows, cn, objs, norm, device)},
                "spread_cm": [round(float(v), 2) for v in 100 * norm["os"]]}  # the miss of guessing the mean
-        varrays, vrows, vcodes, vobjs, _ = load(args.suite, "val")
+        varrays, vrows, vcodes, vobjs, veps = load(args.suite, "val")
         res["miss_cm"]["val"] = miss_cm(policy, varrays, vrows, torch.from_numpy(vcodes), vobjs, norm, device)
+        res["val_miss_by_step_cm"] = miss_by_step(policy, varrays, vrows, torch.from_numpy(vcodes), vobjs, norm,
+                                                  device)  # (target, distractor)
+        res["arch"] = {"channels": args.channels, "context": args.context, "sharp": args.sharp}
+        # the val split's layouts with another demo's arm: how far the points miss where the arm tells nothing
+        pf, pc, po = posed_frames(varrays, vrows, veps, 4, args.seed + 1)
+        with torch.no_grad():
+            w = np.concatenate([policy.where(torch.from_numpy(pf[c]).to(device), torch.from_numpy(pc[c]).to(device))
+                                .cpu().numpy() for c in np.array_split(np.arange(len(pf)), max(1, len(pf) // 512))])
+        d = 100 * np.sqrt(((w * norm["os"] + norm["om"] - po).reshape(-1, 2, 2) ** 2).sum(2))
+        res["val_posed_miss_cm"] = {"frames": len(pf), "median": [round(float(x), 2) for x in np.median(d, 0)],
+                                    "p90": [round(float(x), 2) for x in np.percentile(d, 90, 0)]}
         (args.out / "results.json").write_text(json.dumps(res, indent=2))
         print(f"feature points read the objects' positions, RMS miss in cm (target x, y, distractor x, y): "
-              f"train {res['miss_cm']['train']}, val {res['miss_cm']['val']}")
+              f"train {res['miss_cm']['train']}, val {res['miss_cm']['val']}; with the arm posed as in another "
+              f"demo, median target / distractor {res['val_posed_miss_cm']['median']}")
         return
     draw = np.random.default_rng([args.seed, 0xE7A1])
     picks = draw.choice(len(eps), size=args.rollouts, replace=True)
