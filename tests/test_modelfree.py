@@ -529,6 +529,29 @@ def test_the_core_sets_each_tasks_centre_and_unit_and_the_tails_refit_them_each_
     assert np.isfinite(log_p).all() and log_p[bad].max() < log_p[found].min()
 
 
+def test_a_task_whose_clean_demos_surely_spread_more_is_judged_in_its_own_unit():
+    from democheck.audit.scores import MAD_RELATIVE_SE, calibrated
+
+    rng = np.random.default_rng(5)
+    # Three tasks of 40 demos spread 1, 1 and 3 (a task with contact); a task of 6 demos spread 1.5.
+    tasks = np.repeat(["a", "b", "wide", "small"], [40, 40, 40, 6])
+    x = np.concatenate([rng.normal(0, 1, 40), rng.normal(4, 1, 40), rng.normal(-3, 3, 40), rng.normal(2, 1.5, 6)])
+    pooled = calibrated(x, tasks)
+    own = calibrated(x, tasks, task_units=True)
+    wide, small = tasks == "wide", tasks == "small"
+    # The wide task is measured in (nearly) its own robust SD, so its clean demos stand where a clean demo does.
+    resid = x[wide] - np.median(x[wide])
+    mad = 1.4826 * np.median(np.abs(resid))
+    np.testing.assert_allclose(own[wide], resid / (mad * (1 - 1.96 * MAD_RELATIVE_SE / np.sqrt(40))))
+    assert np.abs(own[wide]).max() < np.abs(pooled[wide]).max()
+    # Where a task's spread is not surely larger (a narrower task; a task of 6, whose MAD chance moves), the
+    # pooled unit stands.
+    np.testing.assert_allclose(own[~wide & ~small], pooled[~wide & ~small])
+    np.testing.assert_allclose(own[small], pooled[small])
+    # The unit is never smaller than the pooled one.
+    assert (np.abs(own) <= np.abs(pooled) + 1e-12).all()
+
+
 def test_conformal_p_counts_the_other_core_demos_and_carries_on_beyond_them():
     s = np.array([0.1, 0.5, 1.0, 2.0, 5.0, 3.0])
     core = np.array([True, True, True, True, False, False])

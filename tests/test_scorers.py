@@ -140,7 +140,7 @@ def test_a_ranking_recipe_with_an_unknown_score_key_tail_or_kind_is_one_clear_er
                        ('demoted = ["motion:less"', 'demoted = ["motion:lesser"'),
                        ('first = "outcome"', 'first = "outcom"'),
                        ('over = ["view", "colours", "end", "path"]', 'over = ["view", "colours", "end", "path"]\nafter = 1'),
-                       ("same_camera = true", 'same_camera = "yes"')):
+                       ("same_camera = true", 'same_camera = "yes"'), ("task_units = true", "task_units = 1")):
         path = tmp_path / "r.toml"
         path.write_text(shipped.replace(bad, words, 1))
         with pytest.raises(RecipeError, match="unknown or ill-typed"):

@@ -36,6 +36,7 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "no-faults-apart": lambda c: replace(c, specs=tuple(replace(s, alone=False) for s in c.specs)),
     "exponential-tails": lambda c: replace(c, specs=tuple(replace(s, tail="exponential") for s in c.specs)),
     "no-floors": lambda c: replace(c, specs=tuple(replace(s, floor=0.0) for s in c.specs)),
+    "pooled-units": lambda c: replace(c, task_units=False),
     "core-1e-3": lambda c: replace(c, core_p=1e-3),
     "core-1e-6": lambda c: replace(c, core_p=1e-6),
     "without-outcome": lambda c: c.without("outcome"),

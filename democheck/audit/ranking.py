@@ -78,6 +78,7 @@ class RankingConfig:
     core_p: float
     reason_p: float  # a score this surprising (tail probability) is named in a reason beside the first
     precedence: Precedence = Precedence()
+    task_units: bool = False  # a task whose clean demos spread more is judged in its own unit (``calibrated``)
 
     @property
     def names(self) -> list[str]:
@@ -140,7 +141,8 @@ def ranking_z(values: Mapping[str, np.ndarray], groups: np.ndarray, config: Rank
     for s in config.specs:
         x = np.asarray(values[s.name], np.float64)
         x = np.log(np.maximum(x, 1e-12)) if s.log else x
-        cols.append(x if s.in_robust_sd else calibrated(x, groups, min_scale=s.floor, core=core))
+        cols.append(x if s.in_robust_sd else calibrated(x, groups, min_scale=s.floor, core=core,
+                                                        task_units=config.task_units))
     return np.column_stack(cols) if cols else np.zeros((len(groups), 0))
 
 

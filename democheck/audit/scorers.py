@@ -336,10 +336,10 @@ def _precedence_errors(section: dict, scores: dict) -> list[str]:
 def ranking_recipe(name_or_path: str = "default") -> dict[str, Any]:
     """How the scores enter the ranking and which finding leads a reason, as data:
     ``democheck/recipes/ranking/<name>.toml`` (or a path) read and checked -- the ranked scores in order with
-    their keys (``RANKING_KEYS``), ``core_p``, ``reason_p``, and ``[reasons]`` (``ranking.Precedence``: every
-    name a ranked check, every kind one its vocabulary declares)."""
+    their keys (``RANKING_KEYS``), ``core_p``, ``reason_p``, ``task_units`` and ``[reasons]``
+    (``ranking.Precedence``: every name a ranked check, every kind one its vocabulary declares)."""
     path, doc = resources.read_recipe("ranking", name_or_path, "ranking")
-    unknown = sorted(set(doc) - {"name", "core_p", "reason_p", "reasons", "scores"})
+    unknown = sorted(set(doc) - {"name", "core_p", "reason_p", "task_units", "reasons", "scores"})
     scores = doc.get("scores", {})
     bad = sorted(set(scores) - set(SCORERS)) + sorted(
         f"{n}.{k}" for n, keys in scores.items() for k, v in keys.items()
@@ -347,6 +347,8 @@ def ranking_recipe(name_or_path: str = "default") -> dict[str, Any]:
                                                    else RANKING_KEYS[k]))
     bad += _precedence_errors(doc.get("reasons", {}), scores)
     bad += sorted(f"{n}.tail" for n, keys in scores.items() if keys.get("tail", "exponential") not in TAILS)
+    if not isinstance(doc.get("task_units", False), bool):
+        bad.append("task_units")
     if unknown or bad or not isinstance(doc.get("core_p"), float) or not isinstance(doc.get("reason_p"), float):
         kinds = "; ".join(f"{check}: {', '.join(v.kinds)}" for check, v in VOCABULARIES.items())
         raise RecipeError(f"{path}: unknown or ill-typed {', '.join(unknown + bad) or 'core_p or reason_p'} (a "
@@ -399,7 +401,8 @@ def ranking_config(names: list[str]) -> ranking.RankingConfig:
                                  alone=alone, look=look, lead=lead)
 
     return ranking.RankingConfig(tuple(spec(n) for n in names), core_p=recipe["core_p"],
-                                 reason_p=recipe["reason_p"], precedence=precedence)
+                                 reason_p=recipe["reason_p"], precedence=precedence,
+                                 task_units=recipe.get("task_units", False))
 
 
 def combination(ev: Evidence, model_free: bool = False) -> ranking.Ranking:

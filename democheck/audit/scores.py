@@ -51,6 +51,7 @@ TAIL_QUANTILES = (0.25, 0.75)  # the core's percentiles an exponential tail pass
 TAIL_MIN_SCALE = 0.5  # robust SD: no tail falls faster than by e per half a robust standard deviation
 BROWN_CORE = 0.1  # Brown's dependence is measured on the demos whose Sidak-combined probability is above this
 BROWN_MIN_DEMOS = 30  # with fewer such demos, the Sidak minimum instead of Fisher-Brown
+MAD_RELATIVE_SE = 1.167  # the MAD's standard error over its value, times sqrt(demos), for normal data
 CORE_ROUNDS = 10  # at most this many refits of the core
 
 
@@ -131,9 +132,10 @@ def standardise(x: np.ndarray, stats: dict[str, float]) -> np.ndarray:
 
 # Scores are put in robust standard deviations within their task (a distance from the task's median over the MAD
 # of those distances across all demos), so that a harder task's demos do not fill the top ranks and a task of a
-# dozen demos needs no scale of its own; the alternatives measured: docs/decisions.md ("Calibration").
+# dozen demos needs no scale of its own -- unless its demos surely spread more (``task_units``); the alternatives
+# measured: docs/decisions.md ("Calibration", "A task's own unit where its demos surely spread more").
 def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, min_scale: float = 0.0,
-               core: np.ndarray | None = None) -> np.ndarray:
+               core: np.ndarray | None = None, task_units: bool = False) -> np.ndarray:
     """``x`` in robust standard deviations (median, 1.4826 x MAD) within each demo's task (of all demos without
     ``tasks`` or with one task).
 
@@ -141,7 +143,9 @@ def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, min_scale: float 
     scripted or very regular demos repeat almost exactly, where a MAD near zero would call any small difference
     many standard deviations.  ``core`` (bool [N]): the medians and the MAD of the demos believed clean alone
     (``robust_tails``; a task with none of them in the core keeps the median of all its demos), so that a
-    task's bad demos move neither the centre its clean demos are judged from nor the unit."""
+    task's bad demos move neither the centre its clean demos are judged from nor the unit.  ``task_units``: a
+    task whose core demos spread more than the pooled unit says is judged in its own robust SD (the larger of the
+    two), so that a task whose clean demos vary more (contact, a tumbling object) is not read as many units off."""
     x = np.asarray(x, np.float64)
     core = np.ones(len(x), bool) if core is None else np.asarray(core, bool)
     if tasks is None or len(np.unique(tasks)) < 2:
@@ -152,8 +156,15 @@ def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, min_scale: float 
     every = pd.Series(finite).groupby(tasks).transform("median").to_numpy()
     centre = pd.Series(np.where(core, finite, np.nan)).groupby(tasks).transform("median").to_numpy()
     resid = finite - np.where(np.isnan(centre), every, centre)
-    scale = robust_stats(resid[core] if core.any() else resid)["scale"]
-    return standardise(resid, {"median": 0.0, "scale": max(scale, min_scale)})
+    scale = max(robust_stats(resid[core] if core.any() else resid)["scale"], min_scale)
+    if task_units:  # the task's own robust SD where it is surely larger: the lower end of its 95% interval
+        by_task = pd.Series(np.where(core, np.abs(resid), np.nan)).groupby(tasks)
+        own = 1.4826 * by_task.transform("median").to_numpy()
+        n = by_task.transform("count").to_numpy()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            surely = own * (1.0 - 1.96 * MAD_RELATIVE_SE / np.sqrt(n))
+        scale = np.fmax(np.nan_to_num(surely), scale)
+    return resid / scale
 
 
 
