@@ -44,6 +44,9 @@ from democheck.petnet.gate import Gate
 from democheck.petnet.encode import encode_demos
 from democheck.petnet.recipe import DEFAULT_RECIPE, load_recipe, training_config
 from democheck.petnet.train import TrainConfig, TrainResult, finish_rows, resolve_device, train
+from democheck.sim.env import STATE_NAMES
+from democheck.sim.posed import render_posed
+from democheck.sim.scene import ARM_JOINTS
 from democheck.sim.suite import generate, load_recipe as load_suite
 from democheck.viz.report import MAX_TABS, embed_2d, write_bench_rrd, write_eval_rrd, write_report_rrd
 from democheck.viz.suspects import Suspects, Typical
@@ -54,11 +57,12 @@ def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: b
                 on_decode: Callable[[int, int], None] | None = None,
                 on_step: Callable[[int, int, dict], None] | None = None,
                 stop_after: int | None = None,
-                on_novelty: Callable[[int, int], None] | None = None) -> TrainResult | None:
+                on_novelty: Callable[[int, int], None] | None = None,
+                on_posed: Callable[[int, int], None] | None = None) -> TrainResult | None:
     """Open ``dataset``, decode it into the frame cache, train, and write the model folder ``out``.
 
     ``recipe``: the resolved training recipe ``tc`` came from (``petnet.recipe.load_recipe``), recorded in the
-    model's config.json and card."""
+    model's config.json and card.  ``on_posed``: progress of the posed frames a recipe may ask for, per demo."""
     ds = open_dataset(dataset, camera=camera, image_size=tc.image_size).require_camera("training")
     if ds.episodes.groupby("task").size().max() < 2:
         raise DatasetError(f"{ds.root}: every task has a single demo; training needs two or more per task (a cue and "
@@ -79,7 +83,8 @@ def train_model(dataset: str | Path, out: str | Path, tc: TrainConfig, resume: b
         meta["recipe"] = recipe
     return train(arrays, Path(out), tc, resume=resume, force=force, meta=meta, on_progress=on_step,
                  card=lambda m: model_card(Path(out).name, m), stop_after=stop_after, reference=reference,
-                 task_groups=object_pair_groups(ds), on_novelty=on_novelty)
+                 task_groups=object_pair_groups(ds), on_novelty=on_novelty,
+                 posed=posed_renderer(ds, arrays, tc.posed_frames, tc.seed, on_posed) if tc.posed_frames else None)
 
 
 def train_from_recipe(dataset: str | Path, out: str | Path, recipe: str | Path = DEFAULT_RECIPE,
@@ -150,6 +155,24 @@ def object_pair_groups(ds) -> dict[str, str]:
         except (TypeError, ValueError, KeyError):
             continue
     return out
+
+
+def posed_renderer(ds: DemoSet, arrays, per_demo: int, seed: int, on_progress: Callable[[int, int], None] | None
+                   ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """``train``'s ``posed``: given cache rows, ``per_demo`` frames of each row's layout with the arm posed as at a
+    random step of those rows' demos (``sim.posed.render_posed``), from a democheck pushing suite's sim records."""
+    if "sim" not in ds.episodes or len(STATE_NAMES) != arrays.state.shape[1]:
+        raise DatasetError(f"{ds.root}: posed frames render a democheck pushing suite's layouts again (its episodes' "
+                           "sim records); this dataset is not one -- set model.posed_frames = 0")
+    sims = ds.episodes["sim"]
+
+    def render(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        spans = np.concatenate([np.arange(arrays.offsets[r], arrays.offsets[r] + arrays.lengths[r]) for r in rows])
+        arms = np.asarray(arrays.state[spans])[:, :len(ARM_JOINTS)]  # the state begins with the arm's joint angles
+        records = [json.loads(sims.loc[int(arrays.episodes["episode_index"].iloc[r])]) for r in rows]
+        return render_posed(records, arms, per_demo, seed, on_progress)
+
+    return render
 
 
 def in_frames(ds: DemoSet, on_progress: Callable[..., None]) -> Callable[[str, int, int], None]:

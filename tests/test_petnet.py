@@ -500,6 +500,58 @@ def test_the_object_readout_learns_the_recorded_object_poses(arrays, tmp_path, m
         train(dataclasses.replace(arrays, env_state=None), tmp_path / "n", tc)
 
 
+def test_posed_frames_keep_the_layout_and_move_the_arm(tiny_dataset):
+    import json
+
+    from democheck.data import open_dataset
+    from democheck.sim.posed import render_posed
+
+    ds = open_dataset(tiny_dataset[0])
+    sims = [json.loads(s) for s in ds.episodes["sim"].iloc[:2]]
+    arms = np.stack([sims[0]["layout"]["arm_qpos"], np.array(sims[0]["layout"]["arm_qpos"]) + 0.8])
+    frames, poses = render_posed(sims, arms, per_demo=6, seed=1)
+    assert frames.shape == (2, 6, 16, 16, 3) and frames.dtype == np.uint8 and poses.shape == (2, 6, 6)
+    for n, sim in enumerate(sims):  # the objects where the demo's began, in the environment state's order
+        np.testing.assert_allclose(poses[n], np.tile(sim["layout"]["target"] + sim["layout"]["distractor"], (6, 1)),
+                                   atol=1e-6)
+    assert len({f.tobytes() for f in frames[0]}) == 2  # two arm poses, two pictures of one layout
+    np.testing.assert_array_equal(render_posed(sims, arms, per_demo=6, seed=1)[0], frames)  # the seed's frames
+    with pytest.raises(ValueError, match="joint positions"):
+        render_posed(sims, arms[:, :3], per_demo=1, seed=1)
+
+
+def test_the_read_out_learns_on_posed_frames_with_the_trajectory_demos_task_variable(tiny_dataset, arrays, tmp_path):
+    from democheck.petnet.batches import POSED_PER_TASK, Batches, PosedFrames, task_rows
+    from democheck.workflows import posed_renderer
+
+    tc = TrainConfig(steps=4, task_fusion="tile", keypoints=True, object_readout=1.0, posed_frames=3,
+                     **{**FAST, "val_every": 4})
+    seen = []
+
+    def posed(rows):
+        seen.append(rows)
+        return posed_renderer(open_dataset(tiny_dataset[0]), arrays, 3, 0, None)(rows)
+
+    res = train(arrays, tmp_path / "m", tc, posed=posed)
+    train_rows = np.concatenate(list(task_rows(arrays, "train", 0).values()))
+    np.testing.assert_array_equal(np.sort(seen[0]), np.sort(train_rows))  # rendered once, for the training demos
+    assert np.isfinite(res.history[-1]["train_posed_readout"]) and "val_posed_readout" not in res.history[-1]
+    # A batch reads the posed frames of its trajectory demos (not its cues': z could carry their layout).
+    frames, poses = posed(train_rows)
+    rows = task_rows(arrays, "train", 0)
+    b = Batches(arrays, rows, res.norm, env_norm=(np.zeros(6, np.float32), np.ones(6, np.float32)),
+                posed=PosedFrames(train_rows, frames, poses))
+    batch = b.sample(np.random.default_rng(0), 2, 2)
+    assert batch["posed_frames"].shape == (2, POSED_PER_TASK, 16, 16, 3)
+    cue_rows, traj_rows = b.pick_rows(np.random.default_rng(0), 2)
+    slots = [list(train_rows).index(r) for r in traj_rows]
+    assert all(any((batch["posed_env"][i] == poses[s][0]).all(axis=-1)) for i, s in enumerate(slots))
+    with pytest.raises(DemocheckError, match="pushing suite"):
+        train(arrays, tmp_path / "n", tc)
+    with pytest.raises(DemocheckError, match="object_readout"):
+        TrainConfig(posed_frames=2).check()
+
+
 def test_fine_points_read_a_map_half_the_images_side():
     cfg = ModelConfig(image_size=32, keypoints=True, fine_points=True, task_fusion="tile", conv_channels=8)
     ctrl = build_model(cfg).controller

@@ -55,7 +55,8 @@ def train(
                                        image_size=image_size,
                                        resume=resume, force=force, camera=camera, cache_dir=cache_dir,
                                        on_decode=bar.callback("decode frames"), on_step=on_step,
-                                       on_novelty=bar.callback("novelty autoencoder"))
+                                       on_novelty=bar.callback("novelty autoencoder"),
+                                       on_posed=bar.callback("posed frames"))
     table = Table(title=f"{result.config.model_type} -> {out}", show_header=False)
     final = result.metrics["final"]
     for key in ("train_mse", "val_mse", "val_task_matching", "val_tecnet_hinge"):

@@ -100,6 +100,25 @@ class ResidentArrays:
         return self.raw_state[self._index(self.host.last_index(rows))]
 
 
+POSED_PER_TASK = 4  # posed frames (``PosedFrames``) a batch reads of each task's trajectory demo
+
+
+class PosedFrames:
+    """Frames of training demos' layouts with the arm posed as in other demos (``democheck.sim.posed``), K a demo,
+    and the objects' poses there standardised as the read-out's targets: on them the arm says nothing of where the
+    objects are, and only the task variable says which one is the target."""
+
+    def __init__(self, rows: np.ndarray, frames: np.ndarray, env_state: np.ndarray):
+        self.slot = {int(r): i for i, r in enumerate(rows)}
+        self.frames, self.env_state = frames, env_state
+
+    def pick(self, rng: np.random.Generator, rows: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``k`` of each row's frames [B, k, H, W, 3], drawn at random, and their targets [B, k, E]."""
+        slots = np.array([self.slot[int(r)] for r in rows])[:, None]
+        which = rng.integers(0, self.frames.shape[1], (len(rows), k))
+        return self.frames[slots, which], self.env_state[slots, which]
+
+
 class Batches:
     """Samples (cue, demonstrated trajectory) pairs of the same task.
 
@@ -110,9 +129,11 @@ class Batches:
     """
 
     def __init__(self, arrays: EpisodeArrays | ResidentArrays, rows: dict[str, np.ndarray], norm: Normalisation,
-                 groups: dict[str, str] | None = None, env_norm: tuple[np.ndarray, np.ndarray] | None = None):
+                 groups: dict[str, str] | None = None, env_norm: tuple[np.ndarray, np.ndarray] | None = None,
+                 posed: PosedFrames | None = None):
         self.a = arrays
         self.env_norm = env_norm  # (mean, sd): batches carry the standardised environment state
+        self.posed = posed  # with it, a sampled batch carries posed frames of its trajectory demos
         self.tasks = sorted(rows)
         self.rows = [rows[t] for t in self.tasks]
         self.norm = norm
@@ -149,11 +170,15 @@ class Batches:
         return np.array(cue_rows), np.array(traj_rows)
 
     def sample(self, rng: np.random.Generator, n_tasks: int, k: int, partial: bool = False) -> dict[str, np.ndarray]:
-        """A batch; ``partial`` adds ``partial_cue``: each cue cut short at a uniformly drawn timestep."""
+        """A batch; ``partial`` adds ``partial_cue``: each cue cut short at a uniformly drawn timestep; with posed
+        frames, ``posed_frames`` and ``posed_env`` (``PosedFrames.pick``) of each trajectory demo."""
         cue_rows, traj_rows = self.pick_rows(rng, n_tasks)
         steps = uniform_steps(rng, self.a.lengths[traj_rows], k)
         ends = uniform_steps(rng, self.a.lengths[cue_rows], 1)[:, 0] if partial else None
-        return self.gather(cue_rows, traj_rows, steps, ends)
+        batch = self.gather(cue_rows, traj_rows, steps, ends)
+        if self.posed is not None:  # the trajectory demo's layout, not the cue's: z cannot carry where things are
+            batch["posed_frames"], batch["posed_env"] = self.posed.pick(rng, traj_rows, POSED_PER_TASK)
+        return batch
 
     def gather(self, cue_rows: np.ndarray, traj_rows: np.ndarray, steps: np.ndarray,
                cue_ends: np.ndarray | None = None) -> dict[str, np.ndarray]:
@@ -226,8 +251,10 @@ def augment(batch: dict[str, torch.Tensor], shift: int) -> dict[str, torch.Tenso
     for key in ("cue", "traj_cue", "partial_cue"):
         if key in out:
             out[key] = random_shift(out[key], shift)
-    frames = out["frames"]
-    out["frames"] = random_shift(frames.reshape(-1, 1, *frames.shape[2:]), shift).reshape(frames.shape)
+    for key in ("frames", "posed_frames"):
+        if key in out:
+            frames = out[key]
+            out[key] = random_shift(frames.reshape(-1, 1, *frames.shape[2:]), shift).reshape(frames.shape)
     return out
 
 

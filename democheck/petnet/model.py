@@ -325,15 +325,24 @@ class Controller(nn.Module):
     def control_loss(self, batch: dict[str, torch.Tensor], z: torch.Tensor, readout_weight: float = 0.0
                      ) -> dict[str, torch.Tensor]:
         """The action MSE on the batch's demonstrated trajectory under z (``mse``), and with a read-out weight
-        the read-out's MSE on the batch's standardised environment state where it is recorded (``readout``)."""
+        the read-out's MSE on the batch's standardised environment state where it is recorded (``readout``) and
+        on its posed frames where it has them (``posed_readout``: the arm posed as in another demo, so that the
+        objects must be seen, and which is the target known from z)."""
         if readout_weight <= 0 or self.readout is None or "env_state" not in batch:
             return {"mse": ((self.act(batch["frames"], batch["state"], z) - batch["actions"]) ** 2).mean()}
         actions, read = self.act(batch["frames"], batch["state"], z, read=True)
         target = batch["env_state"]
         known = torch.isfinite(target)
         err = torch.where(known, read - target.nan_to_num(), torch.zeros_like(read))
-        return {"mse": ((actions - batch["actions"]) ** 2).mean(),
-                "readout": (err ** 2).sum() / known.sum().clamp(min=1)}
+        out = {"mse": ((actions - batch["actions"]) ** 2).mean(),
+               "readout": (err ** 2).sum() / known.sum().clamp(min=1)}
+        if "posed_frames" in batch:
+            posed = batch["posed_frames"]
+            b, k = posed.shape[:2]
+            h = self.features(to_input(posed.reshape(b * k, *posed.shape[2:])),
+                              z[:, None].expand(b, k, z.shape[-1]).reshape(b * k, -1))
+            out["posed_readout"] = ((self.readout(h).reshape(b, k, -1) - batch["posed_env"]) ** 2).mean()
+        return out
 
 
 def kl_diag(mu_q: torch.Tensor, var_q: torch.Tensor, mu_p: torch.Tensor, var_p: torch.Tensor) -> torch.Tensor:
@@ -391,7 +400,7 @@ class PETNet(nn.Module):
         if terms is not None:
             out.update(terms(mu, var, sigma))
         out.update(self.controller.control_loss(batch, z, readout_weight))
-        out["loss"] = out["mse"] + readout_weight * out.get("readout", 0.0)
+        out["loss"] = out["mse"] + readout_weight * (out.get("readout", 0.0) + out.get("posed_readout", 0.0))
         return out
 
 
@@ -423,7 +432,8 @@ class TecNet(nn.Module):
         z = self.encoder(cue_input(batch["cue"]))
         out = {"tecnet_hinge": hinge_embedding_loss(z, self.encoder(cue_input(batch["traj_cue"])), margin)}
         out.update(self.controller.control_loss(batch, z, readout_weight))
-        out["loss"] = out["mse"] + hinge_weight * out["tecnet_hinge"] + readout_weight * out.get("readout", 0.0)
+        out["loss"] = out["mse"] + hinge_weight * out["tecnet_hinge"] + readout_weight * (
+            out.get("readout", 0.0) + out.get("posed_readout", 0.0))
         return out
 
 

@@ -30,7 +30,8 @@ from democheck.data.cache import EpisodeArrays
 from democheck.errors import DemocheckError
 from democheck.fsutil import atomic_output_dir, work_dir
 from democheck.petnet import regularisers
-from democheck.petnet.batches import Batches, ResidentArrays, augment, task_rows, to_device, val_pairs
+from democheck.petnet.batches import (Batches, PosedFrames, ResidentArrays, augment, standardise, task_rows,
+                                      to_device, val_pairs)
 from democheck.petnet.checkpoint import Normalisation, load_checkpoint, save_checkpoint
 from democheck.petnet.finish import finish_petnet
 from democheck.petnet.model import TASK_FUSIONS, ModelConfig, build_model
@@ -82,6 +83,10 @@ class TrainConfig:
     # Weight of the controller's read-out of the recorded environment state (the objects' poses, standardised)
     # from its conv features; 0: none.  Needs data that records an environment state.
     object_readout: float = 0.0
+    # Frames rendered for each training demo with the arm posed as in other demos, its objects where they began
+    # (``democheck.sim.posed``; a pushing suite's layouts), which the read-out learns on too: there the arm cannot
+    # stand in for the objects, nor anything but z say which object is the target.  0: none.
+    posed_frames: int = 0
     # The model's input size: every frame resized to image_size x image_size (``data.resize_frames``) for training
     # and, by the audit, for scoring; None: the camera's own size.
     image_size: int | None = None
@@ -139,6 +144,10 @@ class TrainConfig:
             raise DemocheckError(f"task_fusion must be one of {', '.join(TASK_FUSIONS)}, not {self.task_fusion!r}")
         if self.object_readout < 0:
             raise DemocheckError(f"object_readout is a weight, 0 or more, not {self.object_readout}")
+        if self.posed_frames < 0 or (self.posed_frames and not self.object_readout):
+            raise DemocheckError("posed_frames trains the object read-out: 0 or more frames a demo, with "
+                                 f"object_readout above 0 (not posed_frames {self.posed_frames}, object_readout "
+                                 f"{self.object_readout})")
         if self.fine_points and not self.keypoints:
             raise DemocheckError("fine_points reads feature points: set model.keypoints = true too")
         if self.conv_channels < 1:
@@ -257,11 +266,16 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
           card: Callable[[dict[str, Any]], str] | None = None, stop_after: int | None = None,
           reference: Callable[[TaskPosterior, np.ndarray], dict[str, Any]] | None = None,
           task_groups: dict[str, str] | None = None,
-          on_novelty: Callable[[int, int], None] | None = None, resident: bool | None = None) -> TrainResult | None:
+          on_novelty: Callable[[int, int], None] | None = None, resident: bool | None = None,
+          posed: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None) -> TrainResult | None:
     """Train and write the checkpoint folder ``out`` (atomically).
 
     ``resident``: gather training batches from a copy of the data on the training device (``ResidentArrays``);
     None: on a GPU.  The batches, and so the weights, are the same either way.
+
+    ``posed(rows)``: renders ``tc.posed_frames`` frames of each of those training rows' layouts with the arm posed
+    as in other demos (frames [N, K, H, W, 3], the objects' poses there [N, K, E]); needed where the recipe asks
+    for posed frames.
 
     ``reference(posterior, tasks)`` of the training demos, when given, is stored in the checkpoint (the audit
     keeps its one-class SVM there).  ``stop_after`` ends the run early after saving its state at that step,
@@ -305,7 +319,15 @@ def train(arrays: EpisodeArrays, out: Path, tc: TrainConfig, resume: bool = Fals
     env_norm = env_standardisation(arrays, all_train) if readout_dim else None
     source = ResidentArrays(arrays, norm, device, env_norm) \
         if (device.type == "cuda" if resident is None else resident) else arrays
-    batches, val = Batches(source, train_rows, norm, groups, env_norm), Batches(arrays, val_rows, norm, env_norm=env_norm)
+    posed_frames = None
+    if tc.posed_frames:
+        if posed is None:
+            raise DemocheckError("posed_frames renders the training demos' layouts again: only a democheck pushing "
+                                 "suite records them; set model.posed_frames = 0")
+        frames, poses = posed(all_train)
+        posed_frames = PosedFrames(all_train, frames, standardise(poses, env_norm))
+    batches = Batches(source, train_rows, norm, groups, env_norm, posed_frames)
+    val = Batches(arrays, val_rows, norm, env_norm=env_norm)
     pairs = val_pairs(val, tc.seed) if val_rows else None
     every = every_row(train_rows, val_rows)
     final_from = tc.steps - final_steps(arrays, tc, val_rows)
