@@ -159,6 +159,41 @@ def posed_frames(arrays, rows: np.ndarray, eps, per_demo: int, seed: int) -> tup
     return np.stack(frames), np.concatenate(codes), np.concatenate(objs)
 
 
+def arm_swap(policy: VisualPolicy, arrays, rows: np.ndarray, eps, objs: np.ndarray, norm: dict, device,
+             step: int = 50, n: int = 60) -> dict:
+    """Does the localiser read the objects or the arm?  ``n`` of the demos' layouts rendered with the arm posed as
+    at ``step`` of another of them: the median distance, cm, of the target read from where it stands and from that
+    other demo's target (``benchmarks/arm_shortcut.py`` asks a PETNet model the same)."""
+    from democheck.sim.env import Layout
+
+    offsets = np.asarray(arrays.offsets)
+    first = np.searchsorted(rows, offsets[np.searchsorted(offsets, rows, "right") - 1])  # each row's demo's start
+    starts = np.unique(first)[:n]  # positions in ``rows`` of the demos' first frames, in ``eps``' order
+    donors = np.roll(starts, 1)
+    frames, codes, own, other, env = [], [], [], [], None
+    for k, j in enumerate(donors):
+        sim = json.loads(eps.iloc[k]["sim"])  # the k-th demo of ``rows`` is ``eps``' k-th
+        pair = (OBJECTS[sim["target"]], OBJECTS[sim["distractor"]])
+        if env is None:
+            env = PushEnv(pair, image_size=int(sim["image_size"]))
+        else:
+            env.set_task(pair)
+        lay = Layout.from_dict(sim["layout"])
+        arm = tuple(float(a) for a in np.asarray(arrays.state[rows[j + step]])[:7])
+        frames.append(env.reset(options={"layout": Layout(lay.target, lay.distractor, arm)})[0]["image"])
+        codes.append(task_code(sim["target"], sim["distractor"]))
+        own.append(lay.target[:2])
+        other.append(objs[j + step][:2])
+    env.close()
+    with torch.no_grad():
+        read = policy.where(torch.from_numpy(np.stack(frames)).to(device),
+                            torch.from_numpy(np.stack(codes)).to(device)).cpu().numpy() * norm["os"] + norm["om"]
+
+    def cm(truth):
+        return round(float(np.median(100 * np.hypot(*(read[:, :2] - np.asarray(truth)).T))), 2)
+    return {"layouts": len(frames), "cm from its own target": cm(own), "cm from the other demo's target": cm(other)}
+
+
 def rollouts(policy: VisualPolicy | None, norm: dict, tasks: list[tuple[str, str]], seeds: list[int], device,
              image_size: int, expert: str) -> list[bool]:
     """Success of the policy (None: the scripted ``expert`` the demos were recorded with) on each task, each on
@@ -356,6 +391,7 @@ def main() -> None:
         res["val_miss_by_step_cm"] = miss_by_step(policy, varrays, vrows, torch.from_numpy(vcodes), vobjs, norm,
                                                   device)  # (target, distractor)
         res["arch"] = {"channels": args.channels, "context": args.context, "sharp": args.sharp}
+        res["val_arm_of_another_demo"] = arm_swap(policy, varrays, vrows, veps, vobjs, norm, device)
         # the val split's layouts with another demo's arm: how far the points miss where the arm tells nothing
         pf, pc, po = posed_frames(varrays, vrows, veps, 4, args.seed + 1)
         with torch.no_grad():
