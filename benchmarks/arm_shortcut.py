@@ -31,8 +31,7 @@ from democheck.petnet.checkpoint import load_checkpoint
 from democheck.petnet.encode import encode_rows
 from democheck.petnet.model import to_input
 from democheck.petnet.train import env_standardisation
-from democheck.sim.catalog import OBJECTS
-from democheck.sim.env import Layout, PushEnv
+from democheck.sim.posed import render_layouts
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -61,28 +60,18 @@ def main(argv: list[str] | None = None) -> dict:
     def sim(row: int) -> dict:
         return json.loads(ds.episodes.loc[int(eps.loc[row, "episode_index"]), "sim"])
 
-    kinds = ("home", "arm", "objects")
-    frames, states, own, donor = {k: [] for k in kinds}, {k: [] for k in kinds}, [], []
-    env = None
-    for i, j in zip(rows, other):
-        s = sim(i)
-        lay, lay_j = Layout.from_dict(s["layout"]), Layout.from_dict(sim(j)["layout"])
-        pair = (OBJECTS[s["target"]], OBJECTS[s["distractor"]])
-        if env is None:
-            env = PushEnv(pair, image_size=int(s["image_size"]))
-        else:
-            env.set_task(pair)
-        at = arrays.offsets[j] + args.step
-        arm = tuple(float(a) for a in np.asarray(arrays.state[at])[:7])
-        for key, layout in (("home", lay), ("arm", Layout(lay.target, lay.distractor, arm)),
-                            ("objects", Layout(lay_j.target, lay_j.distractor, lay.arm_qpos))):
-            obs = env.reset(options={"layout": layout})[0]
-            frames[key].append(obs["image"])
-            states[key].append(obs["state"])
-        own.append(lay.target[:2])
-        donor.append(np.asarray(arrays.env_state[at])[:2])
-    env.close()
-    own, donor = np.asarray(own), np.asarray(donor)
+    sims = [sim(i) for i in rows]
+    donor_arms = np.stack([np.asarray(arrays.state[arrays.offsets[j] + args.step])[:7] for j in other])
+    home_arms = np.stack([s["layout"]["arm_qpos"] for s in sims])
+    frames, states = {}, {}
+    f, poses, st = render_layouts(sims, np.stack([home_arms, donor_arms], 1))
+    frames["home"], frames["arm"], states["home"], states["arm"] = f[:, 0], f[:, 1], st[:, 0], st[:, 1]
+    moved_objects = [{**s, "layout": {**sim(j)["layout"], "arm_qpos": s["layout"]["arm_qpos"]}}
+                     for s, j in zip(sims, other)]  # another demo's places, this demo's objects and arm
+    f, _, st = render_layouts(moved_objects, home_arms[:, None])
+    frames["objects"], states["objects"] = f[:, 0], st[:, 0]
+    own = poses[:, 0, :2]
+    donor = np.stack([np.asarray(arrays.env_state[arrays.offsets[j] + args.step])[:2] for j in other])
 
     def act(key_frames: str, key_state: str, zz: torch.Tensor = z):
         f = torch.from_numpy(np.stack(frames[key_frames]))[:, None]

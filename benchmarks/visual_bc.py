@@ -46,6 +46,7 @@ from democheck.petnet.batches import random_shift
 from democheck.petnet.model import SpatialSoftmax
 from democheck.sim.catalog import COLOURS, OBJECTS, SHAPES, SIZES
 from democheck.sim.env import EPISODE_STEPS, PushEnv
+from democheck.sim.posed import render_layouts, render_posed
 from democheck.sim.variants import make_expert, record_demo
 
 OBJECT_XY = [0, 1, 3, 4]  # target x, y and distractor x, y in observation.environment_state
@@ -134,29 +135,13 @@ def load(suite: Path, split: str = "train"):
 
 
 def posed_frames(arrays, rows: np.ndarray, eps, per_demo: int, seed: int) -> tuple[np.ndarray, ...]:
-    """Frames in which the arm says nothing of where the objects are: each demo's layout (its objects where they
-    began) rendered with the arm posed as at a random frame of another demo.  In a demo the arm heads for the
-    target, so a localiser can read the objects off the arm; on these frames it cannot.  Returns frames, task codes
-    and the objects' (target x, y, distractor x, y)."""
-    from democheck.sim.env import Layout
-
-    rng = np.random.default_rng([seed, 0x905E])
-    frames, codes, objs, env = [], [], [], None
-    for k in range(len(eps)):
-        sim = json.loads(eps.iloc[k]["sim"])
-        pair = (OBJECTS[sim["target"]], OBJECTS[sim["distractor"]])
-        if env is None:
-            env = PushEnv(pair, image_size=int(sim["image_size"]))
-        else:
-            env.set_task(pair)
-        lay = Layout.from_dict(sim["layout"])
-        for r in rng.choice(rows, per_demo):
-            arm = tuple(float(a) for a in np.asarray(arrays.state[r])[:7])
-            frames.append(env.reset(options={"layout": Layout(lay.target, lay.distractor, arm)})[0]["image"])
-        codes.append(np.repeat(task_code(sim["target"], sim["distractor"])[None], per_demo, 0))
-        objs.append(np.repeat(np.array([lay.target[:2] + lay.distractor[:2]], np.float32), per_demo, 0))
-    env.close()
-    return np.stack(frames), np.concatenate(codes), np.concatenate(objs)
+    """Frames in which the arm says nothing of where the objects are (``democheck.sim.posed``): each demo's layout
+    with the arm posed as at a random frame of ``rows``.  Returns frames, task codes and the objects' (target x, y,
+    distractor x, y)."""
+    sims = [json.loads(sim) for sim in eps["sim"]]
+    frames, poses = render_posed(sims, np.asarray(arrays.state[rows])[:, :7], per_demo, seed)
+    codes = np.repeat(np.stack([task_code(sim["target"], sim["distractor"]) for sim in sims]), per_demo, 0)
+    return frames.reshape(-1, *frames.shape[2:]), codes, poses[:, :, [0, 1, 3, 4]].reshape(-1, 4)
 
 
 def arm_swap(policy: VisualPolicy, arrays, rows: np.ndarray, eps, objs: np.ndarray, norm: dict, device,
@@ -164,27 +149,15 @@ def arm_swap(policy: VisualPolicy, arrays, rows: np.ndarray, eps, objs: np.ndarr
     """Does the localiser read the objects or the arm?  ``n`` of the demos' layouts rendered with the arm posed as
     at ``step`` of another of them: the median distance, cm, of the target read from where it stands and from that
     other demo's target (``benchmarks/arm_shortcut.py`` asks a PETNet model the same)."""
-    from democheck.sim.env import Layout
-
     offsets = np.asarray(arrays.offsets)
     first = np.searchsorted(rows, offsets[np.searchsorted(offsets, rows, "right") - 1])  # each row's demo's start
     starts = np.unique(first)[:n]  # positions in ``rows`` of the demos' first frames, in ``eps``' order
     donors = np.roll(starts, 1)
-    frames, codes, own, other, env = [], [], [], [], None
-    for k, j in enumerate(donors):
-        sim = json.loads(eps.iloc[k]["sim"])  # the k-th demo of ``rows`` is ``eps``' k-th
-        pair = (OBJECTS[sim["target"]], OBJECTS[sim["distractor"]])
-        if env is None:
-            env = PushEnv(pair, image_size=int(sim["image_size"]))
-        else:
-            env.set_task(pair)
-        lay = Layout.from_dict(sim["layout"])
-        arm = tuple(float(a) for a in np.asarray(arrays.state[rows[j + step]])[:7])
-        frames.append(env.reset(options={"layout": Layout(lay.target, lay.distractor, arm)})[0]["image"])
-        codes.append(task_code(sim["target"], sim["distractor"]))
-        own.append(lay.target[:2])
-        other.append(objs[j + step][:2])
-    env.close()
+    sims = [json.loads(eps.iloc[k]["sim"]) for k in range(len(starts))]  # the k-th demo of ``rows`` is ``eps``' k-th
+    frames, poses, _ = render_layouts(sims, np.asarray(arrays.state[rows[donors + step]])[:, None, :7])
+    frames = frames[:, 0]
+    codes = [task_code(sim["target"], sim["distractor"]) for sim in sims]
+    own, other = poses[:, 0, :2], objs[donors + step][:, :2]
     with torch.no_grad():
         read = policy.where(torch.from_numpy(np.stack(frames)).to(device),
                             torch.from_numpy(np.stack(codes)).to(device)).cpu().numpy() * norm["os"] + norm["om"]
