@@ -3,6 +3,7 @@
     python benchmarks/visual_bc.py data/push-v2 --out runs/visual-bc [--steps 20000] [--aux 1] [--resume]
         [--rollouts 200] [--device cpu|cuda]
     python benchmarks/visual_bc.py data/push-v2 --out runs/locate --steps 3000 --objects-only [--sharp]
+        [--posed 20] [--context 2] [--channels 32]
     python benchmarks/visual_bc.py data/push-v2 --out runs/on-points --steps 6000 --aux 0 --points-from runs/locate
         [--tune-points --aux 1]
 
@@ -18,14 +19,17 @@ pixels (``petnet.batches.random_shift``).
 
 The perception apart: ``--objects-only`` trains the convolutions and points on where the objects are alone (the
 points and the task code through an MLP: which object is the target is the task's to say) and reports how far they
-miss, in cm, on training frames and on the val split's; ``--points-from`` puts such a localiser under the controller,
-frozen (or, with ``--tune-points``, trained on with it, ``--aux`` x its read-out's loss keeping it on the objects).
+miss, in cm, on training frames and on the val split's, by the demo's step, and with the arm posed as in another
+demo (``arm_swap``: does it read the objects, or the arm that heads for them?); ``--posed K`` trains it on K frames
+a demo with the arm posed so half of each batch (``democheck.sim.posed``).  ``--points-from`` puts such a localiser
+under the controller, frozen (or, with ``--tune-points``, trained on with it, ``--aux`` x its read-out's loss
+keeping it on the objects).
 
 Then closed loop: ``--rollouts`` episodes of 100 steps on train tasks, each on a layout no demo had (the same
 layouts for every run with the same ``--seed``), success rate with its 95% interval, against the scripted
 expert the demos were recorded with on the same layouts.  (The rollouts' frames are raw renders; the training
-frames were decoded from the suite's H.264 video.)  Checkpoints every ``--ckpt-every`` steps in ``--out`` (``--resume`` carries on from
-the last); ``results.json`` there holds the numbers.  The rung asks >= 85%.
+frames were decoded from the suite's H.264 video.)  Checkpoints every ``--ckpt-every`` steps in ``--out``
+(``--resume`` carries on from the last); ``results.json`` there holds the numbers.  The rung asks >= 85%.
 """
 
 from __future__ import annotations
