@@ -144,8 +144,9 @@ def calibrated(x: np.ndarray, tasks: np.ndarray | None = None, min_scale: float 
     many standard deviations.  ``core`` (bool [N]): the medians and the MAD of the demos believed clean alone
     (``robust_tails``; a task with none of them in the core keeps the median of all its demos), so that a
     task's bad demos move neither the centre its clean demos are judged from nor the unit.  ``task_units``: a
-    task whose core demos spread more than the pooled unit says is judged in its own robust SD (the larger of the
-    two), so that a task whose clean demos vary more (contact, a tumbling object) is not read as many units off."""
+    task whose core demos surely spread more than the pooled unit says (the lower end of its robust SD's 95%
+    interval is above it) is judged in that, so that a task whose clean demos vary more (contact, a tumbling
+    object) is not read as many units off; a task of a few demos, whose spread chance moves, keeps the pooled."""
     x = np.asarray(x, np.float64)
     core = np.ones(len(x), bool) if core is None else np.asarray(core, bool)
     if tasks is None or len(np.unique(tasks)) < 2:
