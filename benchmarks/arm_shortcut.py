@@ -29,7 +29,7 @@ from democheck.data.cache import build_cache
 from democheck.petnet.batches import task_rows
 from democheck.petnet.checkpoint import load_checkpoint
 from democheck.petnet.encode import encode_rows
-from democheck.petnet.model import to_input
+from democheck.petnet.blocks import to_input
 from democheck.petnet.train import env_standardisation
 from democheck.sim.posed import render_layouts
 

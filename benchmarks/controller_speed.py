@@ -15,7 +15,8 @@ import time
 
 import torch
 
-from democheck.petnet.model import ModelConfig, build_model
+from democheck.petnet.blocks import ModelConfig
+from democheck.petnet.model import build_model
 
 CONTROLLERS = {
     "points 16x16, 16 ch, shift": dict(task_fusion="shift"),

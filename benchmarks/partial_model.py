@@ -20,7 +20,8 @@ from safetensors.torch import load_file
 from democheck.data import open_dataset
 from democheck.data.cache import build_cache
 from democheck.petnet.checkpoint import save_checkpoint
-from democheck.petnet.model import ModelConfig, build_model
+from democheck.petnet.blocks import ModelConfig
+from democheck.petnet.model import build_model
 from democheck.petnet.train import Normalisation, task_rows
 
 

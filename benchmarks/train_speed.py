@@ -47,7 +47,8 @@ def measure(dataset: str, steps: int = 60, warmup: int = 5, batch_tasks: int = 1
     from democheck.data import open_dataset
     from democheck.data.cache import build_cache
     from democheck.petnet.checkpoint import Normalisation
-    from democheck.petnet.model import ModelConfig, build_model
+    from democheck.petnet.blocks import ModelConfig
+    from democheck.petnet.model import build_model
     from democheck.petnet.batches import Batches, task_rows, to_device
     from democheck.petnet.train import TrainConfig, objective, resolve_device, train
 

@@ -47,7 +47,7 @@ from democheck.data import open_dataset
 from democheck.data.cache import build_cache
 from democheck.evaluate.meta_test import wilson
 from democheck.petnet.batches import random_shift
-from democheck.petnet.model import SpatialSoftmax
+from democheck.petnet.blocks import SpatialSoftmax
 from democheck.sim.catalog import COLOURS, OBJECTS, SHAPES, SIZES
 from democheck.sim.env import EPISODE_STEPS, PushEnv
 from democheck.sim.posed import render_layouts, render_posed

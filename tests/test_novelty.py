@@ -14,7 +14,8 @@ from democheck.data.cache import build_cache
 from democheck.errors import DemocheckError
 from democheck.petnet.card import model_card
 from democheck.petnet.checkpoint import load_checkpoint
-from democheck.petnet.model import ModelConfig, build_model, cue_input
+from democheck.petnet.blocks import ModelConfig, cue_input
+from democheck.petnet.model import build_model
 from democheck.petnet.novelty import QUANTILE, conv_features, fit_novelty, stack_features
 from democheck.petnet.finish import nonsense_cues
 from democheck.petnet.train import TrainConfig, train

@@ -12,7 +12,8 @@ from democheck.data.cache import build_cache
 from democheck.errors import DemocheckError
 from democheck.petnet.checkpoint import CheckpointError, Normalisation, load_checkpoint
 from democheck.petnet.batches import Batches, augment, random_shift, task_rows, to_device
-from democheck.petnet.model import ModelConfig, PETNet, TecNet, build_model, cue_input, hinge_embedding_loss
+from democheck.petnet.blocks import ModelConfig, cue_input
+from democheck.petnet.model import PETNet, TecNet, build_model, hinge_embedding_loss
 from democheck.petnet.posterior import product_of_gaussians
 from democheck.petnet.regularisers import broken_cue_loss, broken_cues
 from democheck.petnet.train import TrainConfig, objective, train

@@ -18,7 +18,8 @@ from safetensors.torch import load_file, save_file
 
 from democheck import resources
 from democheck.errors import DemocheckError
-from democheck.petnet.model import ModelConfig, build_model
+from democheck.petnet.blocks import ModelConfig
+from democheck.petnet.model import build_model
 
 FORMAT = "democheck-model"
 FORMAT_VERSION = 1

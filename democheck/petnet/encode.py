@@ -8,7 +8,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from democheck.petnet.model import TaskEncoder, cue_input
+from democheck.petnet.blocks import cue_input
+from democheck.petnet.model import TaskEncoder
 from democheck.petnet.posterior import TaskPosterior
 
 

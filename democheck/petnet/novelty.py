@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from democheck.errors import DemocheckError
-from democheck.petnet.model import NOVELTY_VIEWS, conv_out_dim, conv_stack, cue_input, novelty_input
+from democheck.petnet.blocks import NOVELTY_VIEWS, conv_out_dim, conv_stack, cue_input, novelty_input
 
 # The reference distance d2_ref: this quantile of the held-out cues' d2 (docs/decisions.md, "The novelty part's
 # reference distance").

@@ -20,7 +20,8 @@ import torch
 import torch.nn.functional as F
 
 from democheck.errors import DemocheckError
-from democheck.petnet.model import cue_input, hinge_embedding_loss, kl_diag
+from democheck.petnet.blocks import cue_input
+from democheck.petnet.model import hinge_embedding_loss, kl_diag
 from democheck.petnet.posterior import product_of_gaussians
 
 

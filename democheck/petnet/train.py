@@ -34,7 +34,8 @@ from democheck.petnet.batches import (Batches, PosedFrames, ResidentArrays, augm
                                       to_device, val_pairs)
 from democheck.petnet.checkpoint import Normalisation, load_checkpoint, save_checkpoint
 from democheck.petnet.finish import finish_petnet
-from democheck.petnet.model import TASK_FUSIONS, ModelConfig, build_model
+from democheck.petnet.blocks import TASK_FUSIONS, ModelConfig
+from democheck.petnet.model import build_model
 from democheck.petnet.posterior import TaskPosterior
 from democheck.petnet.run_state import load_state, save_state
 
