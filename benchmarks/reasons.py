@@ -36,7 +36,8 @@ CAUSE = {
     "reversed": ("start:where they end", "end:where they begin", "path:backwards"), "hesitates": ("pause", "idle"),
     # on the way: a path unlike its task's (a detour; a drop, the arm back down and up again), an end unlike
     # its task's or the world left otherwise (an object off its goal)
-    "detour": ("path:state", "path:view", "motion:more"), "drop-regrasp": ("path:state", "path:view", "pause"),
+    "detour": ("path:state", "path:view", "motion:more"),
+    "drop-regrasp": ("grasps", "path:state", "path:view", "pause"), "regrasp": ("grasps", "path:state", "path:view"),
     "failed-place": ("end:view",) + WORLD,
 }
 TINY = re.compile(r"e-(1[2-9]|[2-9]\d|\d{3,})\b")  # a probability under 1e-12, printed

@@ -60,6 +60,11 @@ def _planted(kind: str, n: int = 30, seed: int = 0) -> tuple[list[Demo], int]:
             end[0, 2 * (i == bad):2 * (i == bad) + 2] = 1.0 + rng.normal(0, 0.02, 2)
             demo.env_state = np.repeat(start, T, 0) + np.linspace(0, 1, T)[:, None] * (end - start)
             demo.extra["env_state_names"] = ["a.x", "a.y", "b.x", "b.y"]
+    elif kind == "grasps":  # every demo closes its gripper at step 30; the planted one opens it at 50, closes it at 60
+        for demo in demos:
+            demo.actions[:, -1] = np.where(np.arange(T) < 30, 1.0, -1.0) + rng.normal(0, 0.05, T)
+            demo.extra["action_names"] = [f"joint{k}" for k in range(A - 1)] + ["gripper"]
+        d.actions[50:60, -1] = 1.0
     elif kind == "duplicate":  # a bit-exact copy of demo 3
         demos[bad] = Demo(episode_index=bad, task="push", frames=demos[3].frames.copy(),
                           state=demos[3].state.copy(), actions=demos[3].actions.copy())
@@ -103,6 +108,29 @@ def test_pause_ranks_a_hesitation_first_and_a_still_end_is_none():
     assert finding.kind == "paused" and (finding.params["start"], finding.params["stop"]) == (40, 70), finding
     demos, _ = _planted("idle")  # still from step 40 to the end: no pause
     assert _evidence(demos, ["pause"]).findings["pause"][17].kind == "no pause"
+
+
+def test_grasps_counts_a_grasp_tried_again_and_names_its_frames():
+    ev = _ranks_first("grasps")
+    found = ev.findings["grasps"]
+    assert found[17].kind == "more" and found[17].params["frames"] == [30, 50, 60], found[17]
+    assert "3 times (at frames 30, 50 and 60) where its task's demos do 1:" in found[17].words
+    assert {f.kind for i, f in enumerate(found) if i != 17} == {"as its task's"}
+    # Through the ranking: the one look that sees it is not diluted, and the reason leads with it.
+    ev = _evidence(_planted("grasps")[0], ["grasps", "motion", "idle", "jerk", "suspicion"])
+    assert np.argmax(ev.scores["suspicion"]) == 17 and explanation(ev).lead[17] == "grasps:more"
+
+
+def test_grasps_reads_a_named_gripper_only_and_a_command_that_crosses_its_range():
+    from democheck.audit.grasps import changes
+
+    demos, _ = _planted("grasps")
+    for d in demos:  # no dimension named for the gripper: the check says nothing
+        d.extra["action_names"] = [f"joint{k}" for k in range(A)]
+    ev = _evidence(demos, ["grasps"])
+    assert np.isnan(ev.scores["grasps"]).all() and ev.findings["grasps"][0].kind == "no gripper"
+    # A command changes where it crosses from one third of its range to the other: not where it wavers between.
+    assert changes(np.array([0.0, 0.4, 0.6, 0.5, 0.9, 0.6, 0.1]), 0.0, 1.0) == [4, 6]
 
 
 def test_a_broken_recording_is_repaired_to_be_read_ranks_first_and_is_flagged_whatever_its_scores():

@@ -187,7 +187,8 @@ def test_every_template_of_every_check_renders_its_words():
                   first_dt=0.1, worst=5, worst_dt=0.2, back=None, scattered=2, next=8, change=9.5, usual=1.5,
                   more=False, colour="grey (#a0a0a0)", median=0.5, z=12.0, value=0.25, steps=3, gain=1.6,
                   named=True, size=3.5, last=30, name="target.x", part="at the end", ref=0.7, source="environment state",
-                  columns=[0], held=False, files=[], form="value", level=0.0, at=0.5)
+                  columns=[0], held=False, files=[], form="value", level=0.0, at=0.5, count=3, typical=1.0,
+                  frames=[57, 71, 85])
     words = {f"{check}:{kind}": vocabulary(kind, **params).words
              for check, vocabulary in VOCABULARIES.items() for kind in vocabulary.kinds}
     assert words["idle:still"] == "the arm stands still at 25% of steps, longest frames 3-9 (35% of the demo)"
@@ -213,6 +214,8 @@ def test_every_template_of_every_check_renders_its_words():
     assert words["path:state"] == "its path strays from its task's, most in [0, 2], 50% of the way through"
     assert VOCABULARIES["path"]("backwards", part="state").words == (
         "its path runs opposite to its task's: its state, played backwards, is nearer its task's demos than forwards")
+    assert words["grasps:more"] == ("the gripper opens or closes 3 times (at frames 57, 71 and 85) where its task's "
+                                    "demos do 1: a grasp tried again, or an object dropped and picked up?")
     assert all(isinstance(w, str) for w in words.values())
 
 

@@ -40,6 +40,7 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "core-1e-3": lambda c: replace(c, core_p=1e-3),
     "core-1e-6": lambda c: replace(c, core_p=1e-6),
     "without-outcome": lambda c: c.without("outcome"),
+    "without-grasps": lambda c: c.without("grasps"),
     "without-faults": lambda c: c.without(*RECORDING_FAULTS),
     "without-time": lambda c: c.without(*TIME_ALIGNED),
     "without-time-and-pause": lambda c: c.without(*TIME_ALIGNED, "pause"),

@@ -26,8 +26,8 @@ import numpy as np
 import pandas as pd
 
 from democheck import resources
-from democheck.audit import (colours, coupling, dynamics, frames, modelfree, outcome, ranking, reasons, sensors,
-                             timeline, view)
+from democheck.audit import (colours, coupling, dynamics, frames, grasps, modelfree, outcome, ranking, reasons,
+                             sensors, timeline, view)
 from democheck.audit.action_error import ACTION_STEPS, ActionErrors
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit.evidence import Evidence, Scorer, Scores
@@ -119,6 +119,10 @@ def _idle(ev: Evidence) -> Scores:
 
 def _pause(ev: Evidence) -> Scores:
     return modelfree.pause(ev.behaviour["actions"])
+
+
+def _grasps(ev: Evidence) -> Scores:
+    return grasps.grasps(ev.behaviour["grasps"], ev.groups)
 
 
 def _broken(ev: Evidence) -> Scores:
@@ -224,6 +228,10 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("pause", "model-free: the longest stretch of steps at which the actions hardly change between the "
            "demo's first and last move, as a share of its steps (an operator who hesitated mid-task)", ("demos",),
            _pause, behaviour="actions", decode=_traces, short="pause"),
+    Scorer("grasps", "model-free: how many times the gripper's command changes between open and closed (the action "
+           "dimensions named for the gripper; none: NaN), judged against its task's demos: a grasp tried again, an "
+           "object dropped and picked up", ("demos",), _grasps,
+           decode=lambda ev, rows, device: grasps.GripperTraces(), short="grasps"),
     Scorer("broken", "model-free: the share of the demo's frames that could not be decoded, or whose states or "
            "actions held NaN or infinite values (repaired to be read; any: the demo ranks first and is flagged)",
            ("demos",), _broken, behaviour="actions", decode=_traces, short="broken"),
@@ -292,12 +300,12 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "one look) and whether the actions are explained (the action error (log) and the coupling, one look: "
            "the Sidak minimum of the two) (one task: without the task uncertainty), each in robust standard "
            "deviations within its task, the tails fitted on the robust core; beside that, the smallest of the "
-           "recording faults' (timing, frozen video, frame jump, frozen state, lag, jerk) (2 = as unusual as 1 "
-           "clean demo in 100)", ("scores",),
+           "recording faults' and single looks' (timing, frozen video, frame jump, frozen state, lag, jerk, grasps) "
+           "(2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, pause, "
-           "view, colours, outcome, start, end, path, coupling, and the recording faults): what democheck says with "
-           "no model",
+           "grasps, view, colours, outcome, start, end, path, coupling, and the recording faults): what democheck "
+           "says with no model",
            ("scores",), _model_free,
            in_audit=False, short="no-model"),
     Scorer("ocsvm_flag", "the paper's linear one-class SVM on 1/sigma^2, fitted on the model's training demos "

@@ -1,0 +1,97 @@
+"""The ``grasps`` check (model-free): how often the gripper was opened or closed, against its task's demos.
+
+A grasp that missed and was tried again, an object dropped on the way and picked up again: the gripper's command
+changes between open and closed more often than in its task's other demos, while every other check sees the demo
+only a little unlike them (a few more steps, a short detour).  A count says it plainly.
+
+The gripper is the action dimensions the dataset names so ("gripper", "grip"); a dataset that names none has no
+such check (NaN).  Each such dimension's open and closed ends are its ``SPAN`` percentiles over every demo, and
+its command changes where it crosses from the lower third of that range to the upper third or back: a noisy
+command near one end, or one that stops halfway, is no change.  The score is the number of changes; the ranking
+judges it within its task (only more changes than the task's are suspect: fewer is a demo that never grasped,
+which the outcome and motion checks see).  A consumer of the audit's decoding pass like the other model-free
+checks (``democheck.audit.modelfree``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from democheck.audit.findings import Finding, Vocabulary
+from democheck.audit.modelfree import PerDemo
+from democheck.data.demo import Demo
+
+GRIPPER_NAMES = ("grip",)  # an action dimension whose name holds one of these (any case) commands the gripper
+SPAN = (0.01, 0.99)  # the percentiles, over every demo, that stand for a gripper dimension's open and closed ends
+BAND = 1 / 3  # the command changes where it crosses from this share of the span at one end to as much at the other
+
+
+def _frames(frames: list[int]) -> str:
+    shown = [str(f) for f in frames[:6]]
+    return (", ".join(shown[:-1]) + " and " + shown[-1] if len(shown) > 1 else shown[0]) + (
+        " ..." if len(frames) > 6 else "")
+
+
+def _more(count: int, typical: float, frames: list[int]) -> str:
+    return (f"the gripper opens or closes {count} times (at frames {_frames(frames)}) where its task's demos do "
+            f"{typical:g}: a grasp tried again, or an object dropped and picked up?")
+
+
+GRASPS = Vocabulary("grasps", {
+    "more": _more,
+    "fewer": "the gripper opens or closes {count} times where its task's demos do {typical:g}",
+    "as its task's": "the gripper opens or closes {count} times, as its task's demos do",
+    "no gripper": "",  # the dataset names no gripper among its actions
+})
+
+
+def gripper_dims(action_names: list[str] | None) -> list[int]:
+    """The action dimensions whose names say they command the gripper (``GRIPPER_NAMES``); none without names."""
+    return [k for k, name in enumerate(action_names or []) if any(g in str(name).lower() for g in GRIPPER_NAMES)]
+
+
+class GripperTraces(PerDemo):
+    """Consumer of decoded demos: each demo's gripper commands ([T, G], G = 0 where the dataset names no
+    gripper)."""
+
+    fields = ("commands",)
+    commands: list[np.ndarray]
+
+    def add(self, demo: Demo) -> None:
+        a = np.asarray(demo.actions, np.float64).reshape(len(demo.actions), -1)
+        self.commands.append(a[:, gripper_dims(demo.extra.get("action_names"))])
+
+
+def changes(command: np.ndarray, low: float, high: float) -> list[int]:
+    """The steps at which a command crosses from the lower third of [``low``, ``high``] to the upper third or
+    back (``BAND``): it stays open or closed until it reaches the other end."""
+    lo, hi = low + BAND * (high - low), high - BAND * (high - low)
+    state, out = None, []
+    for t, v in enumerate(command):
+        now = 1 if v >= hi else 0 if v <= lo else state
+        if state is not None and now is not None and now != state:
+            out.append(t)
+        state = now if now is not None else state
+    return out
+
+
+def grasps(traces: GripperTraces, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
+    """Per demo, how many times its gripper command changed between open and closed (``changes``, summed over the
+    gripper's dimensions; NaN where the dataset names no gripper, or where its command never spans a range), with
+    the frames and its task's median count."""
+    width = max((c.shape[1] for c in traces.commands), default=0)
+    n = len(traces.commands)
+    if not width or not all(c.shape[1] == width for c in traces.commands):
+        return np.full(n, np.nan), [GRASPS("no gripper")] * n
+    every = np.concatenate([c for c in traces.commands if len(c)]) if n else np.zeros((0, width))
+    ends = np.quantile(every, SPAN, axis=0) if len(every) else np.zeros((2, width))
+    live = [k for k in range(width) if ends[1, k] > ends[0, k]]
+    if not live:
+        return np.full(n, np.nan), [GRASPS("no gripper")] * n
+    steps = [sorted(t for k in live for t in changes(c[:, k], ends[0, k], ends[1, k])) for c in traces.commands]
+    count = np.array([len(s) for s in steps], np.float64)
+    typical = pd.Series(count).groupby(np.asarray(groups)).transform("median").to_numpy()
+    found = [GRASPS("more" if c > m else "fewer" if c < m else "as its task's", count=int(c), typical=float(m),
+                    frames=s) for c, m, s in zip(count, typical, steps)]
+    return count, found
