@@ -1107,6 +1107,8 @@ def test_coupling_says_nothing_of_actions_that_never_change_and_never_prints_a_n
     assert np.isnan(ev.scores["coupling"][bad]) and "actions that never change" in ev.reasons["coupling"][bad]
     assert np.isfinite(np.delete(ev.scores["coupling"], bad)).all()
     assert coupling._nats(-0.33, 1.234) == "about 0 nats (its task's median 1.2 nats)"
+    # Both about 0: the estimates the check compared, not "about 0" twice.
+    assert coupling._nats(-0.72, -0.04) == "about 0 nats, as its task's median, but the estimate 0.68 nats lower"
     assert coupling._nats(1.891, 1.912) == "1.89 nats (its task's median 1.91 nats)"
 
 

@@ -30,6 +30,16 @@ Four more kinds, recording faults no choice of democheck's was made on, planted 
 - ``dropped``: a clean demo that lost a stretch of 20-30% of its steps in the middle (frames, states and actions
   alike), re-indexed as if nothing were missing.
 
+Three more, what operators do on the way, planted only when ``--kinds`` names them; each episode as long as
+every other (``--steps``):
+
+- ``detour``: 25-45% of the way in, the hand leaves for an empty spot 8-15 cm aside and 5-10 cm up for 15-25
+  steps, the gripper as it was, then the policy resumes and succeeds (any task);
+- ``drop-regrasp``: 30-60% of the way from where the puck lay to its goal the gripper opens for 6 steps and the
+  hand backs off, the puck drops, and the policy grasps it again and succeeds (pick-place-v3);
+- ``failed-place``: the puck carried to a point 10-15 cm off the goal and let go there, the hand lifted away: it
+  never reaches its goal (pick-place-v3).
+
 Clean demos are the scripted policy on a variation of the task (Meta-World's goal and object positions) that
 no other episode of the task's scene uses while the 50 last, kept only when the policy succeeds.  (Before,
 variations were drawn with replacement: a reset of the same variation replays the same episode, so the datasets
@@ -64,7 +74,9 @@ TASKS = {  # Meta-World env -> (the task as a LeRobot dataset names it, the scri
     "coffee-button-v3": ("press the coffee machine's button", "SawyerCoffeeButtonV3Policy"),
 }
 KINDS = ("idle", "random", "wrong-task", "gave-up", "occluded")
-MORE_KINDS = ("jittery", "frozen-camera", "lagged", "dropped")
+MORE_KINDS = ("jittery", "frozen-camera", "lagged", "dropped", "detour", "drop-regrasp", "failed-place")
+WAY = ("detour", "drop-regrasp", "failed-place")  # the policy, but for what ``_way`` has it do on the way
+PLANTS = {"drop-regrasp": ("pick-place-v3",), "failed-place": ("pick-place-v3",)}  # the tasks a kind fits
 FAULTS = ("frozen-camera", "lagged", "dropped")  # a clean episode, recorded wrongly (``_fault``)
 CAMERA = "corner"
 FPS = 80
@@ -97,6 +109,49 @@ def _env(name: str):
     return _W["env"], _W["variations"]
 
 
+def _towards(hand: np.ndarray, to: np.ndarray) -> np.ndarray:
+    return np.clip((to - hand) * 10.0, -1, 1)  # the scripted policies' own gain (``metaworld.policies.move``)
+
+
+def _way(kind: str, steps: int, rng: np.random.Generator) -> dict:
+    """What a ``WAY`` demo does and when, drawn once."""
+    if kind == "detour":
+        turn = rng.uniform(0, 2 * np.pi)
+        aside = rng.uniform(0.08, 0.15) * np.r_[np.cos(turn), np.sin(turn), 0] + np.r_[0, 0, rng.uniform(0.05, 0.1)]
+        return {"at": int(steps * rng.uniform(0.25, 0.45)), "length": int(rng.integers(15, 26)), "aside": aside}
+    if kind == "drop-regrasp":  # let go a share of the way from where the puck lay to its goal
+        return {"share": rng.uniform(0.3, 0.6), "open": 6}
+    turn = rng.uniform(np.pi, 2 * np.pi)  # beside the goal or nearer the robot: within the hand's reach
+    return {"off": rng.uniform(0.1, 0.15) * np.r_[np.cos(turn), np.sin(turn), 0]}
+
+
+def _way_action(kind: str, plan: dict, t: int, obs: np.ndarray, policy) -> np.ndarray:
+    """The action at step ``t`` of a ``WAY`` demo: the policy's, but for what ``plan`` has it do."""
+    hand, puck, goal = obs[0:3], obs[4:7], obs[-3:]
+    plan.setdefault("puck", puck.copy())  # where the puck lay at the start
+    if kind == "detour" and plan["at"] <= t < plan["at"] + plan["length"]:
+        plan.setdefault("to", hand + plan["aside"])
+        return np.r_[_towards(hand, plan["to"]), plan.get("grip", 0.0)]
+    if kind == "drop-regrasp" and "dropped" not in plan:
+        lifted = puck[2] > plan["puck"][2] + 0.02
+        if lifted and np.linalg.norm(puck - plan["puck"]) > plan["share"] * np.linalg.norm(goal - plan["puck"]):
+            plan["dropped"], plan["up"] = t, hand + np.r_[0, 0, 0.05]
+    if kind == "drop-regrasp" and "dropped" in plan and t < plan["dropped"] + plan["open"]:
+        return np.r_[_towards(hand, plan["up"]), -1.0]  # the gripper opens and the hand backs off a little
+    if kind == "failed-place":
+        if "let go" in plan:
+            return np.r_[_towards(hand, plan["let go"]), -1.0]
+        seen = obs.copy()
+        seen[-3:] = goal + plan["off"]  # the policy carries the puck to a goal beside the real one
+        if puck[2] > plan["puck"][2] + 0.02 and np.linalg.norm(hand - seen[-3:]) < 0.02:
+            plan["let go"] = hand + np.r_[0, 0, 0.1]
+            return np.r_[0.0, 0.0, 0.0, -1.0]
+        obs = seen
+    a = policy.get_action(obs)
+    plan["grip"] = a[3]
+    return a
+
+
 def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout: tuple[int, int] | None = None,
              stop: int | None = None) -> dict | None:
     """One episode of ``kind`` on a layout (task variation, reset seed) drawn from ``rng`` or given; the policy
@@ -110,6 +165,7 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout:
     policy = getattr(P, TASKS[name][1])()
     stop = steps if stop is None else stop
     jitter = rng.uniform(0.2, 0.4) if kind == "jittery" else 0.0  # drawn only here: old seeds give what they gave
+    way = _way(kind, steps, rng) if kind in WAY else None
     frames, state, actions, success, first = [], [], [], False, None
     for t in range(steps):
         frames.append(env.render()[::-1].copy())  # MuJoCo renders bottom-up
@@ -120,6 +176,8 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout:
             a = rng.uniform(-1, 1, 4).astype(np.float32)
         elif kind == "jittery":
             a = np.clip(policy.get_action(obs) + rng.normal(0, jitter, 4), -1, 1).astype(np.float32)
+        elif way is not None:
+            a = np.clip(_way_action(kind, way, t, obs, policy), -1, 1).astype(np.float32)
         else:
             a = np.clip(policy.get_action(obs), -1, 1).astype(np.float32)
         actions.append(a)
@@ -127,8 +185,12 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout:
         if info["success"] and first is None:
             first = t + 1
         success = success or bool(info["success"])
-    if kind in ("clean", "wrong-task", "occluded", *FAULTS) and not success:
-        return None  # a failed expert demo is not a clean one: draw again
+    if kind in ("clean", "wrong-task", "occluded", "detour", "drop-regrasp", *FAULTS) and not success:
+        return None  # a failed expert demo is not a clean one, nor a detour or a regrasp: draw again
+    if kind == "drop-regrasp" and not (way.get("dropped") is not None and first is not None and first > way["dropped"]):
+        return None  # the puck never dropped, or reached its goal before it did: draw again
+    if kind == "failed-place" and ("let go" not in way or success):
+        return None  # the puck never let go off its goal: draw again
     return {"frames": np.stack(frames), "state": np.stack(state), "actions": np.stack(actions), "layout": layout,
             "first_success": first, "success": success}
 
@@ -200,6 +262,13 @@ def plan(names: list[str], demos: int, plant: int, steps: int, seed: int, kinds:
     planted = kinds
     kinds = ["clean"] * (demos * len(names)) + [k for k in planted for _ in range(plant)]
     tasks = [n for n in names for _ in range(demos)] + list(rng.choice(names, size=plant * len(planted)))
+    fits = np.random.default_rng([seed, 2])  # a kind that fits some tasks only draws among them (old seeds as before)
+    for j, kind in enumerate(kinds):
+        if kind in PLANTS:
+            among = [n for n in names if n in PLANTS[kind]]
+            if not among:
+                raise SystemExit(f"--kinds {kind} needs one of the tasks {', '.join(PLANTS[kind])}")
+            tasks[j] = str(fits.choice(among))
     order = rng.permutation(len(kinds))
     # Clean demos take their variations first: two clean demos on one variation would be exact copies.
     draw = sorted(range(len(order)), key=lambda i: kinds[order[i]] != "clean")

@@ -5,8 +5,10 @@ changes between open and closed more often than in its task's other demos, while
 only a little unlike them (a few more steps, a short detour).  A count says it plainly.
 
 The gripper is the action dimensions the dataset names so ("gripper", "grip"); a dataset that names none has no
-such check (NaN).  Each such dimension's open and closed ends are its ``SPAN`` percentiles over every demo, and
-its command changes where it crosses from the lower third of that range to the upper third or back: a noisy
+such check (NaN).  Each task has its own open and closed ends of each such dimension, the medians of its demos'
+lowest and highest commands, since tasks hold the gripper differently (one never opens it, one grasps from a
+command of 0 where another opens it at -1); a task that never moves it takes the ``SPAN`` percentiles over every
+demo.  A command changes where it crosses from the lower third of that range to the upper third or back: a noisy
 command near one end, or one that stops halfway, is no change.  The score is the number of changes; the ranking
 judges it within its task (only more changes than the task's are suspect: fewer is a demo that never grasped,
 which the outcome and motion checks see).  A consumer of the audit's decoding pass like the other model-free
@@ -23,7 +25,7 @@ from democheck.audit.modelfree import PerDemo
 from democheck.data.demo import Demo
 
 GRIPPER_NAMES = ("grip",)  # an action dimension whose name holds one of these (any case) commands the gripper
-SPAN = (0.01, 0.99)  # the percentiles, over every demo, that stand for a gripper dimension's open and closed ends
+SPAN = (0.01, 0.99)  # percentiles over every demo: the ends of a task that never moves the gripper
 BAND = 1 / 3  # the command changes where it crosses from this share of the span at one end to as much at the other
 
 
@@ -85,13 +87,20 @@ def grasps(traces: GripperTraces, groups: np.ndarray) -> tuple[np.ndarray, list[
     if not width or not all(c.shape[1] == width for c in traces.commands):
         return np.full(n, np.nan), [GRASPS("no gripper")] * n
     every = np.concatenate([c for c in traces.commands if len(c)]) if n else np.zeros((0, width))
-    ends = np.quantile(every, SPAN, axis=0) if len(every) else np.zeros((2, width))
-    live = [k for k in range(width) if ends[1, k] > ends[0, k]]
-    if not live:
+    pooled = np.quantile(every, SPAN, axis=0) if len(every) else np.zeros((2, width))
+    if not (pooled[1] > pooled[0]).any():
         return np.full(n, np.nan), [GRASPS("no gripper")] * n
-    steps = [sorted(t for k in live for t in changes(c[:, k], ends[0, k], ends[1, k])) for c in traces.commands]
+    groups = np.asarray(groups)
+    lows = np.array([c.min(0) if len(c) else np.full(width, np.nan) for c in traces.commands])
+    highs = np.array([c.max(0) if len(c) else np.full(width, np.nan) for c in traces.commands])
+    low = pd.DataFrame(lows).groupby(groups).transform("median").to_numpy()
+    high = pd.DataFrame(highs).groupby(groups).transform("median").to_numpy()
+    still = ~(high > low)  # a task whose demos keep the gripper as it is: the ends over every demo
+    low, high = np.where(still, pooled[0], low), np.where(still, pooled[1], high)
+    steps = [sorted(t for k in range(width) if high[i, k] > low[i, k] for t in changes(c[:, k], low[i, k], high[i, k]))
+             for i, c in enumerate(traces.commands)]
     count = np.array([len(s) for s in steps], np.float64)
-    typical = pd.Series(count).groupby(np.asarray(groups)).transform("median").to_numpy()
+    typical = pd.Series(count).groupby(groups).transform("median").to_numpy()
     found = [GRASPS("more" if c > m else "fewer" if c < m else "as its task's", count=int(c), typical=float(m),
                     frames=s) for c, m, s in zip(count, typical, steps)]
     return count, found
