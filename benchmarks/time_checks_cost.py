@@ -1,5 +1,6 @@
-"""What the time-aligned checks (``start``, ``end``, ``path``) cost beside decoding: every demo of DATA decoded as
-the audit decodes it, fed to their consumer, and the three scored, each timed on one thread.
+"""What the checks of how a demo goes in time (``start``, ``end``, ``path``) and of its gripper (``grasps``) cost
+beside decoding: every demo of DATA decoded as the audit decodes it, fed to their consumers, and the checks scored,
+each timed on one thread.
 
     python benchmarks/time_checks_cost.py DATA [--camera KEY]
 """
@@ -10,7 +11,7 @@ import argparse
 import time
 from pathlib import Path
 
-from democheck.audit import timeline
+from democheck.audit import grasps, timeline
 from democheck.audit.evidence import comparison_groups
 from democheck.data import open_dataset
 
@@ -21,21 +22,26 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--camera")
     args = ap.parse_args(argv)
     ds = open_dataset(args.data, camera=args.camera)
-    consumer, decoding, feeding, frames = timeline.Timeline(), 0.0, 0.0, 0
+    checks = {"time": (timeline.Timeline(), (timeline.start, timeline.end, timeline.path)),
+              "grasps": (grasps.GripperTraces(), (grasps.grasps,))}
+    feeding = dict.fromkeys(checks, 0.0)
+    decoding, frames = 0.0, 0
     for e in ds.episode_indices:
         t0 = time.perf_counter()
         demo = ds[e]
-        t1 = time.perf_counter()
-        consumer.add(demo)
-        decoding, feeding, frames = decoding + t1 - t0, feeding + time.perf_counter() - t1, frames + len(demo)
+        decoding, frames = decoding + time.perf_counter() - t0, frames + len(demo)
+        for name, (consumer, _) in checks.items():
+            t1 = time.perf_counter()
+            consumer.add(demo)
+            feeding[name] += time.perf_counter() - t1
     groups = comparison_groups(ds.episodes["task"].to_numpy())
-    t0 = time.perf_counter()
-    for check in (timeline.start, timeline.end, timeline.path):
-        check(consumer, groups)
-    scoring = time.perf_counter() - t0
-    out = {"demos": len(ds.episode_indices), "frames": frames, "decoding_s": round(decoding, 2),
-           "consumer_s": round(feeding, 2), "scoring_s": round(scoring, 2),
-           "share_of_decoding": round((feeding + scoring) / decoding, 4)}
+    out = {"demos": len(ds.episode_indices), "frames": frames, "decoding_s": round(decoding, 2)}
+    for name, (consumer, scorers) in checks.items():
+        t0 = time.perf_counter()
+        for check in scorers:
+            check(consumer, groups)
+        cost = feeding[name] + time.perf_counter() - t0
+        out[f"{name}_s"], out[f"{name}_share_of_decoding"] = round(cost, 2), round(cost / decoding, 4)
     print(out)
     return out
 

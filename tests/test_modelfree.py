@@ -114,7 +114,7 @@ def test_grasps_counts_a_grasp_tried_again_and_names_its_frames():
     ev = _ranks_first("grasps")
     found = ev.findings["grasps"]
     assert found[17].kind == "more" and found[17].params["frames"] == [30, 50, 60], found[17]
-    assert "3 times (at frames 30, 50 and 60) where its task's demos do 1:" in found[17].words
+    assert "3 times (at frames 30, 50 and 60) where its task's demos do so once:" in found[17].words
     assert {f.kind for i, f in enumerate(found) if i != 17} == {"as its task's"}
     # Through the ranking: the one look that sees it is not diluted, and the reason leads with it.
     ev = _evidence(_planted("grasps")[0], ["grasps", "motion", "idle", "jerk", "suspicion"])

@@ -215,7 +215,7 @@ def test_every_template_of_every_check_renders_its_words():
     assert VOCABULARIES["path"]("backwards", part="state").words == (
         "its path runs opposite to its task's: its state, played backwards, is nearer its task's demos than forwards")
     assert words["grasps:more"] == ("the gripper opens or closes 3 times (at frames 57, 71 and 85) where its task's "
-                                    "demos do 1: a grasp tried again, or an object dropped and picked up?")
+                                    "demos do so once: a grasp tried again, or an object dropped and picked up?")
     assert all(isinstance(w, str) for w in words.values())
 
 

@@ -33,12 +33,13 @@ Four more kinds, recording faults no choice of democheck's was made on, planted 
 Three more, what operators do on the way, planted only when ``--kinds`` names them; each episode as long as
 every other (``--steps``):
 
-- ``detour``: 25-45% of the way in, the hand leaves for an empty spot 8-15 cm aside and 5-10 cm up for 15-25
-  steps, the gripper as it was, then the policy resumes and succeeds (any task);
-- ``drop-regrasp``: 30-60% of the way from where the puck lay to its goal the gripper opens for 6 steps and the
+- ``detour``: 25-45% of the time the policy takes to succeed on the layout, the hand leaves for an empty spot
+  8-15 cm aside and 5-10 cm up for 15-25 steps, the gripper as it was, then the policy resumes and succeeds (any
+  task);
+- ``drop-regrasp``: 30-60% of the way from where the puck lay to its goal the gripper opens wide for 6 steps and the
   hand backs off, the puck drops, and the policy grasps it again and succeeds (pick-place-v3);
-- ``failed-place``: the puck carried to a point 10-15 cm off the goal and let go there, the hand lifted away: it
-  never reaches its goal (pick-place-v3).
+- ``failed-place``: the puck carried to a point 10-15 cm off the goal and let go there (the gripper wide open for 6
+  steps, then at rest), the hand lifted away: it never reaches its goal (pick-place-v3).
 
 Clean demos are the scripted policy on a variation of the task (Meta-World's goal and object positions) that
 no other episode of the task's scene uses while the 50 last, kept only when the policy succeeds.  (Before,
@@ -114,15 +115,19 @@ def _towards(hand: np.ndarray, to: np.ndarray) -> np.ndarray:
 
 
 def _way(kind: str, steps: int, rng: np.random.Generator) -> dict:
-    """What a ``WAY`` demo does and when, drawn once."""
+    """What a ``WAY`` demo does and when, drawn once; ``at`` (the detour's start) is a share of the time the policy
+    takes to succeed on the layout (``_episode`` sets it)."""
     if kind == "detour":
         turn = rng.uniform(0, 2 * np.pi)
         aside = rng.uniform(0.08, 0.15) * np.r_[np.cos(turn), np.sin(turn), 0] + np.r_[0, 0, rng.uniform(0.05, 0.1)]
-        return {"at": int(steps * rng.uniform(0.25, 0.45)), "length": int(rng.integers(15, 26)), "aside": aside}
+        return {"at": rng.uniform(0.25, 0.45), "length": int(rng.integers(15, 26)), "aside": aside}
     if kind == "drop-regrasp":  # let go a share of the way from where the puck lay to its goal
-        return {"share": rng.uniform(0.3, 0.6), "open": 6}
+        return {"share": rng.uniform(0.3, 0.6), "open": OPEN_STEPS}
     turn = rng.uniform(np.pi, 2 * np.pi)  # beside the goal or nearer the robot: within the hand's reach
     return {"off": rng.uniform(0.1, 0.15) * np.r_[np.cos(turn), np.sin(turn), 0]}
+
+
+OPEN_STEPS = 6  # a gripper let go of its puck opens wide (-1) this long, then rests at the policy's own 0
 
 
 def _way_action(kind: str, plan: dict, t: int, obs: np.ndarray, policy) -> np.ndarray:
@@ -140,11 +145,12 @@ def _way_action(kind: str, plan: dict, t: int, obs: np.ndarray, policy) -> np.nd
         return np.r_[_towards(hand, plan["up"]), -1.0]  # the gripper opens and the hand backs off a little
     if kind == "failed-place":
         if "let go" in plan:
-            return np.r_[_towards(hand, plan["let go"]), -1.0]
+            wide = t < plan["let go at"] + OPEN_STEPS
+            return np.r_[_towards(hand, plan["let go"]), -1.0 if wide else 0.0]
         seen = obs.copy()
         seen[-3:] = goal + plan["off"]  # the policy carries the puck to a goal beside the real one
         if puck[2] > plan["puck"][2] + 0.02 and np.linalg.norm(hand - seen[-3:]) < 0.02:
-            plan["let go"] = hand + np.r_[0, 0, 0.1]
+            plan["let go"], plan["let go at"] = hand + np.r_[0, 0, 0.1], t
             return np.r_[0.0, 0.0, 0.0, -1.0]
         obs = seen
     a = policy.get_action(obs)
@@ -153,9 +159,9 @@ def _way_action(kind: str, plan: dict, t: int, obs: np.ndarray, policy) -> np.nd
 
 
 def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout: tuple[int, int] | None = None,
-             stop: int | None = None) -> dict | None:
+             stop: int | None = None, when: int | None = None) -> dict | None:
     """One episode of ``kind`` on a layout (task variation, reset seed) drawn from ``rng`` or given; the policy
-    acts until ``stop``, the arm is still after it."""
+    acts until ``stop``, the arm is still after it; a detour starts its share of ``when`` steps in."""
     import metaworld.policies as P
 
     env, variations = _env(name)
@@ -166,6 +172,8 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout:
     stop = steps if stop is None else stop
     jitter = rng.uniform(0.2, 0.4) if kind == "jittery" else 0.0  # drawn only here: old seeds give what they gave
     way = _way(kind, steps, rng) if kind in WAY else None
+    if kind == "detour":
+        way["at"] = int(way["at"] * (when or steps))
     frames, state, actions, success, first = [], [], [], False, None
     for t in range(steps):
         frames.append(env.render()[::-1].copy())  # MuJoCo renders bottom-up
@@ -229,7 +237,10 @@ def _episode(job: tuple) -> dict:
     for attempt in range(20):
         # The episode's own variation first; should the expert fail on it, random ones.
         layout = (variation, int(rng.integers(1 << 31))) if attempt == 0 else None
-        if kind == "gave-up":  # where the expert succeeds on this layout, then the same layout stopped short of it
+        if kind == "detour":  # where the expert succeeds on this layout, then the same layout with a detour on the way
+            full = _rollout(name, "clean", steps, rng, layout)
+            rec = None if full is None else _rollout(name, kind, steps, rng, full["layout"], when=full["first_success"])
+        elif kind == "gave-up":  # where the expert succeeds on this layout, then the same layout stopped short of it
             full = _rollout(name, "clean", steps, rng, layout)
             rec = None if full is None else _rollout(name, kind, steps, rng, full["layout"],
                                                      stop=int(full["first_success"] * rng.uniform(0.3, 0.6)))

@@ -31,19 +31,32 @@ BAND = 1 / 3  # the command changes where it crosses from this share of the span
 
 def _frames(frames: list[int]) -> str:
     shown = [str(f) for f in frames[:6]]
-    return (", ".join(shown[:-1]) + " and " + shown[-1] if len(shown) > 1 else shown[0]) + (
-        " ..." if len(frames) > 6 else "")
+    if len(frames) > 6:
+        return ", ".join(shown) + ", ..."
+    return ", ".join(shown[:-1]) + " and " + shown[-1] if len(shown) > 1 else shown[0]
+
+
+def _times(count: float) -> str:
+    return {1: "once", 2: "twice"}.get(int(count), f"{count:g} times") if count == int(count) else f"{count:g} times"
+
+
+def _gripper(count: float) -> str:
+    return "the gripper never opens or closes" if count == 0 else f"the gripper opens or closes {_times(count)}"
+
+
+def _theirs(typical: float) -> str:
+    return "its task's demos never do" if typical == 0 else f"its task's demos do so {_times(typical)}"
 
 
 def _more(count: int, typical: float, frames: list[int]) -> str:
-    return (f"the gripper opens or closes {count} times (at frames {_frames(frames)}) where its task's demos do "
-            f"{typical:g}: a grasp tried again, or an object dropped and picked up?")
+    return (f"{_gripper(count)} (at frames {_frames(frames)}) where {_theirs(typical)}: a grasp tried again, or an "
+            "object dropped and picked up?")
 
 
 GRASPS = Vocabulary("grasps", {
     "more": _more,
-    "fewer": "the gripper opens or closes {count} times where its task's demos do {typical:g}",
-    "as its task's": "the gripper opens or closes {count} times, as its task's demos do",
+    "fewer": lambda count, typical: f"{_gripper(count)} where {_theirs(typical)}",
+    "as its task's": lambda count: f"{_gripper(count)}, as its task's demos do",
     "no gripper": "",  # the dataset names no gripper among its actions
 })
 
