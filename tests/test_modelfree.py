@@ -113,12 +113,16 @@ def test_pause_ranks_a_hesitation_first_and_a_still_end_is_none():
 def test_grasps_counts_a_grasp_tried_again_and_names_its_frames():
     ev = _ranks_first("grasps")
     found = ev.findings["grasps"]
-    assert found[17].kind == "more" and found[17].params["frames"] == [30, 50, 60], found[17]
+    assert found[17].kind == "again" and found[17].params["frames"] == [30, 50, 60], found[17]
     assert "3 times (at frames 30, 50 and 60) where its task's demos do so once:" in found[17].words
     assert {f.kind for i, f in enumerate(found) if i != 17} == {"as its task's"}
     # Through the ranking: the one look that sees it is not diluted, and the reason leads with it.
     ev = _evidence(_planted("grasps")[0], ["grasps", "motion", "idle", "jerk", "suspicion"])
-    assert np.argmax(ev.scores["suspicion"]) == 17 and explanation(ev).lead[17] == "grasps:more"
+    assert np.argmax(ev.scores["suspicion"]) == 17 and explanation(ev).lead[17] == "grasps:again"
+    # One change more (let go and never closed again) ends the other way: not called a grasp tried again.
+    demos, _ = _planted("grasps")
+    demos[17].actions[60:, -1] = 1.0
+    assert _evidence(demos, ["grasps"]).findings["grasps"][17].kind == "ends otherwise"
 
 
 def test_grasps_reads_a_named_gripper_only_and_a_command_that_crosses_its_range():

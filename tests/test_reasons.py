@@ -214,7 +214,7 @@ def test_every_template_of_every_check_renders_its_words():
     assert words["path:state"] == "its path strays from its task's, most in [0, 2], 50% of the way through"
     assert VOCABULARIES["path"]("backwards", part="state").words == (
         "its path runs opposite to its task's: its state, played backwards, is nearer its task's demos than forwards")
-    assert words["grasps:more"] == ("the gripper opens or closes 3 times (at frames 57, 71 and 85) where its task's "
+    assert words["grasps:again"] == ("the gripper opens or closes 3 times (at frames 57, 71 and 85) where its task's "
                                     "demos do so once: a grasp tried again, or an object dropped and picked up?")
     assert all(isinstance(w, str) for w in words.values())
 

@@ -232,11 +232,14 @@ def _fault(rec: dict, kind: str, rng: np.random.Generator) -> dict:
 
 
 def _episode(job: tuple) -> dict:
-    index, name, kind, other, steps, seed, variation = job
+    index, name, kind, other, steps, seed, variation, spare = job
     rng = np.random.default_rng([seed, index])
     for attempt in range(20):
-        # The episode's own variation first; should the expert fail on it, random ones.
-        layout = (variation, int(rng.integers(1 << 31))) if attempt == 0 else None
+        # The episode's own variation first; should the expert fail on it, one no other episode was given (another
+        # episode's would replay it: an exact copy), else a random one.
+        again = spare[(index + attempt) % len(spare)] if spare else None
+        layout = (variation if attempt == 0 else again, int(rng.integers(1 << 31))) \
+            if attempt == 0 or again is not None else None
         if kind == "detour":  # where the expert succeeds on this layout, then the same layout with a detour on the way
             full = _rollout(name, "clean", steps, rng, layout)
             rec = None if full is None else _rollout(name, kind, steps, rng, full["layout"], when=full["first_success"])
@@ -264,7 +267,8 @@ VARIATIONS = 50  # Meta-World's training variations (goal and object positions) 
 
 def plan(names: list[str], demos: int, plant: int, steps: int, seed: int, kinds: tuple[str, ...] = KINDS
          ) -> list[tuple]:
-    """(episode index, env, kind, other env, steps, seed, variation) of every episode: ``demos`` per task,
+    """(episode index, env, kind, other env, steps, seed, variation, the env's spare variations) of every episode:
+    ``demos`` per task,
     ``plant`` of each of ``kinds`` in all, on tasks drawn by the seed.  Every episode of an env gets a variation of its
     own (a reset of the same variation replays the same episode, bit for bit), clean demos first, until the
     env's ``VARIATIONS`` are used up; a planted demo may then share one with a clean demo (it is not a copy:
@@ -294,7 +298,8 @@ def plan(names: list[str], demos: int, plant: int, steps: int, seed: int, kinds:
         if not shuffled.get(env):
             shuffled[env] = list(rng.permutation(VARIATIONS))
         jobs[i] = (i, str(name), kind, other, steps, seed, int(shuffled[env].pop()))
-    return jobs
+    # A failed episode tries again on the variations no episode of its env was given.
+    return [(*j, tuple(int(v) for v in shuffled[j[3] if j[2] == "wrong-task" else j[1]])) for j in jobs]
 
 
 def write(out: Path, episodes: list[dict], size: int) -> None:

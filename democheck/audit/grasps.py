@@ -48,13 +48,21 @@ def _theirs(typical: float) -> str:
     return "its task's demos never do" if typical == 0 else f"its task's demos do so {_times(typical)}"
 
 
-def _more(count: int, typical: float, frames: list[int]) -> str:
+def _again(count: int, typical: float, frames: list[int]) -> str:
     return (f"{_gripper(count)} (at frames {_frames(frames)}) where {_theirs(typical)}: a grasp tried again, or an "
             "object dropped and picked up?")
 
 
+def _otherwise(count: int, typical: float, frames: list[int]) -> str:
+    return (f"{_gripper(count)} (at frames {_frames(frames)}) where {_theirs(typical)}, and ends the other way: an "
+            "object let go where they hold it, or held where they let go?")
+
+
 GRASPS = Vocabulary("grasps", {
-    "more": _more,
+    # More changes than its task's demos make: an even number more ends as theirs do (closed again), an odd number
+    # ends the other way.
+    "again": _again,
+    "ends otherwise": _otherwise,
     "fewer": lambda count, typical: f"{_gripper(count)} where {_theirs(typical)}",
     "as its task's": lambda count: f"{_gripper(count)}, as its task's demos do",
     "no gripper": "",  # the dataset names no gripper among its actions
@@ -114,6 +122,7 @@ def grasps(traces: GripperTraces, groups: np.ndarray) -> tuple[np.ndarray, list[
              for i, c in enumerate(traces.commands)]
     count = np.array([len(s) for s in steps], np.float64)
     typical = pd.Series(count).groupby(groups).transform("median").to_numpy()
-    found = [GRASPS("more" if c > m else "fewer" if c < m else "as its task's", count=int(c), typical=float(m),
+    found = [GRASPS(("again" if (c - round(m)) % 2 == 0 else "ends otherwise") if c > m else "fewer" if c < m
+                    else "as its task's", count=int(c), typical=float(m),
                     frames=s) for c, m, s in zip(count, typical, steps)]
     return count, found
