@@ -282,7 +282,8 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
     kinds = {"idle", "random", "wrong-object", "no-action", "no-objects", "hidden"}
     assert kinds <= set(doc["kinds"])
     assert list(doc["scorers"]) == ["task_uncertainty", "task_uncertainty_head", "novelty", "consistency",
-                                    "action_error", "motion", "idle", "pause", "broken", "jerk", "saturation", "duplicate",
+                                    "action_error", "motion", "idle", "pause", "grasps", "broken", "jerk", "saturation",
+                                    "duplicate",
                                     "dynamics", "lag", "timing", "frozen_video", "frame_jump", "frozen_state", "view", "colours",
                                     "outcome", "start", "end", "path", "coupling",
                                     "suspicion",

@@ -36,8 +36,8 @@ every other (``--steps``):
 - ``detour``: 25-45% of the time the policy takes to succeed on the layout, the hand leaves for an empty spot
   8-15 cm aside and 5-10 cm up for 15-25 steps, the gripper as it was, then the policy resumes and succeeds (any
   task);
-- ``drop-regrasp``: 30-60% of the way from where the puck lay to its goal the gripper opens wide for 6 steps and the
-  hand backs off, the puck drops, and the policy grasps it again and succeeds (pick-place-v3);
+- ``drop-regrasp``: 30-60% of the way from where the puck lay to its goal the gripper opens wide for 5-8 steps and
+  the hand backs off 3-7 cm, the puck drops, and the policy grasps it again and succeeds (pick-place-v3);
 - ``failed-place``: the puck carried to a point 10-15 cm off the goal and let go there (the gripper wide open for 6
   steps, then at rest), the hand lifted away: it never reaches its goal (pick-place-v3).
 
@@ -122,12 +122,14 @@ def _way(kind: str, steps: int, rng: np.random.Generator) -> dict:
         aside = rng.uniform(0.08, 0.15) * np.r_[np.cos(turn), np.sin(turn), 0] + np.r_[0, 0, rng.uniform(0.05, 0.1)]
         return {"at": rng.uniform(0.25, 0.45), "length": int(rng.integers(15, 26)), "aside": aside}
     if kind == "drop-regrasp":  # let go a share of the way from where the puck lay to its goal
-        return {"share": rng.uniform(0.3, 0.6), "open": OPEN_STEPS}
+        # How long and how far the hand backs off is drawn too: two drops on one layout (its policy is
+        # deterministic) would otherwise be exact copies.
+        return {"share": rng.uniform(0.3, 0.6), "open": int(rng.integers(5, 9)), "back": rng.uniform(0.03, 0.07)}
     turn = rng.uniform(np.pi, 2 * np.pi)  # beside the goal or nearer the robot: within the hand's reach
     return {"off": rng.uniform(0.1, 0.15) * np.r_[np.cos(turn), np.sin(turn), 0]}
 
 
-OPEN_STEPS = 6  # a gripper let go of its puck opens wide (-1) this long, then rests at the policy's own 0
+OPEN_STEPS = 6  # a gripper that lets its puck go off the goal opens wide (-1) this long, then rests at 0
 
 
 def _way_action(kind: str, plan: dict, t: int, obs: np.ndarray, policy) -> np.ndarray:
@@ -140,7 +142,7 @@ def _way_action(kind: str, plan: dict, t: int, obs: np.ndarray, policy) -> np.nd
     if kind == "drop-regrasp" and "dropped" not in plan:
         lifted = puck[2] > plan["puck"][2] + 0.02
         if lifted and np.linalg.norm(puck - plan["puck"]) > plan["share"] * np.linalg.norm(goal - plan["puck"]):
-            plan["dropped"], plan["up"] = t, hand + np.r_[0, 0, 0.05]
+            plan["dropped"], plan["up"] = t, hand + np.r_[0, 0, plan["back"]]
     if kind == "drop-regrasp" and "dropped" in plan and t < plan["dropped"] + plan["open"]:
         return np.r_[_towards(hand, plan["up"]), -1.0]  # the gripper opens and the hand backs off a little
     if kind == "failed-place":

@@ -21,9 +21,11 @@ def detection(is_bad: np.ndarray, scores: np.ndarray) -> dict[str, float]:
     from sklearn.metrics import average_precision_score, roc_auc_score
 
     is_bad = np.asarray(is_bad, bool)
+    scores = np.asarray(scores, float)
     # Only the order matters: ranks keep +inf (a broken demo) on top and put NaN (nothing to say) at the bottom.
-    s = rankdata(np.nan_to_num(np.asarray(scores, float), nan=-np.inf))
-    both = 0 < is_bad.sum() < len(is_bad)
+    s = rankdata(np.nan_to_num(scores, nan=-np.inf))
+    # A scorer that says nothing of any of these demos (a gripper's count where none is named) has no figure.
+    both = 0 < is_bad.sum() < len(is_bad) and not np.isnan(scores).all()
     return {"auroc": float(roc_auc_score(is_bad, s)) if both else float("nan"),
             "auprc": float(average_precision_score(is_bad, s)) if both else float("nan"),
             "p_at_k": precision_at_k(is_bad, s), "n": int(is_bad.sum())}
