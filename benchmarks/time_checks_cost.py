@@ -1,6 +1,7 @@
 """What the checks of how a demo goes in time (``start``, ``end``, ``path``) and of its gripper (``grasps``) cost
 beside decoding: every demo of DATA decoded as the audit decodes it, fed to their consumers, and the checks scored,
-each timed on one thread.
+each timed on one thread.  The grasps read the action traces the audit keeps for its other action checks anyway,
+so only their scoring is theirs.
 
     python benchmarks/time_checks_cost.py DATA [--camera KEY]
 """
@@ -11,9 +12,12 @@ import argparse
 import time
 from pathlib import Path
 
-from democheck.audit import grasps, timeline
+from democheck.audit import grasps, modelfree, timeline
 from democheck.audit.evidence import comparison_groups
 from democheck.data import open_dataset
+
+
+SHARED = {"grasps"}  # checks whose consumer the audit feeds for other checks too: their feeding is not theirs
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -23,7 +27,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     ds = open_dataset(args.data, camera=args.camera)
     checks = {"time": (timeline.Timeline(), (timeline.start, timeline.end, timeline.path)),
-              "grasps": (grasps.GripperTraces(), (grasps.grasps,))}
+              "grasps": (modelfree.ActionTraces(), (grasps.grasps,))}
     feeding = dict.fromkeys(checks, 0.0)
     decoding, frames = 0.0, 0
     for e in ds.episode_indices:
@@ -33,7 +37,7 @@ def main(argv: list[str] | None = None) -> dict:
         for name, (consumer, _) in checks.items():
             t1 = time.perf_counter()
             consumer.add(demo)
-            feeding[name] += time.perf_counter() - t1
+            feeding[name] += (time.perf_counter() - t1) * (name not in SHARED)
     groups = comparison_groups(ds.episodes["task"].to_numpy())
     out = {"demos": len(ds.episode_indices), "frames": frames, "decoding_s": round(decoding, 2)}
     for name, (consumer, scorers) in checks.items():

@@ -110,10 +110,6 @@ def _env(name: str):
     return _W["env"], _W["variations"]
 
 
-def _towards(hand: np.ndarray, to: np.ndarray) -> np.ndarray:
-    return np.clip((to - hand) * 10.0, -1, 1)  # the scripted policies' own gain (``metaworld.policies.move``)
-
-
 def _way(kind: str, steps: int, rng: np.random.Generator) -> dict:
     """What a ``WAY`` demo does and when, drawn once; ``at`` (the detour's start) is a share of the time the policy
     takes to succeed on the layout (``_episode`` sets it)."""
@@ -133,22 +129,25 @@ OPEN_STEPS = 6  # a gripper that lets its puck go off the goal opens wide (-1) t
 
 
 def _way_action(kind: str, plan: dict, t: int, obs: np.ndarray, policy) -> np.ndarray:
-    """The action at step ``t`` of a ``WAY`` demo: the policy's, but for what ``plan`` has it do."""
+    """The action at step ``t`` of a ``WAY`` demo: the policy's, but for what ``plan`` has it do (its moves with the
+    scripted policies' own ``move`` and gain; ``_rollout`` clips the action)."""
+    from metaworld.policies.policy import move
+
     hand, puck, goal = obs[0:3], obs[4:7], obs[-3:]
     plan.setdefault("puck", puck.copy())  # where the puck lay at the start
     if kind == "detour" and plan["at"] <= t < plan["at"] + plan["length"]:
         plan.setdefault("to", hand + plan["aside"])
-        return np.r_[_towards(hand, plan["to"]), plan.get("grip", 0.0)]
+        return np.r_[move(hand, plan["to"], p=10.0), plan.get("grip", 0.0)]
     if kind == "drop-regrasp" and "dropped" not in plan:
         lifted = puck[2] > plan["puck"][2] + 0.02
         if lifted and np.linalg.norm(puck - plan["puck"]) > plan["share"] * np.linalg.norm(goal - plan["puck"]):
             plan["dropped"], plan["up"] = t, hand + np.r_[0, 0, plan["back"]]
     if kind == "drop-regrasp" and "dropped" in plan and t < plan["dropped"] + plan["open"]:
-        return np.r_[_towards(hand, plan["up"]), -1.0]  # the gripper opens and the hand backs off a little
+        return np.r_[move(hand, plan["up"], p=10.0), -1.0]  # the gripper opens and the hand backs off a little
     if kind == "failed-place":
         if "let go" in plan:
             wide = t < plan["let go at"] + OPEN_STEPS
-            return np.r_[_towards(hand, plan["let go"]), -1.0 if wide else 0.0]
+            return np.r_[move(hand, plan["let go"], p=10.0), -1.0 if wide else 0.0]
         seen = obs.copy()
         seen[-3:] = goal + plan["off"]  # the policy carries the puck to a goal beside the real one
         if puck[2] > plan["puck"][2] + 0.02 and np.linalg.norm(hand - seen[-3:]) < 0.02:
@@ -239,9 +238,8 @@ def _episode(job: tuple) -> dict:
     for attempt in range(20):
         # The episode's own variation first; should the expert fail on it, one no other episode was given (another
         # episode's would replay it: an exact copy), else a random one.
-        again = spare[(index + attempt) % len(spare)] if spare else None
-        layout = (variation if attempt == 0 else again, int(rng.integers(1 << 31))) \
-            if attempt == 0 or again is not None else None
+        chosen = variation if attempt == 0 else spare[(index + attempt) % len(spare)] if spare else None
+        layout = None if chosen is None else (chosen, int(rng.integers(1 << 31)))
         if kind == "detour":  # where the expert succeeds on this layout, then the same layout with a detour on the way
             full = _rollout(name, "clean", steps, rng, layout)
             rec = None if full is None else _rollout(name, kind, steps, rng, full["layout"], when=full["first_success"])

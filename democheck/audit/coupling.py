@@ -84,11 +84,10 @@ def _nats(value: float, median: float) -> str:
     """An estimate of mutual information and its task's median as a reader takes them: never below 0 (the
     estimator's bias can be), and never rounded to the same number -- where both are about 0, by how much the
     estimates the check compared differ."""
-    pair = words.pair(value, median)
     if value <= 0.005 and median <= 0.005:
         side = "lower" if value < median else "higher"
         return f"about 0 nats, as its task's median, but the estimate {abs(median - value):.2g} nats {side}"
-    shown = [f"{t} nats" if v > 0.005 else "about 0 nats" for v, t in zip((value, median), pair)]
+    shown = [f"{t} nats" if v > 0.005 else "about 0 nats" for v, t in zip((value, median), words.pair(value, median))]
     return f"{shown[0]} (its task's median {shown[1]})"
 
 

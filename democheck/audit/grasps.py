@@ -11,8 +11,8 @@ command of 0 where another opens it at -1); a task that never moves it takes the
 demo.  A command changes where it crosses from the lower third of that range to the upper third or back: a noisy
 command near one end, or one that stops halfway, is no change.  The score is the number of changes; the ranking
 judges it within its task (only more changes than the task's are suspect: fewer is a demo that never grasped,
-which the outcome and motion checks see).  A consumer of the audit's decoding pass like the other model-free
-checks (``democheck.audit.modelfree``).
+which the outcome and motion checks see).  It reads the actions the other action checks keep
+(``modelfree.ActionTraces``).
 """
 
 from __future__ import annotations
@@ -21,8 +21,7 @@ import numpy as np
 import pandas as pd
 
 from democheck.audit.findings import Finding, Vocabulary
-from democheck.audit.modelfree import PerDemo
-from democheck.data.demo import Demo
+from democheck.audit.modelfree import ActionTraces
 
 GRIPPER_NAMES = ("grip",)  # an action dimension whose name holds one of these (any case) commands the gripper
 SPAN = (0.01, 0.99)  # percentiles over every demo: the ends of a task that never moves the gripper
@@ -74,18 +73,6 @@ def gripper_dims(action_names: list[str] | None) -> list[int]:
     return [k for k, name in enumerate(action_names or []) if any(g in str(name).lower() for g in GRIPPER_NAMES)]
 
 
-class GripperTraces(PerDemo):
-    """Consumer of decoded demos: each demo's gripper commands ([T, G], G = 0 where the dataset names no
-    gripper)."""
-
-    fields = ("commands",)
-    commands: list[np.ndarray]
-
-    def add(self, demo: Demo) -> None:
-        a = np.asarray(demo.actions, np.float64).reshape(len(demo.actions), -1)
-        self.commands.append(a[:, gripper_dims(demo.extra.get("action_names"))])
-
-
 def changes(command: np.ndarray, low: float, high: float) -> list[int]:
     """The steps at which a command crosses from the lower third of [``low``, ``high``] to the upper third or
     back (``BAND``): it stays open or closed until it reaches the other end."""
@@ -99,27 +86,29 @@ def changes(command: np.ndarray, low: float, high: float) -> list[int]:
     return out
 
 
-def grasps(traces: GripperTraces, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
+def grasps(traces: ActionTraces, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """Per demo, how many times its gripper command changed between open and closed (``changes``, summed over the
     gripper's dimensions; NaN where the dataset names no gripper, or where its command never spans a range), with
     the frames and its task's median count."""
-    width = max((c.shape[1] for c in traces.commands), default=0)
-    n = len(traces.commands)
-    if not width or not all(c.shape[1] == width for c in traces.commands):
+    commands = [np.asarray(a, np.float64).reshape(len(a), -1)[:, gripper_dims(names)]
+                for a, names in zip(traces.actions, traces.names)]
+    width = max((c.shape[1] for c in commands), default=0)
+    n = len(commands)
+    if not width or not all(c.shape[1] == width for c in commands):
         return np.full(n, np.nan), [GRASPS("no gripper")] * n
-    every = np.concatenate([c for c in traces.commands if len(c)]) if n else np.zeros((0, width))
+    every = np.concatenate([c for c in commands if len(c)]) if n else np.zeros((0, width))
     pooled = np.quantile(every, SPAN, axis=0) if len(every) else np.zeros((2, width))
     if not (pooled[1] > pooled[0]).any():
         return np.full(n, np.nan), [GRASPS("no gripper")] * n
     groups = np.asarray(groups)
-    lows = np.array([c.min(0) if len(c) else np.full(width, np.nan) for c in traces.commands])
-    highs = np.array([c.max(0) if len(c) else np.full(width, np.nan) for c in traces.commands])
+    lows = np.array([c.min(0) if len(c) else np.full(width, np.nan) for c in commands])
+    highs = np.array([c.max(0) if len(c) else np.full(width, np.nan) for c in commands])
     low = pd.DataFrame(lows).groupby(groups).transform("median").to_numpy()
     high = pd.DataFrame(highs).groupby(groups).transform("median").to_numpy()
     still = ~(high > low)  # a task whose demos keep the gripper as it is: the ends over every demo
     low, high = np.where(still, pooled[0], low), np.where(still, pooled[1], high)
     steps = [sorted(t for k in range(width) if high[i, k] > low[i, k] for t in changes(c[:, k], low[i, k], high[i, k]))
-             for i, c in enumerate(traces.commands)]
+             for i, c in enumerate(commands)]
     count = np.array([len(s) for s in steps], np.float64)
     typical = pd.Series(count).groupby(groups).transform("median").to_numpy()
     found = [GRASPS(("again" if (c - round(m)) % 2 == 0 else "ends otherwise") if c > m else "fewer" if c < m

@@ -93,12 +93,13 @@ class PerDemo:
 
 
 class ActionTraces(PerDemo):
-    """Consumer of decoded demos: each demo's actions, a fingerprint of its actions, state and frames, and its
-    ``timing``, kept for the action checks (``idle``, ``jerk``, ``saturation``, ``duplicate``, ``timing``),
-    which need the scales of all the demos."""
+    """Consumer of decoded demos: each demo's actions and their names, a fingerprint of its actions, state and
+    frames, and its ``timing``, kept for the action checks (``idle``, ``jerk``, ``saturation``, ``duplicate``,
+    ``timing``, ``grasps``), which need the scales of all the demos."""
 
-    fields = ("actions", "digests", "timing", "damaged")
+    fields = ("actions", "names", "digests", "timing", "damaged")
     actions: list[np.ndarray]
+    names: list[list[str] | None]  # the dataset's names of the action dimensions, where it names them
     digests: list[str]
     timing: list[tuple[float, Finding]]
     damaged: list[tuple[float, str, list[tuple[str, str]]]]  # share, in words, (file, why) of unreadable frames
@@ -106,6 +107,7 @@ class ActionTraces(PerDemo):
     def add(self, demo: Demo) -> None:
         a = np.asarray(demo.actions, np.float32)
         self.actions.append(a)
+        self.names.append(demo.extra.get("action_names"))
         frames = max((d.frames for d in demo.damaged), default=0)
         self.damaged.append((frames / max(len(a), 1), "; ".join(d.what for d in demo.damaged),
                              [(d.file, d.why) for d in demo.damaged if d.file]))

@@ -122,7 +122,7 @@ def _pause(ev: Evidence) -> Scores:
 
 
 def _grasps(ev: Evidence) -> Scores:
-    return grasps.grasps(ev.behaviour["grasps"], ev.groups)
+    return grasps.grasps(ev.behaviour["actions"], ev.groups)
 
 
 def _broken(ev: Evidence) -> Scores:
@@ -230,8 +230,7 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            _pause, behaviour="actions", decode=_traces, short="pause"),
     Scorer("grasps", "model-free: how many times the gripper's command changes between open and closed (the action "
            "dimensions named for the gripper; none: NaN), judged against its task's demos: a grasp tried again, an "
-           "object dropped and picked up", ("demos",), _grasps,
-           decode=lambda ev, rows, device: grasps.GripperTraces(), short="grasps"),
+           "object dropped and picked up", ("demos",), _grasps, behaviour="actions", decode=_traces, short="grasps"),
     Scorer("broken", "model-free: the share of the demo's frames that could not be decoded, or whose states or "
            "actions held NaN or infinite values (repaired to be read; any: the demo ranks first and is flagged)",
            ("demos",), _broken, behaviour="actions", decode=_traces, short="broken"),
