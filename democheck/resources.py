@@ -20,7 +20,8 @@ from typing import Any
 
 from democheck.errors import RecipeError
 
-DEFAULT_MODEL = "petnet-push-v1"
+DEFAULT_MODEL = "petnet-push-v1"  # the audit's, bench's and demo's model
+EVAL_MODEL = "petnet-push-v2"  # the closed-loop evaluation's and its gate's: the shipped controller that pushes
 RECIPE_KINDS = ("synth", "train", "dagger", "ranking")
 
 

@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from democheck import __version__, pool
+from democheck import __version__, pool, resources
 from democheck.audit.bench import bench, markdown as bench_markdown
 from democheck.audit.metrics import by_label
 from democheck.audit.run import audit, finish_summary, for_model, suspects, write_tables
@@ -385,7 +385,7 @@ def evaluate_model(model: str | Path | None, dataset: str | Path, out: str | Pat
     out = Path(out)
     refuse_existing(out, force)
     dev = resolve_device(device)
-    ckpt = load_checkpoint(model, device=dev)
+    ckpt = load_checkpoint(resources.EVAL_MODEL if model is None else model, device=dev)
     ds = open_dataset(dataset).require_camera("the meta-test")
     the_gate = None if gate is None else model_gate(ckpt, ds, gate, gate_cues, dev)
     result = meta_test(ckpt, ds, split=split, trials=trials, shots=shots, workers=workers, seed=seed, device=dev,

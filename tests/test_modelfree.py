@@ -359,6 +359,25 @@ def test_the_frame_checks_read_the_same_numbers_at_any_decoded_size():
     np.testing.assert_allclose(fed[0], fed[1], atol=0.05)
 
 
+def test_a_score_beside_the_sum_is_in_it_and_apart_from_it():
+    """A column marked ``beside`` counts in Fisher's sum and by its own Sidak minimum too: one extreme probability
+    there is not diluted by the ordinary ones, evidence it shares with the others still adds up, and on clean demos
+    the share flagged stays within the rate asked for."""
+    rng = np.random.default_rng(3)
+    n, k = 20000, 8
+    log_p = np.log(rng.uniform(size=(n, k)))
+    beside = np.zeros(k, bool)
+    beside[0] = True
+    log_p[0] = np.log(0.5)
+    log_p[0, 0] = np.log(1e-5)  # extreme on the marked column alone
+    log_p[1] = np.log(0.02)  # a little surprising on every column
+    combined, fisher = combined_log10(log_p, beside=beside), combined_log10(log_p)
+    assert fisher[0] > np.log10(1e-3) and combined[0] < np.log10(1e-4)
+    assert combined[1] < np.log10(1e-4) and combined[1] <= fisher[1] + np.log10(2)  # the sum still counts
+    for fpr in (0.01, 0.05):
+        assert int((combined[2:] <= np.log10(fpr)).sum()) <= stats.binom.interval(0.999, n - 2, fpr)[1]
+
+
 def test_a_recording_fault_stands_apart_in_the_combination():
     """The columns marked ``alone`` are combined by their Sidak minimum, and that with the others' Fisher-Brown
     probability by theirs: a demo extreme on one fault alone is not diluted by its ordinary scores (in Fisher's

@@ -22,7 +22,8 @@ def test_shipped_recipe_loads_and_round_trips(name, tmp_path):
     assert load_recipe(again)[0] == tc
 
 
-@pytest.mark.parametrize("model, recipe", [("petnet-push-v1", "petnet-push-v1"), ("tecnet-push-v1", "tecnet")])
+@pytest.mark.parametrize("model, recipe", [("petnet-push-v1", "petnet-push-v1"), ("petnet-push-v2", "petnet-push-v4"),
+                                           ("tecnet-push-v1", "tecnet")])
 def test_shipped_models_recipe_is_what_they_were_trained_with(model, recipe):
     record = json.loads((resources.shipped_model(model) / "config.json").read_text())["training"]
     assert load_recipe(recipe)[0] == training_config(record)

@@ -259,3 +259,37 @@ def test_a_fault_a_few_of_one_tasks_demos_share_is_no_outcome_of_the_task_but_a_
     assert score[3:].max() < 5, np.sort(score)[-5:]  # the button ends two ways in every task: no demo far out
     began = np.array([0.0] * 6 + [1.0] * 6)
     assert explained(1 - began, began, 0.01) and not explained(began, rng.uniform(0, 1, 12), 0.01)
+
+
+def test_a_body_recorded_by_roll_pitch_and_yaw_is_compared_as_its_quaternion_would_be():
+    """One orientation, two records: a body's roll, pitch and yaw (``box.roll`` ...) and its quaternion give the
+    same outcome scores.  Its task's demos turn it about the vertical by a wide spread and one tips it onto its
+    side: as three angles, a roll no clean demo has would read as far out as a knocked-over object beside a
+    turn; as one rotation it is one more orientation, measured as the quaternion record measures it."""
+    from scipy.spatial.transform import Rotation
+
+    from democheck.audit.outcome import OutcomeStats, features_of, outcome
+
+    rng = np.random.default_rng(4)
+    rpy = []
+    for i in range(40):
+        yaw = rng.uniform(-np.pi, np.pi)
+        tip = np.pi / 2 if i == 0 else rng.normal(0, 0.02)
+        rpy.append(np.array([[0.0, 0.0, yaw], [tip, 0.0, yaw + rng.normal(0, 0.5)]]))
+
+    def scored(euler: bool):
+        stats = OutcomeStats()
+        for ends in rpy:
+            names = ["box.roll", "box.pitch", "box.yaw"] if euler else ["box.qw", "box.qx", "box.qy", "box.qz"]
+            x = ends if euler else Rotation.from_euler("xyz", ends).as_quat()[:, [3, 0, 1, 2]]
+            stats.ends.append(x)
+            stats.sources.append("environment state")
+            stats.names.append(names)
+            stats.moves.append(np.stack([np.abs(x[1] - x[0]), np.zeros(x.shape[1])]))
+        return outcome(stats, np.zeros(len(rpy), int))
+
+    (as_angles, found), (as_quaternion, _) = scored(True), scored(False)
+    [feature] = features_of(["box.roll", "box.pitch", "box.yaw"], rpy[0][:1], rpy[0][1:])
+    assert feature.kind == "rotation" and feature.columns == [0, 1, 2]
+    np.testing.assert_allclose(as_angles, as_quaternion, rtol=1e-6)
+    assert np.argmax(as_angles) == 0 and found[0].params["name"] == "the orientation of box"

@@ -48,6 +48,10 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
                                                    else s for s in c.specs)),
     "time-look-apart": lambda c: replace(c, specs=tuple(replace(s, alone=True) if s.name in TIME_ALIGNED else s
                                                         for s in c.specs)),
+    "outcome-apart": lambda c: replace(c, specs=tuple(replace(s, alone=True) if s.name == "outcome" else s
+                                                      for s in c.specs)),
+    "outcome-in-sum": lambda c: replace(c, specs=tuple(replace(s, beside=False) if s.name == "outcome" else s
+                                                       for s in c.specs)),
     "time-one-look": lambda c: replace(c, specs=tuple(replace(s, look="in time") if s.name in TIME_ALIGNED else s
                                                       for s in c.specs)),
 }

@@ -14,8 +14,10 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
   Values piled at one place (a kettle most demos leave where it stands, a slide against its stop) beside a
   spread of others are two outcomes too, each measured in its own spread, once the spread holds that share.
 - **Rotations are compared as rotations**: a quaternion (four consecutive dimensions named ``*w/x/y/z`` or
-  ``*quat*``, or of unit norm throughout) as its outer product ``q q^T``, the same for ``q`` and ``-q``; an angle
-  named so (``yaw``, ``angle``, ...) as its cosine and sine, so that +pi and -pi are one angle.
+  ``*quat*``, or of unit norm throughout) as its outer product ``q q^T``, the same for ``q`` and ``-q``; a body's
+  roll, pitch and yaw named with one prefix as the same rotation's quaternion, so that the record's form does not
+  change the score; another angle named so (``yaw``, ``angle``, ...) as its cosine and sine, so that +pi and -pi
+  are one angle.
 - **Units from how the feature moves**: a value's robust SD is at least ``END_FLOOR`` of its spread at the end
   over all the demos and ``MOVE_FLOOR`` of how far the task that works it most moves it within a typical episode
   (the median over its demos that move it), and never under ``RESOLUTION`` of its size; a rotation's at least
@@ -70,6 +72,7 @@ RESOLUTION = 1e-5  # ... and more than this share of its size (at least 1): what
 _QUAT = re.compile(r"^(.*?)[._/\-]?(?:q|quat|quaternion|orientation|rot)?[._/\-]?\[?([wxyz0-3])\]?$", re.I)
 _AXIS = re.compile(r"^(.+?)[._/\-]?(?:pos)?[._/\-]([xyz])$", re.I)
 _ANGLE = re.compile(r"(yaw|pitch|roll|angle|theta|heading)", re.I)
+_EULER = re.compile(r"^(.*?)[._/\-]?(roll|pitch|yaw)$", re.I)
 
 
 class OutcomeStats(PerDemo):
@@ -113,8 +116,15 @@ def features_of(names: list[str] | None, first: np.ndarray, last: np.ndarray, so
     axis are against each other (``block.x - goal.x``)."""
     d = first.shape[1]
     names = list(names) if names and len(names) == d else [f"{source}[{j}]" for j in range(d)]
+    euler = _euler_triples(names)
     out, j = [], 0
     while j < d:
+        if j in euler:
+            if euler[j][0] == j:  # one feature, where its first angle is
+                prefix = _EULER.match(names[j]).group(1) or f"{source}[{j}]"
+                out.append(Feature(f"the orientation of {prefix}", euler[j], "rotation"))
+            j += 1
+            continue
         if j + 4 <= d and _is_quaternion(names[j:j + 4], first[:, j:j + 4], last[:, j:j + 4]):
             prefix = _QUAT.match(names[j]).group(1) if _QUAT.match(names[j]) else ""
             out.append(Feature(f"the orientation of {prefix or f'{source}[{j}:{j + 4}]'}",
@@ -138,6 +148,24 @@ def features_of(names: list[str] | None, first: np.ndarray, last: np.ndarray, so
     return out
 
 
+def _euler_triples(names: list[str]) -> dict[int, list[int]]:
+    """The columns of a body's roll, pitch and yaw named so with one prefix (``block.roll``, ``block.pitch``,
+    ``block.yaw``), each mapped to the triple's columns in that order: one orientation, compared as a rotation --
+    as three angles, a block that rests on another face reads as a roll no demo of its task has, where the same
+    turn recorded as a quaternion is one rotation among its task's."""
+    bodies: dict[str, dict[str, int]] = {}
+    for j, n in enumerate(names):
+        m = _EULER.match(n)
+        if m:
+            bodies.setdefault(m.group(1).lower(), {}).setdefault(m.group(2).lower(), j)
+    out = {}
+    for axes in bodies.values():
+        if len(axes) == 3:
+            cols = [axes["roll"], axes["pitch"], axes["yaw"]]
+            out.update({c: cols for c in cols})
+    return out
+
+
 def _is_quaternion(names: list[str], first: np.ndarray, last: np.ndarray) -> bool:
     matches = [_QUAT.match(n) for n in names]
     if all(m and m.group(2) for m in matches) and len({m.group(1) for m in matches}) == 1:
@@ -154,6 +182,8 @@ def represent(feature: Feature, x: np.ndarray) -> np.ndarray:
     """[N, m] the feature's values as compared: a quaternion's 10 distinct entries of q q^T, an angle's cosine and
     sine, a value as it is."""
     v = x[:, feature.columns]
+    if feature.kind == "rotation" and len(feature.columns) == 3:  # roll, pitch, yaw: as the same rotation's q
+        v = _euler_quaternions(v)
     if feature.kind == "rotation":
         with np.errstate(all="ignore"):
             q = v / np.linalg.norm(v, axis=1, keepdims=True)
@@ -164,6 +194,18 @@ def represent(feature: Feature, x: np.ndarray) -> np.ndarray:
     if feature.kind == "relative":
         return v[:, :1] - v[:, 1:]
     return v
+
+
+def _euler_quaternions(rpy: np.ndarray) -> np.ndarray:
+    """[N, 4] the unit quaternions of [N, 3] roll, pitch and yaw (about the fixed x, y and z axes, in that order:
+    the robotics convention); NaN where an angle is."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.full((len(rpy), 4), np.nan)
+    ok = np.isfinite(rpy).all(axis=1)
+    if ok.any():
+        out[ok] = Rotation.from_euler("xyz", rpy[ok]).as_quat()
+    return out
 
 
 def modes(r: np.ndarray, floor: float, depth: int = 2, piles: bool = True) -> np.ndarray:

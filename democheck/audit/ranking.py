@@ -29,6 +29,7 @@ class ScoreSpec:
     floor: float = 0.0  # the least spread a robust standard deviation stands for, in the score's units
     tail: str = "exponential"  # the family of its clean right tail: "exponential" or "normal"
     alone: bool = False  # a recording fault: beside the others' sum, by its Sidak minimum
+    beside: bool = False  # in the sum, and beside it too: evidence that adds to the rest and is a defect by itself
     look: str = ""  # scores of one look (one piece of evidence) are merged first; "" = its own look
     lead: int = 0  # where its finding stands in a reason's precedence (``Precedence.order``): lower leads
 
@@ -157,8 +158,9 @@ def rank(values: Mapping[str, np.ndarray], groups: np.ndarray, config: RankingCo
         return Ranking(config, np.zeros((n, 0)), ~broken, np.full(n, np.nan), broken)
     normal = np.array([s.tail == "normal" for s in config.specs], bool)
     alone = np.array([s.alone for s in config.specs], bool)
+    beside = np.array([s.beside for s in config.specs], bool)
     looks = config.looks()
     log_p, core = robust_tails(lambda c: ranking_z(values, groups, config, c), core_p=config.core_p, normal=normal,
-                               alone=alone, outside=broken, looks=looks)
-    suspicion = -combined_log10(log_p, alone, looks)
+                               alone=alone, outside=broken, looks=looks, beside=beside)
+    suspicion = -combined_log10(log_p, alone, looks, beside)
     return Ranking(config, log_p, core, np.where(broken, np.inf, suspicion), broken)

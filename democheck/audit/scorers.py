@@ -319,8 +319,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
 )}
 
 TAILS = ("exponential", "normal")  # the families a score's clean right tail may be given (``scores.tail_probabilities``)
-RANKING_KEYS = {"log": bool, "in_robust_sd": bool, "floor": float, "tail": str, "alone": bool, "look": str,
-                "single_task": bool}
+RANKING_KEYS = {"log": bool, "in_robust_sd": bool, "floor": float, "tail": str, "alone": bool, "beside": bool,
+                "look": str, "single_task": bool}
 REASON_KEYS = {"order", "demoted", "behaviour", "rules"}
 RULE_KEYS = {"first", "over", "when", "unless", "same_camera"}
 
@@ -405,7 +405,7 @@ def ranking_config(names: list[str]) -> ranking.RankingConfig:
         look = keys.get("look", "") or (check if checks.count(check) > 1 else "")
         return ranking.ScoreSpec(n, log=keys.get("log", False), in_robust_sd=keys.get("in_robust_sd", False),
                                  floor=float(keys.get("floor", 0.0)), tail=keys.get("tail", "exponential"),
-                                 alone=alone, look=look, lead=lead)
+                                 alone=alone, beside=keys.get("beside", False), look=look, lead=lead)
 
     return ranking.RankingConfig(tuple(spec(n) for n in names), core_p=recipe["core_p"],
                                  reason_p=recipe["reason_p"], precedence=precedence,

@@ -205,7 +205,8 @@ def tail_probabilities(z: np.ndarray, core: np.ndarray | None = None, normal: np
 
 def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: float,
                  rounds: int = CORE_ROUNDS, normal: np.ndarray | None = None, alone: np.ndarray | None = None,
-                 outside: np.ndarray | None = None, looks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 outside: np.ndarray | None = None, looks: np.ndarray | None = None,
+                 beside: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``tail_probabilities`` fitted on the audited demos' robust core, and the core [N] (bool): starting from
     every demo (but those ``outside``), the tails are fitted, combined (``combined_log10``), and the demos whose
     combined probability is at most ``core_p`` left out of the next fit, until the core stops changing.  The core
@@ -214,9 +215,9 @@ def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: flo
 
     ``z``: the [N, K] scores in robust SD, or a function of the core (None: every demo) that computes them (the
     ranking's: each task's centre and the unit from the core's demos, ``calibrated``), called again at every
-    round.  ``normal``: the columns with a normal tail (``tail_probabilities``); ``alone`` and ``looks``: how the
-    columns are combined (``combined_log10``); ``outside``: demos never in the core (broken recordings, suspect
-    whatever their scores)."""
+    round.  ``normal``: the columns with a normal tail (``tail_probabilities``); ``alone``, ``beside`` and
+    ``looks``: how the columns are combined (``combined_log10``); ``outside``: demos never in the core (broken
+    recordings, suspect whatever their scores)."""
     z_of = z if callable(z) else (lambda core: z)
     zc = z_of(None)  # every demo
     start = np.ones(len(zc), bool) if outside is None else ~np.asarray(outside, bool)
@@ -225,7 +226,7 @@ def robust_tails(z: np.ndarray | Callable[[np.ndarray], np.ndarray], core_p: flo
         zc = z_of(core)
     log_p = tail_probabilities(zc, core, normal)
     for _ in range(rounds):
-        new = start & ~(10.0 ** combined_log10(log_p, alone, looks) <= core_p)
+        new = start & ~(10.0 ** combined_log10(log_p, alone, looks, beside) <= core_p)
         if (new == core).all() or new.sum() < start.sum() / 2:
             break
         core = new
@@ -286,8 +287,8 @@ def merge_looks(log_p: np.ndarray, looks: np.ndarray) -> tuple[np.ndarray, np.nd
     return (np.column_stack(cols) if cols else np.zeros((len(log_p), 0))), first
 
 
-def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None, looks: np.ndarray | None = None
-                   ) -> np.ndarray:
+def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None, looks: np.ndarray | None = None,
+                   beside: np.ndarray | None = None) -> np.ndarray:
     """log10 of the combined tail probability of each row's K tail probabilities (given as natural logs):
     Fisher's -2 sum log p against Brown's scaled chi-square (``brown_scale``: the scores' dependence measured on
     the audited demos themselves), or, with too few demos to measure it, the Sidak minimum.  A row's missing
@@ -298,16 +299,19 @@ def combined_log10(log_p: np.ndarray, alone: np.ndarray | None = None, looks: np
     ``alone`` (bool [K]) marks the columns that stand apart (the recording faults, ``ScoreSpec.alone``): the others
     are combined as above, the marked ones by their Sidak minimum (is the recording faulty?), and those two
     probabilities by theirs -- a camera that froze is a defect whatever the demo's behaviour says, and in Fisher's
-    sum its one small probability would be diluted by every ordinary one beside it.  ``looks`` ([K] numbers): the
-    columns of one look are first merged into one (``merge_looks``)."""
+    sum its one small probability would be diluted by every ordinary one beside it.  ``beside`` (bool [K]) marks
+    columns that are in the sum and among the marked ones too: evidence that adds to the rest and is a defect by
+    itself (``ScoreSpec.beside``).  ``looks`` ([K] numbers): the columns of one look are first merged into one
+    (``merge_looks``)."""
     alone = np.zeros(log_p.shape[1], bool) if alone is None else np.asarray(alone, bool)
+    beside = np.zeros(log_p.shape[1], bool) if beside is None else np.asarray(beside, bool)
     if looks is not None and len(np.unique(looks)) < log_p.shape[1]:
         log_p, first = merge_looks(log_p, looks)
-        alone = alone[first]
-    if alone.any():
+        alone, beside = alone[first], beside[first]
+    if alone.any() or beside.any():
         # A group that saw nothing in a row (NaN throughout) is no look there, as a missing score is none above.
         parts = []
-        for group, combine in ((~alone, combined_log10), (alone, sidak_log10)):
+        for group, combine in ((~alone, combined_log10), (alone | beside, sidak_log10)):
             if group.any():
                 seen = ~np.isnan(log_p[:, group]).all(axis=1)
                 parts.append(np.where(seen, combine(log_p[:, group]) * np.log(10), np.nan))

@@ -51,8 +51,8 @@ def bench(
 
 @app.command(name="eval")
 def eval_(
-    model: Annotated[Optional[Path], typer.Argument(help=MODEL_HELP)] = None,
-    data: Annotated[Path, typer.Option(help="Suite to draw cue demos and tasks from (made by democheck synth; e.g. democheck synth push-v1 --out data/push-v1).")] = Path("data/push-v1"),
+    model: Annotated[Optional[Path], typer.Argument(help="Model folder, or the name of a shipped model (default: petnet-push-v2, shipped with democheck: 70% one-shot success on held-out objects).")] = None,
+    data: Annotated[Path, typer.Option(help="Suite to draw cue demos and tasks from (made by democheck synth; e.g. democheck synth push-v2-test --out data/push-v2-test).")] = Path("data/push-v2-test"),
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for eval.json, eval.md, trials.parquet, eval.rrd.")] = Path("runs/eval"),
     split: Annotated[str, typer.Option(help="Which tasks: test (meta-test, held-out objects), val or train.")] = "test",
     trials: Annotated[int, typer.Option(help="Rollouts per task, each on a new layout with its own cue draw.")] = 6,
@@ -71,7 +71,7 @@ def eval_(
         from democheck.workflows import evaluate_model
 
         if not data.exists():
-            raise DemocheckError(f"{data}: no such dataset; generate it: democheck synth push-v1 --out {data}")
+            raise DemocheckError(f"{data}: no such dataset; generate it: democheck synth push-v2-test --out {data}")
         with Bar("eval", "rollouts") as bar:
             s = evaluate_model(model, data, out, split=split, trials=trials, shots=shots, workers=workers, seed=seed,
                                device=device, force=force, on_progress=bar.callback(),
