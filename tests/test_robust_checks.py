@@ -268,7 +268,8 @@ def test_a_body_recorded_by_roll_pitch_and_yaw_is_compared_as_its_quaternion_wou
     turn; as one rotation it is one more orientation, measured as the quaternion record measures it."""
     from scipy.spatial.transform import Rotation
 
-    from democheck.audit.outcome import OutcomeStats, features_of, outcome
+    from democheck.audit.outcome import OutcomeStats, outcome
+    from democheck.audit.world_record import features_of
 
     rng = np.random.default_rng(4)
     rpy = []

@@ -13,11 +13,10 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
   (``explained``: a toggle) or a spread beside a pile: a fault a few of one task's demos share is no outcome.
   Values piled at one place (a kettle most demos leave where it stands, a slide against its stop) beside a
   spread of others are two outcomes too, each measured in its own spread, once the spread holds that share.
-- **Rotations are compared as rotations**: a quaternion (four consecutive dimensions named ``*w/x/y/z`` or
-  ``*quat*``, or of unit norm throughout) as its outer product ``q q^T``, the same for ``q`` and ``-q``; a body's
-  roll, pitch and yaw named with one prefix as the same rotation's quaternion, so that the record's form does not
-  change the score; another angle named so (``yaw``, ``angle``, ...) as its cosine and sine, so that +pi and -pi
-  are one angle.
+- **Rotations are compared as rotations** (``democheck.audit.world_record`` groups the record into features): a
+  quaternion as its outer product ``q q^T``, the same for ``q`` and ``-q``; a body's roll, pitch and yaw as the
+  same rotation's quaternion, so that the record's form does not change the score; another angle as its cosine
+  and sine, so that +pi and -pi are one angle.
 - **Units from how the feature moves**: a value's robust SD is at least ``END_FLOOR`` of its spread at the end
   over all the demos and ``MOVE_FLOOR`` of how far the task that works it most moves it within a typical episode
   (the median over its demos that move it), and never under ``RESOLUTION`` of its size; a rotation's at least
@@ -30,22 +29,21 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
 
 ``compare`` also says where each demo differs most and whether that part already differed at its first step
 (another scene, not what the demo did: ``Differs``), and the reason says when the part never changed in the demo.
-NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.  Over 400 lines: one check, whose features, units and
-outcomes are each a short function the others need.  A consumer of the audit's decoding pass like the other
+NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.  Over 400 lines: one check, whose units and outcomes
+are each a short function the others need.  A consumer of the audit's decoding pass like the other
 model-free checks (``democheck.audit.modelfree``); ``benchmarks/shapes.py`` measures what the shapes cost.
 """
 
 from __future__ import annotations
 
-import re
 import warnings
-from dataclasses import dataclass
 
 import numpy as np
 
 from democheck.audit import words
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
+from democheck.audit.world_record import Feature, features_of, represent
 from democheck.data.demo import Demo
 
 OUTCOME_MIN_DEMOS = 4
@@ -69,10 +67,6 @@ STILL = 10.0
 ALREADY = 0.5  # a difference this share of which the feature showed at the first step was there before the demo
 RESOLUTION = 1e-5  # ... and more than this share of its size (at least 1): what float noise cannot reach
 
-_QUAT = re.compile(r"^(.*?)[._/\-]?(?:q|quat|quaternion|orientation|rot)?[._/\-]?\[?([wxyz0-3])\]?$", re.I)
-_AXIS = re.compile(r"^(.+?)[._/\-]?(?:pos)?[._/\-]([xyz])$", re.I)
-_ANGLE = re.compile(r"(yaw|pitch|roll|angle|theta|heading)", re.I)
-_EULER = re.compile(r"^(.*?)[._/\-]?(roll|pitch|yaw)$", re.I)
 
 
 class OutcomeStats(PerDemo):
@@ -97,115 +91,6 @@ class OutcomeStats(PerDemo):
             warnings.simplefilter("ignore", RuntimeWarning)
             jitter = np.nanmedian(np.abs(np.diff(x, 2, axis=0)), 0) if len(x) > 2 else np.zeros(x.shape[1])
             self.moves.append(np.stack([np.ptp(x, 0) if len(x) else np.zeros(x.shape[1]), jitter]))
-
-
-@dataclass
-class Feature:
-    """One compared feature of the world record: its name, the columns of the record it reads, its kind
-    (``value``, ``rotation`` or ``angle``)."""
-
-    name: str
-    columns: list[int]
-    kind: str
-
-
-def features_of(names: list[str] | None, first: np.ndarray, last: np.ndarray, source: str = "state"
-                ) -> list[Feature]:
-    """The record's dimensions grouped into what is compared: quaternions (by their names or, unnamed, by unit
-    norm at both ends of every demo), angles (by their names), plain values, and where two things named on one
-    axis are against each other (``block.x - goal.x``)."""
-    d = first.shape[1]
-    names = list(names) if names and len(names) == d else [f"{source}[{j}]" for j in range(d)]
-    euler = _euler_triples(names)
-    out, j = [], 0
-    while j < d:
-        if j in euler:
-            if euler[j][0] == j:  # one feature, where its first angle is
-                prefix = _EULER.match(names[j]).group(1) or f"{source}[{j}]"
-                out.append(Feature(f"the orientation of {prefix}", euler[j], "rotation"))
-            j += 1
-            continue
-        if j + 4 <= d and _is_quaternion(names[j:j + 4], first[:, j:j + 4], last[:, j:j + 4]):
-            prefix = _QUAT.match(names[j]).group(1) if _QUAT.match(names[j]) else ""
-            out.append(Feature(f"the orientation of {prefix or f'{source}[{j}:{j + 4}]'}",
-                               list(range(j, j + 4)), "rotation"))
-            j += 4
-            continue
-        out.append(Feature(names[j], [j], "angle" if _ANGLE.search(names[j]) else "value"))
-        j += 1
-    # Where two things' positions are named on the same axis (block.x, goal.x), where one is against the other.
-    axes: dict[str, dict[str, int]] = {}
-    for f in out:
-        m = _AXIS.match(f.name) if f.kind == "value" else None
-        if m:
-            axes.setdefault(m.group(2).lower(), {}).setdefault(m.group(1), f.columns[0])
-    for axis, things in axes.items():
-        names_on = list(things)
-        for a in range(len(names_on)):
-            for b in range(a + 1, len(names_on)):
-                out.append(Feature(f"{names_on[a]}.{axis} - {names_on[b]}.{axis}",
-                                   [things[names_on[a]], things[names_on[b]]], "relative"))
-    return out
-
-
-def _euler_triples(names: list[str]) -> dict[int, list[int]]:
-    """The columns of a body's roll, pitch and yaw named so with one prefix (``block.roll``, ``block.pitch``,
-    ``block.yaw``), each mapped to the triple's columns in that order: one orientation, compared as a rotation --
-    as three angles, a block that rests on another face reads as a roll no demo of its task has, where the same
-    turn recorded as a quaternion is one rotation among its task's."""
-    bodies: dict[str, dict[str, int]] = {}
-    for j, n in enumerate(names):
-        m = _EULER.match(n)
-        if m:
-            bodies.setdefault(m.group(1).lower(), {}).setdefault(m.group(2).lower(), j)
-    out = {}
-    for axes in bodies.values():
-        if len(axes) == 3:
-            cols = [axes["roll"], axes["pitch"], axes["yaw"]]
-            out.update({c: cols for c in cols})
-    return out
-
-
-def _is_quaternion(names: list[str], first: np.ndarray, last: np.ndarray) -> bool:
-    matches = [_QUAT.match(n) for n in names]
-    if all(m and m.group(2) for m in matches) and len({m.group(1) for m in matches}) == 1:
-        letters = "".join(m.group(2).lower() for m in matches)
-        if sorted(letters) in (sorted("wxyz"), sorted("0123")) and re.search(r"q|quat|orient|rot", names[0], re.I):
-            return True
-    with np.errstate(all="ignore"):
-        norms = np.concatenate([np.linalg.norm(first, axis=1), np.linalg.norm(last, axis=1)])
-    return bool(len(norms) and np.isfinite(norms).all() and np.abs(norms - 1).max() < 1e-3
-                and np.ptp(np.concatenate([first, last]), 0).max() > 1e-3)
-
-
-def represent(feature: Feature, x: np.ndarray) -> np.ndarray:
-    """[N, m] the feature's values as compared: a quaternion's 10 distinct entries of q q^T, an angle's cosine and
-    sine, a value as it is."""
-    v = x[:, feature.columns]
-    if feature.kind == "rotation" and len(feature.columns) == 3:  # roll, pitch, yaw: as the same rotation's q
-        v = _euler_quaternions(v)
-    if feature.kind == "rotation":
-        with np.errstate(all="ignore"):
-            q = v / np.linalg.norm(v, axis=1, keepdims=True)
-        iu = np.triu_indices(4)
-        return (q[:, :, None] * q[:, None, :])[:, iu[0], iu[1]]
-    if feature.kind == "angle":
-        return np.concatenate([np.cos(v), np.sin(v)], 1)
-    if feature.kind == "relative":
-        return v[:, :1] - v[:, 1:]
-    return v
-
-
-def _euler_quaternions(rpy: np.ndarray) -> np.ndarray:
-    """[N, 4] the unit quaternions of [N, 3] roll, pitch and yaw (about the fixed x, y and z axes, in that order:
-    the robotics convention); NaN where an angle is."""
-    from scipy.spatial.transform import Rotation
-
-    out = np.full((len(rpy), 4), np.nan)
-    ok = np.isfinite(rpy).all(axis=1)
-    if ok.any():
-        out[ok] = Rotation.from_euler("xyz", rpy[ok]).as_quat()
-    return out
 
 
 def modes(r: np.ndarray, floor: float, depth: int = 2, piles: bool = True) -> np.ndarray:
