@@ -111,7 +111,13 @@ def grasps(traces: ActionTraces, groups: np.ndarray) -> tuple[np.ndarray, list[F
              for i, c in enumerate(commands)]
     count = np.array([len(s) for s in steps], np.float64)
     typical = pd.Series(count).groupby(groups).transform("median").to_numpy()
-    found = [GRASPS(("again" if (c - round(m)) % 2 == 0 else "ends otherwise") if c > m else "fewer" if c < m
-                    else "as its task's", count=int(c), typical=float(m),
-                    frames=s) for c, m, s in zip(count, typical, steps)]
+    found = [GRASPS(_kind(c, m), count=int(c), typical=float(m), frames=s) for c, m, s in zip(count, typical, steps)]
     return count, found
+
+
+def _kind(count: float, typical: float) -> str:
+    """More changes than its task's demos make: an even number more ends as theirs do (``again``), an odd number
+    ends the other way."""
+    if count > typical:
+        return "again" if (count - round(typical)) % 2 == 0 else "ends otherwise"
+    return "fewer" if count < typical else "as its task's"

@@ -26,71 +26,16 @@ import numpy as np
 import pandas as pd
 
 from democheck import resources
-from democheck.audit import (colours, coupling, dynamics, frames, grasps, modelfree, outcome, ranking, reasons,
-                             sensors, timeline, view)
-from democheck.audit.action_error import ACTION_STEPS, ActionErrors
+from democheck.audit import (colours, coupling, dynamics, frames, grasps, model_scores, modelfree, outcome, ranking,
+                             reasons, sensors, timeline, view)
+from democheck.audit.action_error import ACTION_STEPS
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit.evidence import Evidence, Scorer, Scores
-from democheck.audit.findings import VOCABULARIES, Vocabulary, camera_column, check_of, known
+from democheck.audit.findings import VOCABULARIES, camera_column, check_of, known
 from democheck.audit.flagging import DEFAULT_FPR, is_broken
 from democheck.audit.ocsvm import ocsvm_margin
-from democheck.audit.scores import CONSISTENCY_K, consistency_parts, novelty
+from democheck.audit.scores import CONSISTENCY_K
 from democheck.errors import RecipeError
-
-# ---------------------------------------------------------------------------
-# PETNet's scores
-# ---------------------------------------------------------------------------
-
-def _against_task(vocabulary: Vocabulary, values: np.ndarray, groups: np.ndarray) -> list:
-    """Each demo's finding of a model's reading: its value as a multiple of its comparison group's median."""
-    median = pd.Series(values).groupby(np.asarray(groups)).transform("median").to_numpy()
-    return [vocabulary("against its task", ratio=float(v / m)) if np.isfinite(v) and m > 0 else vocabulary("read")
-            for v, m in zip(values, median)]
-
-
-TASK_UNCERTAINTY = Vocabulary("task_uncertainty", {
-    "against its task": "the model cannot tell the task from its first and last frames ({ratio:.2g} x its task's "
-                        "median)",
-    "read": "the model cannot tell the task from its first and last frames",
-})
-NOVELTY = Vocabulary("novelty", {
-    "against its task": "its end looks unlike the ends the model learnt from ({ratio:.2g} x its task's median)",
-    "read": "its end looks unlike the ends the model learnt from",
-})
-CONSISTENCY = Vocabulary("consistency", {
-    "against its task": "its first and last frames read as another task than its task's other demos ({ratio:.2g} "
-                        "x its task's median)",
-    "read": "its first and last frames read as another task than its task's other demos",
-})
-
-
-def _task_uncertainty(ev: Evidence) -> Scores:
-    values = ev.posterior.task_uncertainty()
-    return values, _against_task(TASK_UNCERTAINTY, values, ev.groups)
-
-
-def _task_uncertainty_head(ev: Evidence) -> Scores:
-    return ev.posterior.task_uncertainty(head_only=True), None
-
-
-def _novelty(ev: Evidence) -> Scores:
-    values = novelty(ev.posterior, ev.model.model.encoder.prior_var.cpu().numpy())
-    return values, _against_task(NOVELTY, values, ev.groups)
-
-
-def _consistency(ev: Evidence) -> Scores:
-    value, _ = consistency_parts(ev.posterior, ev.tasks)
-    return value, _against_task(CONSISTENCY, value, ev.groups)
-
-
-def _action_error(ev: Evidence) -> Scores:
-    got = ev.behaviour["action_error"]  # (values, reasons) from ``ActionErrors``, or values given directly
-    return got if isinstance(got, tuple) else (np.asarray(got), None)
-
-
-def _decode_action_error(ev: Evidence, rows: slice, device: Any) -> ActionErrors:
-    # Each demo is judged under its task across all the evidence (a bench pools datasets).
-    return ActionErrors(ev.model, ev.task_variables()[rows], device)
 
 
 def _suspicion(ev: Evidence, model_free: bool = False) -> Scores:
@@ -205,20 +150,20 @@ def _traces(ev: Evidence, rows: slice, device: Any) -> modelfree.ActionTraces:
 
 SCORERS: dict[str, Scorer] = {s.name: s for s in (
     Scorer("task_uncertainty", "PETNet's task uncertainty (the paper's score): mean task standard deviation of the "
-           "demo's cue, both parts of the variance", ("cues",), _task_uncertainty, short="unc."),
+           "demo's cue, both parts of the variance", ("cues",), model_scores.task_uncertainty, short="unc."),
     Scorer("task_uncertainty_head", "the paper's variance head alone, without the novelty part",
-           ("cues",), _task_uncertainty_head, in_audit=False, short="head"),
+           ("cues",), model_scores.task_uncertainty_head, in_audit=False, short="head"),
     Scorer("novelty", "how unfamiliar the demo's end is (its last frame, and where the arm ended where the model "
            "reads that too): squared feature distance from the training demos' over the model's reference (above 1: "
            "less familiar than 9 in 10 of the real demos it was referenced on, held out or, where the model learnt "
            "every demo, its own)",
-           ("cues", "novelty"), _novelty, short="novel."),
+           ("cues", "novelty"), model_scores.novelty, short="novel."),
     Scorer("consistency", f"mean distance of the demo's task mean from those of its {CONSISTENCY_K} nearest other "
-           "demos of its task, each dimension in units of its median task standard deviation", ("cues",), _consistency,
-           short="cons."),
+           "demos of its task, each dimension in units of its median task standard deviation", ("cues",),
+           model_scores.consistency, short="cons."),
     Scorer("action_error", f"how badly PETNet's controller, told the task by the other demos of the task, explains "
            f"the demo's normalised actions (MSE at {ACTION_STEPS} evenly spaced timesteps)", ("demos", "model"),
-           _action_error, decode=_decode_action_error, short="act."),
+           model_scores.action_error, decode=model_scores.decode_action_error, short="act."),
     Scorer("motion", "model-free: how unusually much or little the demo's actions move (mean |action| and mean "
            "|change of action|, the larger robust |z| within its task)", ("demos",), _motion,
            decode=lambda ev, rows, device: modelfree.MotionStats(), short="mot."),
