@@ -23,8 +23,8 @@ import pandas as pd
 STILL = ("idle", "motion:hardly", "motion:less")
 FLAIL = ("motion:more", "motion:flails", "jerk:shakes")
 # a picture unlike its task's, over the demo or at its first or last frames (where a card or a moved camera shows)
-VIEW = ("view:changed", "colours:changed", "start:view", "end:view")
-WORLD = ("outcome",)
+VIEW = ("view:changed", "colours:changed", "start:view", "end:view", "moved:view")
+WORLD = ("outcome", "moved")  # the world left: as recorded, or as the camera saw it
 CAUSE = {
     "idle": STILL, "no-action": STILL, "gave-up": STILL + WORLD,
     "random": FLAIL, "jerky": FLAIL, "jittery": FLAIL,

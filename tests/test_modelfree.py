@@ -794,6 +794,31 @@ def test_colours_rank_the_demo_whose_object_is_missing_first_wherever_the_object
     assert ev.scores["view"][17] < 3
 
 
+def test_moved_ranks_the_demo_that_moved_the_other_object_first_and_names_its_colour():
+    """Every demo's cyan and magenta blocks lie somewhere else; every demo moves the cyan one but episode 17, which
+    moves the magenta one.  Where the blocks lie says nothing; which colour changed place does."""
+    rng = np.random.default_rng(6)
+    demos = []
+    for i in range(30):
+        frames = _scene(rng)
+        blocks = {colour: (rng.integers(30, 42), rng.integers(0, 20)) for colour in ((20, 220, 220), (220, 20, 220))}
+        moving = (220, 20, 220) if i == 17 else (20, 220, 220)
+        goal = rng.integers(2, 12), rng.integers(26, 42)
+        for colour, (r, c) in blocks.items():
+            frames[:, r:r + 5, c:c + 5] = colour
+            if colour == moving:  # carried to its goal half-way through
+                frames[T // 2:, r:r + 5, c:c + 5] = frames[0, 0, 0]
+                frames[T // 2:, goal[0]:goal[0] + 5, goal[1]:goal[1] + 5] = colour
+        demos.append(_demo(i, rng, frames=frames))
+    ev = _evidence(demos, ["moved"])
+    z = ev.scores["moved"]
+    assert int(np.argmax(z)) == 17 and z[17] > 2 * np.delete(z, 17).max(), np.sort(z)[-3:]
+    found = ev.findings["moved"][17]
+    assert found.kind == "other colours"
+    assert "more purple" in found.words and "less cyan" in found.words, found.words
+    assert {f.kind for i, f in enumerate(ev.findings["moved"]) if i != 17} <= {"like", "other colours"}
+
+
 def test_the_ray_engine_gives_the_local_engines_scores(tmp_path, monkeypatch, tiny_model):
     """``--engine ray`` on a local 2-CPU Ray instance: the same cue and decoding shards run by Ray Data actors,
     every score as the local engine's in one process."""

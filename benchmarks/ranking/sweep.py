@@ -29,6 +29,11 @@ from democheck.audit.evidence import comparison_groups
 RECORDING_FAULTS = ("jerk", "lag", "timing", "frozen_video", "frame_jump", "frozen_state")
 TIME_ALIGNED = ("start", "end", "path")
 
+def _set(config: RankingConfig, names: tuple[str, ...], **changes) -> RankingConfig:
+    """``config`` with ``changes`` made to the specs of the scores ``names``."""
+    return replace(config, specs=tuple(replace(s, **changes) if s.name in names else s for s in config.specs))
+
+
 # Each: a config -> a config.  The questions the ranking's choices answered (see README.md here).
 VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "shipped": lambda c: c,
@@ -52,6 +57,10 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
                                                       for s in c.specs)),
     "outcome-in-sum": lambda c: replace(c, specs=tuple(replace(s, beside=False) if s.name == "outcome" else s
                                                        for s in c.specs)),
+    "without-moved": lambda c: c.without("moved"),
+    "moved-beside": lambda c: _set(c, ("moved",), beside=True),
+    "moved-apart": lambda c: _set(c, ("moved",), alone=True),
+    "moved-with-outcome": lambda c: _set(c, ("moved", "outcome"), look="the world left", beside=True),
     "time-one-look": lambda c: replace(c, specs=tuple(replace(s, look="in time") if s.name in TIME_ALIGNED else s
                                                       for s in c.specs)),
 }

@@ -96,8 +96,11 @@ HUES = ((15, "red"), (45, "orange"), (70, "yellow"), (160, "green"), (200, "cyan
 
 def colour_name(bin_index: int) -> str:
     """A colour bin as a person names it, with its code: 'grey (#a0a0a0)', 'dark purple (#602060)'."""
-    rgb = colour_rgb(bin_index)
-    code = "#" + "".join(f"{c:02x}" for c in rgb)
+    return named_colour(colour_rgb(bin_index))
+
+
+def named_colour(rgb: tuple[int, int, int], code: bool = True) -> str:
+    """An RGB colour (0-255 each) as a person names it, with its code where ``code``."""
     hue, saturation, value = colorsys.rgb_to_hsv(*(c / 255 for c in rgb))
     if value < 0.2:
         name = "black"
@@ -106,7 +109,7 @@ def colour_name(bin_index: int) -> str:
     else:
         name = next(n for top, n in HUES if hue * 360 < top)
         name = ("dark " if value < 0.5 else "pale " if saturation < 0.45 else "") + name
-    return f"{name} ({code})"
+    return f"{name} (#{''.join(f'{c:02x}' for c in rgb)})" if code else name
 
 
 COLOURS = Vocabulary("colours", {

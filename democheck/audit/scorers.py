@@ -26,8 +26,8 @@ import numpy as np
 import pandas as pd
 
 from democheck import resources
-from democheck.audit import (colours, coupling, dynamics, frames, grasps, model_scores, modelfree, outcome, ranking,
-                             reasons, sensors, timeline, view)
+from democheck.audit import (colours, coupling, dynamics, frames, grasps, model_scores, modelfree, moved, outcome,
+                             ranking, reasons, sensors, timeline, view)
 from democheck.audit.action_error import ACTION_STEPS
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit.evidence import Evidence, Scorer, Scores
@@ -117,6 +117,10 @@ def _frozen_state(ev: Evidence) -> Scores:
 
 def _outcome(ev: Evidence) -> Scores:
     return outcome.outcome(ev.behaviour["outcome"], ev.groups)
+
+
+def _moved(ev: Evidence) -> Scores:
+    return moved.moved(ev.behaviour["moved"], ev.groups)
 
 
 def _start(ev: Evidence) -> Scores:
@@ -222,6 +226,10 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "environment state where recorded, else the state: last value and change from the first, RMS of robust "
            "z within its task)", ("demos",), _outcome,
            decode=lambda ev, rows, device: outcome.OutcomeStats(), short="outc."),
+    Scorer("moved", "model-free: how unlike its task's demos the colours are of what changed between the demo's "
+           f"first and last picture ({moved.MOVED_SIZE} px; each colour's root count, robust z within its task, "
+           "RMS): another object moved, or none -- the outcome seen by the camera", ("demos", "frames"), _moved,
+           decode=lambda ev, rows, device: moved.MovedStats(), short="moved", per_camera=True),
     Scorer("start", "model-free: how unlike its nearest task-mates' the demo's first picture is (share of it "
            f"over {timeline.UNLIKE:g} robust SD from theirs), robust z within its task: a demo that begins "
            "elsewhere, or where its task's demos end (done backwards)",

@@ -80,8 +80,8 @@ class Timeline(PerDemo):
             self.last_view.append(None)
             self.view_path.append(None)
             return
-        self.first_view.append(_picture(frames[:END_FRAMES]))
-        self.last_view.append(_picture(frames[-END_FRAMES:]))
+        self.first_view.append(picture(frames[:END_FRAMES]))
+        self.last_view.append(picture(frames[-END_FRAMES:]))
         size = (PATH_THUMB, PATH_THUMB)
         self.view_path.append(np.stack([
             cv2.resize(cv2.cvtColor(np.ascontiguousarray(frames[i]), cv2.COLOR_RGB2GRAY), size,
@@ -92,8 +92,9 @@ def _points(n: int) -> np.ndarray:
     return np.rint(np.linspace(0, n - 1, PATH_POINTS)).astype(int) if n else np.zeros(0, int)
 
 
-def _picture(frames: np.ndarray) -> np.ndarray:
-    size = (END_THUMB, END_THUMB)
+def picture(frames: np.ndarray, side: int = END_THUMB) -> np.ndarray:
+    """The median picture of ``frames`` [T, H, W, >=3] at ``side`` x ``side`` px, RGB uint8."""
+    size = (side, side)
     small = [cv2.resize(np.ascontiguousarray(f), size, interpolation=cv2.INTER_AREA)[..., :3] for f in frames]
     return np.median(np.stack(small), axis=0).astype(np.uint8)
 
