@@ -58,9 +58,12 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "outcome-in-sum": lambda c: replace(c, specs=tuple(replace(s, beside=False) if s.name == "outcome" else s
                                                        for s in c.specs)),
     "without-moved": lambda c: c.without("moved"),
-    "moved-beside": lambda c: _set(c, ("moved",), beside=True),
+    "moved-in-sum": lambda c: _set(c, ("moved",), beside=False),
     "moved-apart": lambda c: _set(c, ("moved",), alone=True),
     "moved-with-outcome": lambda c: _set(c, ("moved", "outcome"), look="the world left", beside=True),
+    "coupling-exponential": lambda c: _set(c, ("coupling",), tail="exponential"),
+    "path-beside": lambda c: _set(c, ("path",), beside=True),
+    "time-beside": lambda c: _set(c, TIME_ALIGNED, beside=True),
     "time-one-look": lambda c: replace(c, specs=tuple(replace(s, look="in time") if s.name in TIME_ALIGNED else s
                                                       for s in c.specs)),
 }
