@@ -28,7 +28,7 @@ WORLD = ("outcome", "moved")  # the world left: as recorded, or as the camera sa
 CAUSE = {
     "idle": STILL, "no-action": STILL, "gave-up": STILL + WORLD,
     "random": FLAIL, "jerky": FLAIL, "jittery": FLAIL,
-    "occluded": VIEW, "hidden": VIEW, "no-objects": VIEW,
+    "occluded": VIEW, "hidden": VIEW, "no-objects": VIEW + ("moved:not moved",),  # its objects not there
     "wrong-object": WORLD, "both-objects": WORLD, "wrong-task": WORLD,
     "frozen-camera": ("frozen_video",), "frozen-state": ("frozen_state",), "dead-dim": ("frozen_state",),
     "scaled": FLAIL + ("lag:scale",), "sensor-nan": ("broken",), "lagged": ("lag:delay",),

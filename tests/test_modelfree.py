@@ -814,9 +814,9 @@ def test_moved_ranks_the_demo_that_moved_the_other_object_first_and_names_its_co
     z = ev.scores["moved"]
     assert int(np.argmax(z)) == 17 and z[17] > 2 * np.delete(z, 17).max(), np.sort(z)[-3:]
     found = ev.findings["moved"][17]
-    assert found.kind == "other colours"
+    assert found.kind == "another object"
     assert "more purple" in found.words and "less cyan" in found.words, found.words
-    assert {f.kind for i, f in enumerate(ev.findings["moved"]) if i != 17} <= {"like", "other colours"}
+    assert {f.kind for i, f in enumerate(ev.findings["moved"]) if i != 17} <= {"like", "another object", "not moved"}
 
 
 def test_the_ray_engine_gives_the_local_engines_scores(tmp_path, monkeypatch, tiny_model):

@@ -216,9 +216,11 @@ def test_every_template_of_every_check_renders_its_words():
         "its path runs opposite to its task's: its state, played backwards, is nearer its task's demos than forwards")
     assert words["grasps:again"] == ("the gripper opens or closes 3 times (at frames 57, 71 and 85) where its task's "
                                     "demos do so once: a grasp tried again, or an object dropped and picked up?")
-    assert words["moved:other colours"] == ("what changed between its first and last picture is unlike its task's "
-                                            "demos: more red, less pink and dark grey than theirs (another object "
-                                            "moved, or none?)")
+    assert words["moved:another object"] == ("what changed between its first and last picture is unlike its task's "
+                                             "demos: more red, less pink and dark grey than theirs (another object "
+                                             "moved?)")
+    assert words["moved:not moved"] == ("less pink and dark grey changed between its first and last picture than in "
+                                        "its task's demos (what they move left where it was, or not there?)")
     assert words["moved:view"] == ("more of its picture changed between its first and last frames than in its task's "
                                    "demos: 25% against their 50% (the camera covered or moved?)")
     assert all(isinstance(w, str) for w in words.values())

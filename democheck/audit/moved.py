@@ -87,14 +87,18 @@ def _listed(names: list[str]) -> str:
     return " and ".join([", ".join(names[:-1]), names[-1]] if len(names) > 1 else names)
 
 
-def _moved_words(gained: list[str], lost: list[str], **_) -> str:
-    said = [f"more {_listed(gained)}" if gained else "", f"less {_listed(lost)}" if lost else ""]
+def _another_words(gained: list[str], lost: list[str], **_) -> str:
+    said = [f"more {_listed(gained)}", f"less {_listed(lost)}" if lost else ""]
     return ("what changed between its first and last picture is unlike its task's demos: "
-            + ", ".join(s for s in said if s) + " than theirs (another object moved, or none?)")
+            + ", ".join(s for s in said if s) + " than theirs (another object moved?)")
 
 
 MOVED = Vocabulary("moved", {
-    "other colours": _moved_words,
+    # colours changed that its task's demos do not change (and maybe less of theirs)
+    "another object": _another_words,
+    # only less of the colours its task's demos change
+    "not moved": lambda lost, **_: (f"less {_listed(lost)} changed between its first and last picture than in its "
+                                    "task's demos (what they move left where it was, or not there?)"),
     "view": lambda share, median, **_: (
         f"more of its picture changed between its first and last frames than in its task's demos: {share:.0%} "
         f"against their {median:.0%} (the camera covered or moved?)"),
@@ -133,5 +137,6 @@ def moved(stats: MovedStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Findin
             continue
         gained = list(dict.fromkeys(bin_colour(int(b)) for b in off if root[i, b] > median[i, b]))
         lost = list(dict.fromkeys(bin_colour(int(b)) for b in off if root[i, b] <= median[i, b]))
-        found.append(MOVED("other colours", gained=gained, lost=lost, z=float(z[i, off[0]])))
+        kind = "another object" if gained else "not moved"
+        found.append(MOVED(kind, gained=gained, lost=lost, z=float(z[i, off[0]])))
     return calibrated(rms, tasks, min_scale=MOVED_MIN_SCALE), found
