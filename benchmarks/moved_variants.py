@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from democheck.audit import moved
-from democheck.audit.metrics import detection
+from democheck.audit.metrics import separation
 from democheck.audit.scores import calibrated
 from democheck.audit.view import VIEW_MIN_DEMOS, task_z
 from democheck.data import open_dataset
@@ -76,14 +76,9 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     for root in args.data:
         pictures, labels, tasks = labelled_pictures(root)
-        kinds = sorted(set(labels) - {"clean"})
         for name, change in VARIANTS.items():
-            s = scores(pictures, tasks, **{**DEFAULT, **change})
-            top = s[labels == "clean"].max()
-            pair = {k: (labels == k) | (labels == "clean") for k in kinds}
-            cells = [f"{k} {detection(labels[pair[k]] == k, s[pair[k]])['auroc']:.3f} "
-                     f"({np.mean(s[labels == k] > top):.2f} beyond)" for k in kinds]
-            print(f"{root.name:28s} {name:22s} " + ", ".join(cells), flush=True)
+            print(f"{root.name:28s} {name:22s} " + separation(labels, scores(pictures, tasks, **{**DEFAULT, **change})),
+                  flush=True)
 
 
 if __name__ == "__main__":

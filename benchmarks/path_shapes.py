@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from democheck.audit import timeline
-from democheck.audit.metrics import detection
+from democheck.audit.metrics import separation
 from democheck.data import open_dataset
 
 
@@ -68,15 +68,12 @@ def main(argv: list[str] | None = None) -> None:
         unit = np.fmax(1.4826 * np.median(np.abs(every - np.median(every, 0)), 0), floor)
         steps = np.linspace(0, 1, state.shape[1])[None, :, None]
         scores = {name: within_task(v, tasks) for name, v in shape_features(state / unit).items()}
+        line = state[:, :1] + steps * (state[:, -1:] - state[:, :1])
         for name, x in (("path as shipped", state), ("path less its first point", state - state[:, :1]),
-                        ("path less the straight line", state - (state[:, :1] + steps * (state[:, -1:] - state[:, :1])))):
+                        ("path less the straight line", state - line)):
             scores[name] = timeline._state_part(x, tasks, np.tile(floor, state.shape[1]))[1]
-        clean = labels == "clean"
         for name, s in scores.items():
-            cells = [f"{k} {detection(labels[clean | (labels == k)] == k, s[clean | (labels == k)])['auroc']:.3f} "
-                     f"({np.mean(s[labels == k] > np.nanmax(s[clean])):.2f} beyond)"
-                     for k in sorted(set(labels) - {"clean"})]
-            print(f"{root.name:20s} {name:28s} " + ", ".join(cells), flush=True)
+            print(f"{root.name:20s} {name:28s} " + separation(labels, s), flush=True)
 
 
 if __name__ == "__main__":

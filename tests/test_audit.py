@@ -6,7 +6,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from democheck.audit.metrics import detection, precision_at_k
+from democheck.audit.metrics import detection, precision_at_k, separation
 from democheck.audit.run import score_posteriors
 from democheck.audit.ocsvm import fit_ocsvm, ocsvm_margin
 from democheck.audit.scores import consistency_parts, task_neighbours
@@ -130,6 +130,10 @@ def test_metrics():
     assert precision_at_k(bad, np.array([5, 1, 4, 0, 0])) == 0.5
     d = detection(bad, np.array([5, 4, 1, 0, 0]))
     assert d["auroc"] == 1.0 and d["p_at_k"] == 1.0 and d["n"] == 2
+    # A kind's AUROC against the clean demos, and how many of it lie above every clean one (what a flag needs).
+    labels = np.array(["clean"] * 4 + ["detour"] * 2 + ["drop"] * 2)
+    assert separation(labels, np.array([0, 1, 2, 3, 4, 2.5, 5, 6])) == ("detour 0.875 (0.50 beyond), "
+                                                                       "drop 1.000 (1.00 beyond)")
 
 
 def _read_rrd(path):

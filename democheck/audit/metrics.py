@@ -42,3 +42,13 @@ def by_label(table, column: str = "suspicion") -> dict[str, dict[str, float]]:
     if bad.any() and len(set(labels) - {"clean"}) > 1:
         out["all"] = detection(bad, table[column].to_numpy())
     return out
+
+
+def separation(labels: np.ndarray, scores: np.ndarray) -> str:
+    """Per non-clean label, its AUROC against the clean demos and the share of its demos above every clean one
+    (which a flag needs): 'detour 0.959 (0.38 beyond), ...'."""
+    labels, scores = np.asarray(labels), np.asarray(scores, float)
+    clean = labels == "clean"
+    top = np.nanmax(scores[clean])
+    return ", ".join(f"{k} {detection(labels[clean | (labels == k)] == k, scores[clean | (labels == k)])['auroc']:.3f} "
+                     f"({np.mean(scores[labels == k] > top):.2f} beyond)" for k in sorted(set(labels) - {"clean"}))
