@@ -294,3 +294,19 @@ def test_a_body_recorded_by_roll_pitch_and_yaw_is_compared_as_its_quaternion_wou
     assert feature.kind == "rotation" and feature.columns == [0, 1, 2]
     np.testing.assert_allclose(as_angles, as_quaternion, rtol=1e-6)
     assert np.argmax(as_angles) == 0 and found[0].params["name"] == "the orientation of box"
+
+
+def test_an_unnamed_quaternion_is_one_rotation_where_some_tasks_leave_its_slot_at_zero():
+    """Meta-World's record names no dimension and fills an object's orientation only in the tasks that have a free
+    object (a drawer's task leaves the four at zero): the four are still one rotation, not four values."""
+    from scipy.spatial.transform import Rotation
+
+    from democheck.audit.world_record import features_of
+
+    rng = np.random.default_rng(2)
+    turned = Rotation.from_euler("z", rng.uniform(-np.pi, np.pi, (20, 1))).as_quat()
+    first = np.concatenate([np.c_[rng.normal(0, 1, (20, 2)), turned], np.zeros((10, 6))])
+    last = first + np.c_[rng.normal(0, 0.1, (30, 2)), np.zeros((30, 4))]
+    assert [(f.kind, f.columns) for f in features_of(None, first, last)] == [
+        ("value", [0]), ("value", [1]), ("rotation", [2, 3, 4, 5])]
+    assert [f.kind for f in features_of(None, first[20:], last[20:])] == ["value"] * 6  # never filled: no rotation

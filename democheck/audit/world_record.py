@@ -1,9 +1,10 @@
 """What the outcome check compares of a world record: its dimensions grouped into features, by their names and
-values -- a quaternion (four dimensions named ``*w/x/y/z`` or ``*quat*``, or of unit norm throughout), a body's
-roll, pitch and yaw, another angle, a plain value, and where two things named on one axis are against each other --
-and each feature's values as compared (``represent``): a rotation as ``q q^T`` (the same for ``q`` and ``-q``; roll,
-pitch and yaw through their quaternion, so the record's form does not change the score), an angle as its cosine and
-sine (+pi and -pi are one angle).  ``democheck.audit.outcome`` measures them against each task's demos."""
+values -- a quaternion (four dimensions named ``*w/x/y/z`` or ``*quat*``, or, unnamed, of unit norm wherever
+recorded), a body's roll, pitch and yaw, another angle, a plain value, and where two things named on one axis are
+against each other -- and each feature's values as compared (``represent``): a rotation as ``q q^T`` (the same for
+``q`` and ``-q``; roll, pitch and yaw through their quaternion, so the record's form does not change the score), an
+angle as its cosine and sine (+pi and -pi are one angle).  ``democheck.audit.outcome`` measures them against each
+task's demos."""
 
 from __future__ import annotations
 
@@ -91,10 +92,13 @@ def _is_quaternion(names: list[str], first: np.ndarray, last: np.ndarray) -> boo
         letters = "".join(m.group(2).lower() for m in matches)
         if sorted(letters) in (sorted("wxyz"), sorted("0123")) and re.search(r"q|quat|orient|rot", names[0], re.I):
             return True
+    # Unnamed: of unit norm at both ends of every demo that fills it (a task whose record has no such body leaves
+    # the slot at zero, as Meta-World's second object and its drawers' and windows' orientation), and turning.
     with np.errstate(all="ignore"):
         norms = np.concatenate([np.linalg.norm(first, axis=1), np.linalg.norm(last, axis=1)])
-    return bool(len(norms) and np.isfinite(norms).all() and np.abs(norms - 1).max() < 1e-3
-                and np.ptp(np.concatenate([first, last]), 0).max() > 1e-3)
+    filled = norms != 0
+    return bool(filled.any() and np.isfinite(norms).all() and np.abs(norms[filled] - 1).max() < 1e-3
+                and np.ptp(np.concatenate([first, last])[filled], 0).max() > 1e-3)
 
 
 def represent(feature: Feature, x: np.ndarray) -> np.ndarray:
