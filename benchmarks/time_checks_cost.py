@@ -1,6 +1,6 @@
-"""What the checks of how a demo goes in time (``start``, ``end``, ``path``) and of its gripper (``grasps``) cost
-beside decoding: every demo of DATA decoded as the audit decodes it, fed to their consumers, and the checks scored,
-each timed on one thread.  The grasps read the action traces the audit keeps for its other action checks anyway,
+"""What the checks of how a demo goes in time (``start``, ``end``, ``path``), of what it moved (``moved``) and of its
+gripper (``grasps``) cost beside decoding: every demo of DATA decoded as the audit decodes it, fed to their
+consumers, and the checks scored, each timed on one thread.  The grasps read the action traces the audit keeps for its other action checks anyway,
 so only their scoring is theirs.
 
     python benchmarks/time_checks_cost.py DATA [--camera KEY]
@@ -12,7 +12,7 @@ import argparse
 import time
 from pathlib import Path
 
-from democheck.audit import grasps, modelfree, timeline
+from democheck.audit import grasps, modelfree, moved, timeline
 from democheck.audit.evidence import comparison_groups
 from democheck.data import open_dataset
 
@@ -27,6 +27,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     ds = open_dataset(args.data, camera=args.camera)
     checks = {"time": (timeline.Timeline(), (timeline.start, timeline.end, timeline.path)),
+              "moved": (moved.MovedStats(), (moved.moved,)),
               "grasps": (modelfree.ActionTraces(), (grasps.grasps,))}
     feeding = dict.fromkeys(checks, 0.0)
     decoding, frames = 0.0, 0
