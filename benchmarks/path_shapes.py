@@ -60,8 +60,7 @@ def within_task(v: np.ndarray, tasks: np.ndarray) -> np.ndarray:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data", nargs="+", type=Path)
-    args = ap.parse_args(argv)
-    for root in args.data:
+    for root in ap.parse_args(argv).data:
         state, labels, tasks = paths(root)
         floor = timeline._state_floor(list(state))
         every = state.reshape(-1, state.shape[2])
