@@ -36,7 +36,7 @@ BRIGHT = 128  # of 255: a brighter pixel is light, a darker one dark
 BINS = HUE_BINS * 4
 MOVED_FLOOR = 1.0  # root-count units: a robust SD stands for at least one pixel's change of a colour
 MOVED_MIN_SCALE = 0.1  # the score's least robust SD within its task, in robust SD of a colour
-SAID = 3.0  # robust SD: a colour this far off its task's is named in the words
+SAID = 1.0  # robust SD: of the colours at least this far off their task's, the three furthest are named
 # A share of the picture: a demo that changed this much more of it than its task's median demo had its view covered
 # or moved, since an object a task moves is a few percent of the picture.
 VIEW_CHANGE = 0.05
@@ -108,7 +108,7 @@ MOVED = Vocabulary("moved", {
 
 def moved(stats: MovedStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """Robust z within its task of how unlike its task's demos the colours a demo changed are (see the module
-    docstring); the words name the colours beyond ``SAID`` robust SD."""
+    docstring); the words name the (up to three) colours furthest off, of those beyond ``SAID`` robust SD."""
     counts, tasks = stats.array(), np.asarray(tasks)
     if not len(counts):
         return np.zeros(0), []
