@@ -22,7 +22,6 @@ import pandas as pd
 from democheck.audit import moved
 from democheck.audit.metrics import separation
 from democheck.audit.scores import calibrated
-from democheck.audit.view import VIEW_MIN_DEMOS, task_z
 from democheck.data import open_dataset
 
 DEFAULT = dict(side=64, change=moved.MOVED_CHANGE, hues=moved.HUE_BINS, apart=False, combine="rms shown")
@@ -47,12 +46,8 @@ def labelled_pictures(root: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def counts(first: np.ndarray, last: np.ndarray, change: int, hues: int, apart: bool) -> np.ndarray:
-    changed = (np.abs(first.astype(np.int16) - last.astype(np.int16)) > change).any(axis=-1)
-    per = [np.zeros(hues * 4), np.zeros(hues * 4)] if not changed.any() else []
-    for picture in (first, last) if changed.any() else ():
-        hsv = cv2.cvtColor(np.ascontiguousarray(picture[changed][None]), cv2.COLOR_RGB2HSV_FULL)[0].astype(np.int64)
-        b = hsv[:, 0] * hues // 256 * 4 + (hsv[:, 1] > moved.SATURATED) * 2 + (hsv[:, 2] > moved.BRIGHT)
-        per.append(np.bincount(b, minlength=hues * 4).astype(float))
+    pictures = moved.changed_pixels(first, last, change)
+    per = [np.bincount(moved.colour_bins(p, hues), minlength=hues * 4).astype(float) for p in pictures]
     return np.concatenate(per) if apart else per[0] + per[1]
 
 
@@ -60,12 +55,12 @@ def scores(pictures: np.ndarray, tasks: np.ndarray, side: int, change: int, hues
            ) -> np.ndarray:
     small = [[cv2.resize(p, (side, side), interpolation=cv2.INTER_AREA) for p in pair] for pair in pictures]
     root = np.sqrt(np.stack([counts(f, last, change, hues, apart) for f, last in small]))
-    z, median = task_z(root, tasks, moved.MOVED_FLOOR * side / moved.MOVED_SIZE, VIEW_MIN_DEMOS, small="all")
+    shown, _ = moved.colour_z(root, tasks, moved.MOVED_FLOOR * side / moved.MOVED_SIZE)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        shown = np.where((median > 0) | (root > 0), z, np.nan)
         top = -np.sort(-np.nan_to_num(shown), axis=1)
-        value = {"rms shown": np.sqrt(np.nanmean(shown ** 2, axis=1)), "rms all": np.sqrt(np.mean(z ** 2, axis=1)),
+        value = {"rms shown": np.sqrt(np.nanmean(shown ** 2, axis=1)),
+                 "rms all": np.sqrt(np.mean(np.nan_to_num(shown) ** 2, axis=1)),
                  "largest": top[:, 0], "top 4": np.sqrt(np.mean(top[:, :4] ** 2, axis=1))}[combine]
     return calibrated(np.nan_to_num(value), tasks, min_scale=moved.MOVED_MIN_SCALE)
 

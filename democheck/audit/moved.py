@@ -64,21 +64,41 @@ class MovedStats(PerDemo):
         return np.stack(self.counts) if self.counts else np.zeros((0, BINS))
 
 
+def changed_pixels(first: np.ndarray, last: np.ndarray, change: int = MOVED_CHANGE
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """[n, 3] each of the pixels of ``first`` and of ``last`` (uint8 RGB [h, w, 3] each) that differ between them
+    by more than ``change`` levels in some channel."""
+    changed = (np.abs(first.astype(np.int16) - last.astype(np.int16)) > change).any(axis=-1)
+    return first[changed], last[changed]
+
+
+def colour_bins(pixels: np.ndarray, hues: int = HUE_BINS) -> np.ndarray:
+    """[n] the colour bin of each of ``pixels`` (uint8 RGB [n, 3]): ``hue * 4 + saturated * 2 + bright``."""
+    if not len(pixels):
+        return np.zeros(0, np.int64)
+    hsv = cv2.cvtColor(np.ascontiguousarray(pixels[None], np.uint8), cv2.COLOR_RGB2HSV_FULL)[0].astype(np.int64)
+    return hsv[:, 0] * hues // 256 * 4 + (hsv[:, 1] > SATURATED) * 2 + (hsv[:, 2] > BRIGHT)
+
+
+def _saturated(b: int) -> bool:
+    return bool((b // 2) % 2)
+
+
 def changed_colours(first: np.ndarray, last: np.ndarray) -> np.ndarray:
     """[BINS] counts of the changed pixels' colours, in ``first`` and in ``last`` (uint8 RGB [h, w, 3] each)."""
-    changed = (np.abs(first.astype(np.int16) - last.astype(np.int16)) > MOVED_CHANGE).any(axis=-1)
-    pixels = np.concatenate([first[changed], last[changed]])[None]
-    if not pixels.shape[1]:
-        return np.zeros(BINS)
-    hsv = cv2.cvtColor(np.ascontiguousarray(pixels, np.uint8), cv2.COLOR_RGB2HSV_FULL)[0].astype(np.int64)
-    hue = hsv[:, 0] * HUE_BINS // 256
-    return np.bincount(hue * 4 + (hsv[:, 1] > SATURATED) * 2 + (hsv[:, 2] > BRIGHT), minlength=BINS).astype(float)
+    return np.bincount(colour_bins(np.concatenate(changed_pixels(first, last))), minlength=BINS).astype(float)
+
+
+def colour_z(root: np.ndarray, tasks: np.ndarray, floor: float = MOVED_FLOOR) -> tuple[np.ndarray, np.ndarray]:
+    """Per demo and colour ([N, bins] each): the robust z within its task of its root count (a robust SD at least
+    ``floor``), NaN where neither the task nor the demo changed that colour; and the task's median root count."""
+    z, median = task_z(root, tasks, floor, VIEW_MIN_DEMOS, small="all")
+    return np.where((median > 0) | (root > 0), z, np.nan), median
 
 
 def bin_colour(b: int) -> str:
     """A colour bin as a person names it: 'red', 'dark blue', 'light grey'."""
-    hue, saturated, bright = b // 4, (b // 2) % 2, b % 2
-    rgb = colorsys.hsv_to_rgb((hue + 0.5) / HUE_BINS, 0.8 if saturated else 0.1, 0.85 if bright else 0.35)
+    rgb = colorsys.hsv_to_rgb((b // 4 + 0.5) / HUE_BINS, 0.8 if _saturated(b) else 0.1, 0.85 if b % 2 else 0.35)
     return named_colour(tuple(int(255 * c) for c in rgb), code=False)
 
 
@@ -113,11 +133,10 @@ def moved(stats: MovedStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Findin
     if not len(counts):
         return np.zeros(0), []
     root = np.sqrt(counts)
-    z, median = task_z(root, tasks, MOVED_FLOOR, VIEW_MIN_DEMOS, small="all")
-    shown = (median > 0) | (root > 0)
+    z, median = colour_z(root, tasks)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # no colour shown: the mean of nothing
-        rms = np.sqrt(np.nanmean(np.where(shown, z, np.nan) ** 2, axis=1))
+        rms = np.sqrt(np.nanmean(z ** 2, axis=1))
     # Nothing changed where its task's demos change nothing either: as they are.  No frames: no score.
     rms = np.where(np.isfinite(root).all(axis=1), np.nan_to_num(rms), np.nan)
     share = counts.sum(axis=1) / (2 * MOVED_SIZE ** 2)
@@ -140,7 +159,7 @@ def moved(stats: MovedStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Findin
         lost = list(dict.fromkeys(bin_colour(int(b)) for b in off if root[i, b] <= median[i, b]))
         # A grey that changed more is the arm's, the table's or a shadow's as often as an object's: where only greys
         # were gained and some of the task's colours lost, what the task moves did not move.
-        hue_gained = any((b // 2) % 2 for b in more)
+        hue_gained = any(_saturated(b) for b in more)
         kind = "another object" if hue_gained or not lost else "not moved"
         found.append(MOVED(kind, gained=gained, lost=lost, z=float(z[i, off[0]])))
     return calibrated(rms, tasks, min_scale=MOVED_MIN_SCALE), found
