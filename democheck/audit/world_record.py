@@ -32,8 +32,9 @@ class Feature:
 def features_of(names: list[str] | None, first: np.ndarray, last: np.ndarray, source: str = "state"
                 ) -> list[Feature]:
     """The record's dimensions grouped into what is compared: quaternions (by their names or, unnamed, by unit
-    norm at both ends of every demo), angles (by their names), plain values, and where two things named on one
-    axis are against each other (``block.x - goal.x``)."""
+    norm at both ends of every demo that records them, ``_is_quaternion``), a body's roll, pitch and yaw, angles
+    (by their names), plain values, and where two things named on one axis are against each other
+    (``block.x - goal.x``)."""
     d = first.shape[1]
     names = list(names) if names and len(names) == d else [f"{source}[{j}]" for j in range(d)]
     euler = _euler_triples(names)

@@ -17,8 +17,9 @@ from rich.table import Table
 
 from democheck.cli.common import BY_ID, REVISION_HELP, Bar, app, console, err_console, local_dataset, short, user_errors
 from democheck.errors import DemocheckError
+from democheck.resources import DEFAULT_MODEL
 
-MODEL_HELP = "Model folder, or the name of a shipped model (default: petnet-push-v1, shipped with democheck)."
+MODEL_HELP = f"Model folder, or the name of a shipped model (default: {DEFAULT_MODEL}, shipped with democheck)."
 
 
 @app.command()

@@ -13,6 +13,7 @@ from rich.table import Table
 from democheck.cli.audit import MODEL_HELP
 from democheck.cli.common import Bar, app, console, user_errors
 from democheck.errors import DemocheckError
+from democheck.resources import EVAL_MODEL
 
 
 @app.command()
@@ -51,7 +52,7 @@ def bench(
 
 @app.command(name="eval")
 def eval_(
-    model: Annotated[Optional[Path], typer.Argument(help="Model folder, or the name of a shipped model (default: petnet-push-v2, shipped with democheck: 70% one-shot success on held-out objects).")] = None,
+    model: Annotated[Optional[Path], typer.Argument(help=f"Model folder, or the name of a shipped model (default: {EVAL_MODEL}, shipped with democheck: 70% one-shot success on held-out objects).")] = None,
     data: Annotated[Path, typer.Option(help="Suite to draw cue demos and tasks from (made by democheck synth; e.g. democheck synth push-v2-test --out data/push-v2-test).")] = Path("data/push-v2-test"),
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for eval.json, eval.md, trials.parquet, eval.rrd.")] = Path("runs/eval"),
     split: Annotated[str, typer.Option(help="Which tasks: test (meta-test, held-out objects), val or train.")] = "test",
