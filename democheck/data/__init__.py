@@ -37,9 +37,10 @@ def open_dataset(path: str | Path, camera: str | None = None, state_key: str | N
 
 def open_lerobot(root: Path, camera: str | None = None, state_key: str | None = None,
                  action_key: str | None = None):
-    """The reader of a LeRobot folder's codebase version: v3.x (``lerobot.LeRobotV3``) or v2.x
+    """The reader of a LeRobot folder's codebase version: v3.x (``lerobot_v3.LeRobotV3``) or v2.x
     (``lerobot_v21.LeRobotV21``)."""
-    from democheck.data.lerobot import LeRobotV3, read_json
+    from democheck.data.lerobot import read_json
+    from democheck.data.lerobot_v3 import LeRobotV3
 
     info = read_json(root / "meta" / "info.json")
     if not isinstance(info, dict):

@@ -1,5 +1,5 @@
-"""LeRobotDataset layouts: read v3.0 and v2.1 (``lerobot_write`` writes v3.0).  Over 400 lines: the v3.0 reader's
-metadata, file and video spans, which the v2.1 reader shares.
+"""LeRobotDataset layouts: their names and the base reader that v3.0 (``lerobot_v3``) and v2.1 (``lerobot_v21``)
+share (``lerobot_write`` writes v3.0).
 
 v3.0 layout written by democheck (LeRobot and the tools built for it open it)::
 
@@ -14,8 +14,9 @@ v3.0 layout written by democheck (LeRobot and the tools built for it open it)::
 
 Several episodes share one data file and one video file; the episodes table
 says where each one lies.  The layout's names (paths, feature keys) are here,
-for the reader and the writer alike.  The v2.1 reader (``lerobot_v21``) is the
-same base class with its metadata read from JSON lines and one file per episode.
+for the readers and the writer alike.  Each reader is the base class with its
+layout's metadata: v3.0's episodes table (``lerobot_v3``), v2.1's JSON lines and
+one file per episode (``lerobot_v21``).
 """
 
 from __future__ import annotations
@@ -30,9 +31,8 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-import democheck.data.video as video
-from democheck.data.demo import (NO_CAMERA, NO_CAMERA_KEY, OTHER_CAMERA, Damage, Demo, check_arrays, check_episodes,
-                                 no_frames, readable_frames, repair_non_finite)
+from democheck.data.demo import (NO_CAMERA, NO_CAMERA_KEY, OTHER_CAMERA, Damage, Demo, check_arrays, readable_frames,
+                                 repair_non_finite)
 from democheck.errors import DatasetError
 
 CODEBASE_VERSION = "v3.0"
@@ -76,7 +76,7 @@ def _read_parquet(path: Path, columns: list[str] | None = None, schema_only: boo
         raise DatasetError(f"{path}: unreadable parquet ({str(exc).splitlines()[0]})") from None
 
 
-def _frame(path: Path) -> pd.DataFrame:
+def metadata_frame(path: Path) -> pd.DataFrame:
     """A metadata parquet file as a DataFrame, text decoded now (not on first access), per-episode stats left out.
 
     The ``stats/*`` columns are skipped: democheck never reads them, and as Python objects they cost ~4 KB a
@@ -253,7 +253,7 @@ class LeRobotBase:
     def _attach_sidecar(self, episodes: pd.DataFrame) -> pd.DataFrame:
         path = self.root / SIDECAR_PATH
         if path.exists():
-            side = _frame(path)
+            side = metadata_frame(path)
             if "episode_index" not in side:
                 raise DatasetError(f"{path}: no column 'episode_index'")
             side = side.set_index("episode_index")
@@ -388,94 +388,3 @@ def _sim_record(text: Any, root: Path, episode_index: int) -> dict[str, Any] | N
     if not isinstance(sim, dict):
         raise DatasetError(f"{root / SIDECAR_PATH}: episode {episode_index}: malformed sim record")
     return sim
-
-
-class LeRobotV3(LeRobotBase):
-    """Reader for LeRobotDataset v3.0 (several episodes per data and video file)."""
-
-    format = "lerobot-v3.0"
-
-    def __init__(self, root: Path, info: dict[str, Any], **keys: str | None):
-        super().__init__(root, info, **keys)
-        ep_dir = root / "meta" / "episodes"
-        files = sorted(ep_dir.glob("chunk-*/file-*.parquet"))
-        if not files:
-            raise DatasetError(f"{ep_dir}: no episode metadata files")
-        eps = pd.concat([_frame(f) for f in files], ignore_index=True)
-        need = ["episode_index", "tasks", "length", "data/chunk_index", "data/file_index"]
-        missing = [c for c in need if c not in eps.columns]
-        if missing:
-            raise DatasetError(f"{files[0]}: episode table lacks {', '.join(missing)}")
-        eps["task"] = [t[0] if len(t) else "" for t in eps["tasks"]]
-        self._eps = eps.set_index("episode_index", drop=False)
-        self.episodes = self._attach_sidecar(eps.set_index("episode_index")[["task", "length"]])
-        check_episodes(files[0], self.episodes)
-
-    def _data_path(self, episode_index: int) -> Path:
-        r = self._eps.loc[episode_index]
-        rel = path_template(self.info, "data_path", DATA_PATH, self.root, chunk_index=int(r["data/chunk_index"]),
-                        file_index=int(r["data/file_index"]))
-        return inside_root(self.root, rel)
-
-    def _video_span(self, episode_index: int) -> tuple[Path, int, int]:
-        r = self._eps.loc[episode_index]
-        pre = f"videos/{self.camera}/"
-        try:
-            rel = path_template(self.info, "video_path", VIDEO_PATH, self.root, video_key=self.camera,
-                            chunk_index=int(r[pre + "chunk_index"]), file_index=int(r[pre + "file_index"]))
-            start = int(round(float(r[pre + "from_timestamp"]) * self.fps))
-        except KeyError as exc:
-            raise DatasetError(f"{self.root / 'meta/episodes'}: no {exc} for camera {self.camera!r}") from None
-        return inside_root(self.root, rel), start, start + int(r["length"])
-
-    def video_file(self, episode_index: int) -> Path | None:
-        """The video file that holds the episode's camera frames (None where the camera is not a video)."""
-        return self._video_span(episode_index)[0] if self.camera is not None and self.camera_dtype == "video" else None
-
-    def load(self, episode_index: int, arena: video.FrameArena | None = None) -> Demo:
-        path = self._data_path(episode_index)
-        entry, s, e = self._rows(path, episode_index)
-        if self.camera is None:
-            frames, unreadable = no_frames(e - s), []
-        elif self.camera_dtype == "video":
-            vpath, start, stop = self._video_span(episode_index)
-            frames, unreadable = self._readable(lambda: video.read_range(vpath, start, stop, self.fps, arena), e - s,
-                                                vpath)
-        else:
-            frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s, path)
-        return self._make_demo(episode_index, frames, entry, s, e, unreadable)
-
-    def cues(self, episode_indices: list[int], at: float = 1.0) -> np.ndarray:
-        """First and last frames of many episodes (``at``: the second frame that share of the way from the first),
-        decoding each video file in one pass."""
-        if self.camera_dtype != "video":  # images, or no camera
-            if at < 1.0:
-                frames = (self.load(e).frames for e in episode_indices)
-                return np.stack([f[[0, int(round(at * (len(f) - 1)))]] for f in frames])
-            return np.stack([self.cue_frames(e) for e in episode_indices])
-        h, w, c = self.image_shape
-        out = np.empty((len(episode_indices), 2, h, w, c), np.uint8)
-        by_file: dict[Path, list[tuple[int, int, int]]] = {}
-        for i, e in enumerate(episode_indices):
-            vpath, start, stop = self._video_span(e)
-            by_file.setdefault(vpath, []).append((i, start, start + int(round(at * (stop - 1 - start)))))
-        for vpath, items in by_file.items():
-            wanted = sorted({f for _, a, b in items for f in (a, b)})
-            try:
-                frames = dict(zip(wanted, video.read_frames(vpath, wanted, self.fps)))
-            except DatasetError:  # a file that cannot be read whole: each episode's own, black where it fails
-                for i, a, b in items:
-                    out[i] = self._readable(lambda: video.read_frames(vpath, [a, b], self.fps), 2, vpath)[0]
-                continue
-            for i, a, b in items:
-                out[i, 0], out[i, 1] = frames[a], frames[b]
-        return out
-
-    def cue_frames(self, episode_index: int) -> np.ndarray:
-        if self.camera is None:
-            return no_frames(2)
-        if self.camera_dtype == "video":
-            vpath, start, stop = self._video_span(episode_index)
-            return self._readable(lambda: video.read_frames(vpath, [start, stop - 1], self.fps), 2, vpath)[0]
-        return self._image_cues(episode_index)
-
