@@ -31,8 +31,9 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from democheck.data.demo import (NO_CAMERA, NO_CAMERA_KEY, OTHER_CAMERA, Damage, Demo, check_arrays, readable_frames,
-                                 repair_non_finite)
+import democheck.data.video as video
+from democheck.data.demo import (NO_CAMERA, NO_CAMERA_KEY, OTHER_CAMERA, Damage, Demo, check_arrays, no_frames,
+                                 readable_frames, repair_non_finite)
 from democheck.errors import DatasetError
 
 CODEBASE_VERSION = "v3.0"
@@ -319,6 +320,38 @@ class LeRobotBase:
 
     def _data_path(self, episode_index: int) -> Path:
         raise NotImplementedError
+
+    def _video_span(self, episode_index: int, frames: int) -> tuple[Path, int, int]:
+        """The video file of the episode's camera, and the frames [start, stop) of it that are the episode's;
+        ``frames``: how many it holds, for a layout whose episodes table records no span."""
+        raise NotImplementedError
+
+    def video_file(self, episode_index: int) -> Path | None:
+        """The video file that holds the episode's camera frames (None where the camera is not a video)."""
+        if self.camera is None or self.camera_dtype != "video":
+            return None
+        return self._video_span(episode_index, int(self.episodes.loc[episode_index, "length"]))[0]
+
+    def load(self, episode_index: int, arena: video.FrameArena | None = None) -> Demo:
+        path = self._data_path(episode_index)
+        entry, s, e = self._rows(path, episode_index)
+        if self.camera is None:
+            frames, unreadable = no_frames(e - s), []
+        elif self.camera_dtype == "video":
+            vpath, start, stop = self._video_span(episode_index, e - s)
+            frames, unreadable = self._readable(lambda: video.read_range(vpath, start, stop, self.fps, arena), e - s,
+                                                vpath)
+        else:
+            frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s, path)
+        return self._make_demo(episode_index, frames, entry, s, e, unreadable)
+
+    def cue_frames(self, episode_index: int) -> np.ndarray:
+        if self.camera is None:
+            return no_frames(2)
+        if self.camera_dtype == "video":
+            vpath, start, stop = self._video_span(episode_index, int(self.episodes.loc[episode_index, "length"]))
+            return self._readable(lambda: video.read_frames(vpath, [start, stop - 1], self.fps), 2, vpath)[0]
+        return self._image_cues(episode_index)
 
     def end_state(self, episode_index: int, at: float = 1.0) -> np.ndarray:
         """The state at an episode's last step (``at``: that share of the way from its first), float32 [S], from

@@ -9,11 +9,9 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 
-from democheck.data import video
-from democheck.data.demo import Demo, check_episodes, no_frames
+from democheck.data.demo import check_episodes
 from democheck.data.lerobot import CHUNKS_SIZE, LeRobotBase, inside_root, path_template
 from democheck.errors import DatasetError
 
@@ -51,32 +49,8 @@ class LeRobotV21(LeRobotBase):
     def _data_path(self, episode_index: int) -> Path:
         return self._path("data_path", episode_index)
 
-    def video_file(self, episode_index: int) -> Path | None:
-        """The video file that holds the episode's camera frames (None where the camera is not a video)."""
-        return self._path("video_path", episode_index) if self.camera is not None and self.camera_dtype == "video" \
-            else None
-
-    def load(self, episode_index: int, arena: video.FrameArena | None = None) -> Demo:
-        path = self._data_path(episode_index)
-        entry, s, e = self._rows(path, episode_index)
-        if self.camera is None:
-            frames, unreadable = no_frames(e - s), []
-        elif self.camera_dtype == "video":
-            vpath = self._path("video_path", episode_index)
-            frames, unreadable = self._readable(lambda: video.read_range(vpath, 0, e - s, self.fps, arena), e - s,
-                                                vpath)
-        else:
-            frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s, path)
-        return self._make_demo(episode_index, frames, entry, s, e, unreadable)
-
-    def cue_frames(self, episode_index: int) -> np.ndarray:
-        n = int(self.episodes.loc[episode_index, "length"])
-        if self.camera is None:
-            return no_frames(2)
-        if self.camera_dtype == "video":
-            vpath = self._path("video_path", episode_index)
-            return self._readable(lambda: video.read_frames(vpath, [0, n - 1], self.fps), 2, vpath)[0]
-        return self._image_cues(episode_index)
+    def _video_span(self, episode_index: int, frames: int) -> tuple[Path, int, int]:
+        return self._path("video_path", episode_index), 0, frames
 
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:

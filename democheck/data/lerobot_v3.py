@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 
 from democheck.data import video
-from democheck.data.demo import Demo, check_episodes, no_frames
+from democheck.data.demo import check_episodes
 from democheck.data.lerobot import DATA_PATH, VIDEO_PATH, LeRobotBase, inside_root, metadata_frame, path_template
 from democheck.errors import DatasetError
 
@@ -43,7 +43,8 @@ class LeRobotV3(LeRobotBase):
                         file_index=int(r["data/file_index"]))
         return inside_root(self.root, rel)
 
-    def _video_span(self, episode_index: int) -> tuple[Path, int, int]:
+    def _video_span(self, episode_index: int, frames: int) -> tuple[Path, int, int]:
+        # v3.0's episodes table says where in the shared file the episode starts; its length, how many frames.
         r = self._eps.loc[episode_index]
         pre = f"videos/{self.camera}/"
         try:
@@ -53,23 +54,6 @@ class LeRobotV3(LeRobotBase):
         except KeyError as exc:
             raise DatasetError(f"{self.root / 'meta/episodes'}: no {exc} for camera {self.camera!r}") from None
         return inside_root(self.root, rel), start, start + int(r["length"])
-
-    def video_file(self, episode_index: int) -> Path | None:
-        """The video file that holds the episode's camera frames (None where the camera is not a video)."""
-        return self._video_span(episode_index)[0] if self.camera is not None and self.camera_dtype == "video" else None
-
-    def load(self, episode_index: int, arena: video.FrameArena | None = None) -> Demo:
-        path = self._data_path(episode_index)
-        entry, s, e = self._rows(path, episode_index)
-        if self.camera is None:
-            frames, unreadable = no_frames(e - s), []
-        elif self.camera_dtype == "video":
-            vpath, start, stop = self._video_span(episode_index)
-            frames, unreadable = self._readable(lambda: video.read_range(vpath, start, stop, self.fps, arena), e - s,
-                                                vpath)
-        else:
-            frames, unreadable = self._readable(lambda: self._decode_images(entry, s, e, path), e - s, path)
-        return self._make_demo(episode_index, frames, entry, s, e, unreadable)
 
     def cues(self, episode_indices: list[int], at: float = 1.0) -> np.ndarray:
         """First and last frames of many episodes (``at``: the second frame that share of the way from the first),
@@ -83,7 +67,7 @@ class LeRobotV3(LeRobotBase):
         out = np.empty((len(episode_indices), 2, h, w, c), np.uint8)
         by_file: dict[Path, list[tuple[int, int, int]]] = {}
         for i, e in enumerate(episode_indices):
-            vpath, start, stop = self._video_span(e)
+            vpath, start, stop = self._video_span(e, int(self.episodes.loc[e, "length"]))
             by_file.setdefault(vpath, []).append((i, start, start + int(round(at * (stop - 1 - start)))))
         for vpath, items in by_file.items():
             wanted = sorted({f for _, a, b in items for f in (a, b)})
@@ -96,12 +80,3 @@ class LeRobotV3(LeRobotBase):
             for i, a, b in items:
                 out[i, 0], out[i, 1] = frames[a], frames[b]
         return out
-
-    def cue_frames(self, episode_index: int) -> np.ndarray:
-        if self.camera is None:
-            return no_frames(2)
-        if self.camera_dtype == "video":
-            vpath, start, stop = self._video_span(episode_index)
-            return self._readable(lambda: video.read_frames(vpath, [start, stop - 1], self.fps), 2, vpath)[0]
-        return self._image_cues(episode_index)
-
