@@ -24,6 +24,7 @@ import multiprocessing as mp
 import os
 import queue as queue_mod
 import signal
+import threading
 from functools import partial
 from typing import Any, Callable, Iterator
 
@@ -92,12 +93,22 @@ def _workers_ignore_ctrl_c() -> Iterator[None]:
     """Processes started inside never see Ctrl-C: SIGINT is blocked while they start, and a blocked signal stays
     blocked in a child across exec.  The terminal sends SIGINT to the whole process group; only this process should
     answer it -- with one line -- while the pool stops the workers.  Here a Ctrl-C during the start is held, not
-    lost, and answered as soon as the workers have started."""
+    lost, and answered as soon as the workers have started.  The mask holds only this thread: another thread of
+    this process (a progress bar's, a queue's) may take the signal, and Python would then raise it here, half-way
+    through starting the pool, whose started workers nobody would stop.  So this process's handler only notes the
+    press until the workers have started."""
+    held: list[int] = []
+    main = threading.current_thread() is threading.main_thread()
+    handler = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum)) if main else None
     before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        if main:
+            signal.signal(signal.SIGINT, handler)
+            if held:
+                signal.raise_signal(signal.SIGINT)
 
 
 class Workers:

@@ -77,7 +77,7 @@ def test_ctrl_c_at_any_moment_prints_one_line_and_leaves_nothing(tmp_path, momen
     """Ctrl-C reaches the whole process group: while the CLI loads, while a command imports its libraries (a GL
     library turns the interrupt into an error of its own) and while workers run, the answer is one line, exit
     status 130, no traceback from any process, no output folder and no process left behind.  The job is long
-    enough (32 episodes) that it is still running at every moment."""
+    enough (64 episodes) that it is still running at every moment."""
     import os
     import signal
     import threading
@@ -85,7 +85,7 @@ def test_ctrl_c_at_any_moment_prints_one_line_and_leaves_nothing(tmp_path, momen
 
     out = tmp_path / "d"
     proc = subprocess.Popen([sys.executable, "-m", "democheck", "synth", "push-mini", "--out", str(out),
-                             "--workers", "2", "--tasks", "8", "--demos", "4"],
+                             "--workers", "2", "--tasks", "8", "--demos", "8"],
                             stdout=open(tmp_path / "stdout.txt", "w"), stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     lines, first_episode = [], threading.Event()
@@ -93,7 +93,7 @@ def test_ctrl_c_at_any_moment_prints_one_line_and_leaves_nothing(tmp_path, momen
     def read_stderr():
         for line in proc.stderr:
             lines.append(line)
-            if "1/32" in line or "episodes" in line:
+            if "1/64" in line or "episodes" in line:
                 first_episode.set()
 
     reader = threading.Thread(target=read_stderr, daemon=True)
@@ -119,6 +119,31 @@ def test_ctrl_c_at_any_moment_prints_one_line_and_leaves_nothing(tmp_path, momen
             break
         time.sleep(0.1)
     assert not running, f"processes left behind: {running}"
+
+
+def test_ctrl_c_taken_by_another_thread_while_workers_start_is_answered_after_they_have_started():
+    """The signal mask holds only the starting thread; a press that another thread takes is held too, and raised
+    once the workers have started (else it would stop the pool half-built, its workers left to nobody)."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from democheck.pool import _workers_ignore_ctrl_c
+
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait, daemon=True)  # started before the mask: takes what the main blocks
+    other.start()
+    starting_done = False
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with _workers_ignore_ctrl_c():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.2)
+                starting_done = True
+    finally:
+        stop.set()
+    assert starting_done and signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_info_says_before_any_long_work_that_the_video_files_are_not_where_the_metadata_says(tmp_path):
