@@ -137,7 +137,7 @@ def test_the_shapes_benchmark_adds_dimensions_that_change_nothing_of_the_ranking
     spec.loader.exec_module(reasons)
     said = reasons.main([str(tmp_path / "r-data")])
     assert said["idle"]["lead names the cause"] == 1.0 and said["random"]["lead names the cause"] == 1.0
-    assert said["reasons"]["reference demos called beyond every clean demo"] == 0
+    assert said["reasons"]["clean demos called beyond every clean demo"] == 0
     assert said["reasons"]["latent dimension"] == 0 and said["reasons"]["probability under 1e-12"] == 0
 
 

@@ -7,7 +7,10 @@ the demo is beyond every clean demo (``tiers``: no reference demo as unusual, an
 can support), the first in the recipe's order, a demoted kind only where no other is, an exception of the recipe
 where it applies; where that is a reading of the demo (the model's, the coupling's), the behaviour the reading
 follows from.  Every clause then says what the check found, which check, and how unusual the demo is on it,
-counted against the reference demos (``odds``): "beyond every clean demo" only where the count says so.
+counted against the reference demos (``odds``): "beyond every clean demo" only where the count says so.  The
+reference the words count against is the clean demos as the user is told: the robust core the tails were fitted
+on, less the demos the audit flags at ``--fpr`` (a bad demo only weakly seen can stay in the core, and one
+failed place there would make every other "as unusual as a clean demo").
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from democheck.audit.findings import Finding, camera_of, check_of
+from democheck.audit.flagging import conformal_p, flags
 from democheck.audit.ranking import Ranking, RankingConfig
 from democheck.audit.scores import merge_looks
 
@@ -84,6 +88,15 @@ def tiers(log_p: np.ndarray, at_least: np.ndarray, references: int, core: np.nda
     p = np.nan_to_num(log_p, nan=0.0)
     beyond = (at_least == 0) & ~np.asarray(core, bool)[:, None] & (references > 0) & rare(p, references)
     return np.where(beyond, 0, np.where((share <= fpr) & (p <= np.log(fpr)), 1, 2))
+
+
+def clean_reference(ranking: Ranking, fpr: float, regardless: np.ndarray) -> np.ndarray:
+    """[N] bool: the demos a reason counts as clean -- the ranking's robust core less those the audit flags at
+    ``fpr`` (``flagging.flags`` of the core's conformal p-values, or ``regardless``), as ``score_table`` flags
+    them."""
+    core = np.asarray(ranking.core, bool)
+    flagged = flags(conformal_p(np.asarray(ranking.suspicion, np.float64), core), fpr, regardless)
+    return core & ~flagged
 
 
 def odds(at_least: int, references: int, reference: bool) -> str:
@@ -155,9 +168,9 @@ def explain(ranking: Ranking, findings: Mapping[str, list[Finding]], fpr: float,
     broken = np.zeros(n, bool) if broken is None else np.asarray(broken, bool)
     copies = np.zeros(n, bool) if copies is None else np.asarray(copies, bool)
     every, shown = look_columns(ranking)
-    core = np.asarray(ranking.core, bool)
-    at_least, references = counts(every, core)
-    tier = tiers(every, at_least, references, core, fpr)
+    clean = clean_reference(ranking, fpr, broken | copies)
+    at_least, references = counts(every, clean)
+    tier = tiers(every, at_least, references, clean, fpr)
     details, driven, leads = [], [], []
     for i in range(n):
         special = "broken" if broken[i] else "duplicate" if copies[i] else ""
@@ -172,7 +185,7 @@ def explain(ranking: Ranking, findings: Mapping[str, list[Finding]], fpr: float,
         parts = []
         for j in picked:  # what the check saw in its own words first, then which check and how unusual
             words = found[j].words if found[j] is not None else ""
-            rate = odds(int(at_least[i, j]), references, bool(core[i]))
+            rate = odds(int(at_least[i, j]), references, bool(clean[i]))
             parts.append(f"{words} ({names[j]}, {rate})" if words else f"{names[j]}: {rate}")
         details.append("; also ".join(parts))
         driven.append(names[picked[0]] if picked else "")
