@@ -151,6 +151,41 @@ def test_image_level_probes_for_a_dataset_without_sim_records(tiny_dataset, tmp_
             assert (d.frames[:, ~covered] == src[:, ~covered]).all() and covered.mean() >= 0.5
 
 
+def test_probes_of_a_wide_camera_keep_its_shape_and_the_sources_names_and_invent_no_environment(tmp_path):
+    """A user's recording: a 24x32 camera, named joints, no environment state, no sim records.  Its probes are
+    24x32 too, name the joints as the source does, record no environment state, and a reversed probe is its
+    source played backwards, frame for frame."""
+    import json
+
+    from democheck.data.demo import Demo
+    from democheck.data.lerobot_write import VideoOptions, write_meta, write_shard
+    from democheck.sim.probes import make_probes
+
+    rng = np.random.default_rng(0)
+    demos = [Demo(episode_index=i, task="put the banana on the plate",
+                  frames=rng.integers(0, 256, (12, 24, 32, 3), dtype=np.uint8),
+                  state=rng.normal(size=(12, 2)).astype(np.float32),
+                  actions=rng.normal(size=(12, 3)).astype(np.float32)) for i in range(4)]
+    source = tmp_path / "real"
+    opts = VideoOptions(camera="observation.images.top", lossless=True)
+    rows = write_shard(source, 0, demos, {"put the banana on the plate": 0}, 0, 10, opts)
+    write_meta(source, rows, ["put the banana on the plate"], 10, (24, 32), ["shoulder", "elbow"],
+               ["shoulder.vel", "elbow.vel", "gripper"], [], opts)
+    (source / "meta/democheck/episodes.parquet").unlink()  # no sidecar, no sim records
+    make_probes(source, tmp_path / "p", ["reversed", "hidden"], per_kind=2, workers=1)
+    features = json.loads((tmp_path / "p/meta/info.json").read_text())["features"]
+    assert features["observation.images.top"]["shape"] == [24, 32, 3]
+    assert features["observation.state"]["names"] == ["shoulder", "elbow"]
+    assert features["action"]["names"] == ["shoulder.vel", "elbow.vel", "gripper"]
+    assert "observation.environment_state" not in features
+    ds, src = open_dataset(tmp_path / "p"), open_dataset(source)
+    for e in ds.episode_indices:
+        d = ds[e]
+        assert d.frames.shape[1:] == (24, 32, 3) and d.env_state is None
+        if d.label == "reversed":
+            assert (d.frames == src[int(d.sim["probe"]["source_episode"])].frames[::-1]).all()
+
+
 def test_defects_behave_as_labelled():
     """Full-length episodes without rendering: each defect does what its name says."""
     task = make_tasks(3, 0, 0, seed=0)[1]

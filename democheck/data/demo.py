@@ -313,6 +313,14 @@ class DemoSet:
         return list(given) if given and len(given) == dim else [f"{what}[{i}]" for i in range(dim)]
 
     @property
+    def env_state_names(self) -> list[str]:
+        """Names of the environment state's dimensions where the dataset records one (its own, else
+        ``env_state[0]``, ...); none without."""
+        dim = int(getattr(self._src, "env_state_dim", 0) or 0)
+        given = getattr(self._src, "env_state_names", None)
+        return list(given) if given and len(given) == dim else [f"env_state[{i}]" for i in range(dim)]
+
+    @property
     def episodes(self) -> pd.DataFrame:
         """One row per episode (index: episode_index): task, length, and split/success/label when known."""
         return self._src.episodes

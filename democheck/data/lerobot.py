@@ -194,8 +194,8 @@ class LeRobotBase:
         self.state_names = feature_names(self.features[self.state_key], self.state_dim)
         self.action_names = feature_names(self.features[self.action_key], self.action_dim)
         env = self.features.get(ENV_STATE_KEY)
-        self.env_state_names = (feature_names(env, int(np.prod(env.get("shape", [1]))))
-                                if isinstance(env, dict) else None)
+        self.env_state_dim = int(np.prod(env.get("shape", [1]))) if isinstance(env, dict) else 0
+        self.env_state_names = feature_names(env, self.env_state_dim) if isinstance(env, dict) else None
         self._cache: OrderedDict[Path, dict[str, Any]] = OrderedDict()
 
     def streams(self) -> list[tuple[str, str, str]]:

@@ -53,15 +53,16 @@ def write_shard(root: Path, file_index: int, demos: list[Demo], task_index: dict
     data_path.parent.mkdir(parents=True, exist_ok=True)
     video_path.parent.mkdir(parents=True, exist_ok=True)
     rows, tables = [], []
-    size = demos[0].frames.shape[1]
+    size = demos[0].frames.shape[1:3]
     index = first_index
     with video.VideoWriter(video_path, fps, size, video_opts.pix_fmt, video_opts.crf, video_opts.lossless) as vw:
         for demo in demos:
             T = len(demo)
             start, end = vw.write(demo.frames)
+            env = {} if demo.env_state is None else {ENV_STATE_KEY: demo.env_state}  # none recorded: no column
             cols = {
                 STATE_KEY: _fixed_list(demo.state),
-                ENV_STATE_KEY: _fixed_list(demo.env_state),
+                **{k: _fixed_list(v) for k, v in env.items()},
                 ACTION_KEY: _fixed_list(demo.actions),
                 "timestamp": pa.array(np.arange(T, dtype=np.float32) / np.float32(fps)),
                 "frame_index": pa.array(np.arange(T, dtype=np.int64)),
@@ -82,7 +83,7 @@ def write_shard(root: Path, file_index: int, demos: list[Demo], task_index: dict
                 "source_episode": -1 if demo.source_episode is None else int(demo.source_episode),
                 "sim": json.dumps(demo.sim, sort_keys=True) if demo.sim is not None else "",
                 "_moments": {STATE_KEY: _moments(demo.state), ACTION_KEY: _moments(demo.actions),
-                             ENV_STATE_KEY: _moments(demo.env_state), video_opts.camera: _moments(img)},
+                             **{k: _moments(v) for k, v in env.items()}, video_opts.camera: _moments(img)},
             })
             index += T
     pq.write_table(pa.concat_tables(tables), data_path, compression="zstd")
@@ -103,10 +104,13 @@ def _stats_entry(moments: list[dict[str, np.ndarray]], image: bool = False) -> d
     return res
 
 
-def write_meta(root: Path, rows: list[dict[str, Any]], tasks: list[str], fps: int, image_size: int,
+def write_meta(root: Path, rows: list[dict[str, Any]], tasks: list[str], fps: int, image_size: int | tuple[int, int],
                state_names: list[str], action_names: list[str], env_state_names: list[str],
                video_opts: VideoOptions, suite: dict[str, Any] | None = None, robot_type: str = "democheck_arm7") -> None:
-    """Write meta/: info.json, tasks.parquet, episodes table, stats.json and democheck's sidecar."""
+    """Write meta/: info.json, tasks.parquet, episodes table, stats.json and democheck's sidecar.  ``image_size``:
+    the camera's side (square) or (height, width); no ``env_state_names``: the episodes record no environment
+    state (``Demo.env_state`` None)."""
+    height, width = (image_size, image_size) if isinstance(image_size, int) else image_size
     rows = sorted(rows, key=lambda r: r["episode_index"])
     meta = root / "meta"
     (meta / "democheck").mkdir(parents=True, exist_ok=True)
@@ -134,7 +138,7 @@ def write_meta(root: Path, rows: list[dict[str, Any]], tasks: list[str], fps: in
     sidecar.to_parquet(root / SIDECAR_PATH, index=False)
 
     stats = {key: _stats_entry([r["_moments"][key] for r in rows], image=(key == video_opts.camera))
-             for key in (STATE_KEY, ACTION_KEY, ENV_STATE_KEY, video_opts.camera)}
+             for key in (STATE_KEY, ACTION_KEY, ENV_STATE_KEY, video_opts.camera) if key in rows[0]["_moments"]}
     (meta / "stats.json").write_text(json.dumps(stats, indent=2))
 
     n_frames = int(sum(r["length"] for r in rows))
@@ -162,13 +166,14 @@ def write_meta(root: Path, rows: list[dict[str, Any]], tasks: list[str], fps: in
         "video_path": VIDEO_PATH,
         "features": {
             video_opts.camera: {
-                "dtype": "video", "shape": [image_size, image_size, 3], "names": ["height", "width", "channels"],
-                "info": {"video.height": image_size, "video.width": image_size, "video.codec": "h264",
+                "dtype": "video", "shape": [height, width, 3], "names": ["height", "width", "channels"],
+                "info": {"video.height": height, "video.width": width, "video.codec": "h264",
                          "video.pix_fmt": "gbrp" if video_opts.lossless else video_opts.pix_fmt, "video.is_depth_map": False, "video.fps": fps,
                          "video.channels": 3, "has_audio": False},
             },
             STATE_KEY: {"dtype": "float32", "shape": [len(state_names)], "names": state_names},
-            ENV_STATE_KEY: {"dtype": "float32", "shape": [len(env_state_names)], "names": env_state_names},
+            **({ENV_STATE_KEY: {"dtype": "float32", "shape": [len(env_state_names)], "names": env_state_names}}
+               if env_state_names else {}),
             ACTION_KEY: {"dtype": "float32", "shape": [len(action_names)], "names": action_names},
             **INDEX_FEATURES,
         },

@@ -99,6 +99,7 @@ class Robomimic:
             self.image_shape = tuple(int(v) for v in images[self.camera].shape[1:]) if self.camera else NO_CAMERA
             self.state_dim = int(sum((obs if self.obs else first)[k].shape[1] for k in self.state_keys))
             self.action_dim = int(first[self.action_key].shape[1])
+            self.env_state_dim = int(obs["object"].shape[1]) if self.env_key else 0
             try:
                 env_args = json.loads(_decode(data.attrs.get("env_args", "{}")))
             except json.JSONDecodeError:

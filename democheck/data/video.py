@@ -41,14 +41,16 @@ LOSSLESS_CODEC = "libx264rgb"
 class VideoWriter:
     """Append frames to an MP4; frame ``k`` of the file has timestamp ``k / fps``; ``lossless``: bit-exact."""
 
-    def __init__(self, path: str | Path, fps: int, size: int, pix_fmt: str = DEFAULT_PIX_FMT, crf: int = DEFAULT_CRF,
-                 lossless: bool = False):
-        if pix_fmt == "yuv420p" and size % 2 and not lossless:
-            raise ValueError(f"yuv420p needs an even frame size, got {size}; use yuv444p")
+    def __init__(self, path: str | Path, fps: int, size: int | tuple[int, int], pix_fmt: str = DEFAULT_PIX_FMT,
+                 crf: int = DEFAULT_CRF, lossless: bool = False):
+        """``size``: the frames' side (square) or (height, width)."""
+        height, width = (size, size) if isinstance(size, (int, np.integer)) else (int(size[0]), int(size[1]))
+        if pix_fmt == "yuv420p" and (height % 2 or width % 2) and not lossless:
+            raise ValueError(f"yuv420p needs an even frame size, got {height}x{width}; use yuv444p")
         self.path = Path(path)
         self._container = av.open(str(self.path), "w", format="mp4")
         self._stream = self._container.add_stream(LOSSLESS_CODEC if lossless else DEFAULT_CODEC, rate=fps)
-        self._stream.width = self._stream.height = size
+        self._stream.width, self._stream.height = width, height
         self._stream.pix_fmt = "rgb24" if lossless else pix_fmt
         self._stream.time_base = Fraction(1, fps)
         # One thread: x264's output then depends only on its input (determinism).
@@ -88,7 +90,7 @@ def through_codec(frames: np.ndarray, fps: int, pix_fmt: str = DEFAULT_PIX_FMT, 
     must look like frames recorded before (a probe beside its lossy source)."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "episode.mp4"
-        with VideoWriter(path, fps, frames.shape[1], pix_fmt, crf) as writer:
+        with VideoWriter(path, fps, frames.shape[1:3], pix_fmt, crf) as writer:
             writer.write(frames)
         return read_frames(path, np.arange(len(frames)), fps)
 

@@ -39,7 +39,7 @@ from democheck.data.lerobot import SUITE_PATH, read_json
 from democheck.data.video import DEFAULT_CRF, DEFAULT_PIX_FMT, through_codec
 from democheck.errors import DatasetError, DemocheckError
 from democheck.fsutil import atomic_output_dir
-from democheck.sim.env import ACTION_NAMES, ENV_STATE_DIM, ENV_STATE_NAMES, STATE_NAMES
+from democheck.sim.env import ACTION_NAMES, ENV_STATE_NAMES, STATE_NAMES
 from democheck.sim.variants import IMAGE_PROBES, PROBES, TIME_PROBES, EnvCache, resimulate
 
 EPISODES_PER_FILE = 50
@@ -141,8 +141,10 @@ def _probe_shard(job: tuple[int, int, list[tuple[int, str, int, int]]]) -> list[
             if w["source_codec"] is not None:
                 frames = through_codec(frames, w["fps"], *w["source_codec"])
             sim = {**source.sim, "policy": kind, "seed": probe_seed}
-        if env_state is None:
-            env_state = np.full((len(actions), ENV_STATE_DIM), np.nan, np.float32)
+        if not w["env_state_dim"]:  # the source records no environment state: nor does its probe
+            env_state = None
+        elif env_state is None:  # a probe of a dataset that records the environment, where it is unknown
+            env_state = np.full((len(actions), w["env_state_dim"]), np.nan, np.float32)
         sim = {**(sim or {}), "probe": probe}
         demos.append(Demo(episode_index=episode_index, task=source.task, frames=frames, state=state, actions=actions,
                           success=None, label=kind, split=source.split, sim=sim, env_state=env_state,
@@ -171,8 +173,6 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
     if per_kind < 1:
         raise DemocheckError("--per-kind must be at least 1")
     h, w, _ = ds.image_shape
-    if h != w:
-        raise DatasetError(f"{ds.root}: probes are written as square videos; this camera is {h}x{w}")
     picks = pick_sources(ds.episodes, kinds, per_kind, seed)
     need_sim = sorted({k for k, _ in picks if k not in (*IMAGE_PROBES, *TIME_PROBES)})
     if need_sim and not has_sim:
@@ -188,21 +188,21 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
         frame += int(sum(lengths[src] + (reorder.pause(lengths[src], s)[1] if kind == "hesitates" else 0)
                          for _, kind, src, s in chunk))
     tasks = sorted({str(ds.episodes.loc[src, "task"]) for _, src in picks})
+    # The probes keep the source's names (democheck's own where its sim records say how to re-simulate).
+    names = ((STATE_NAMES, ACTION_NAMES, ENV_STATE_NAMES) if has_sim else
+             (ds.names("state"), ds.names("action"), ds.env_state_names))
     context = {"task_index": {t: i for i, t in enumerate(tasks)}, "fps": int(round(ds.fps)),
+               "env_state_dim": len(names[2]),
                "source_codec": source_codec(ds),
                "video": VideoOptions(DEFAULT_PIX_FMT, DEFAULT_CRF, camera=ds.camera, lossless=True)}
     t0 = time.perf_counter()
     with atomic_output_dir(out, force=force) as tmp:
         rows = pool.run_on(engine, jobs, _probe_shard, _probe_init, (str(ds.root), camera, str(tmp), context),
                            workers, len(episodes), on_progress, ray_address)
-        sim_layout = ds.state_dim == len(STATE_NAMES) and ds.action_dim == len(ACTION_NAMES)
-        state_names = STATE_NAMES if sim_layout else [f"state.{i}" for i in range(ds.state_dim)]
-        action_names = ACTION_NAMES if sim_layout else [f"action.{i}" for i in range(ds.action_dim)]
         summary = {"source": str(ds.root), "kinds": {k: sum(kk == k for kk, _ in picks) for k in kinds},
                    "per_kind": per_kind, "seed": seed, "episodes": len(episodes),
                    "rendered_frames_through": (None if context["source_codec"] is None else
                                                dict(zip(("pix_fmt", "crf"), context["source_codec"]))),
                    "wall_s": round(time.perf_counter() - t0, 3)}
-        write_meta(tmp, rows, tasks, context["fps"], h, state_names, action_names, ENV_STATE_NAMES,
-                   context["video"], suite={"probes": summary})
+        write_meta(tmp, rows, tasks, context["fps"], (h, w), *names, context["video"], suite={"probes": summary})
     return summary
