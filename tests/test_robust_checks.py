@@ -258,7 +258,13 @@ def test_a_fault_a_few_of_one_tasks_demos_share_is_no_outcome_of_the_task_but_a_
     assert all(f.params["name"] == "distractor.x" for f in found[:3])
     assert score[3:].max() < 5, np.sort(score)[-5:]  # the button ends two ways in every task: no demo far out
     began = np.array([0.0] * 6 + [1.0] * 6)
-    assert explained(1 - began, began, 0.01) and not explained(began, rng.uniform(0, 1, 12), 0.01)
+    toggled = (1 - began).astype(int)
+    assert (explained(toggled, began, 0.01) == toggled).all()
+    assert not explained(began.astype(int), rng.uniform(0, 1, 12), 0.01).any()
+    # Two demos never pressed it, one that began on and one off: each joins the toggle of the demos that began as
+    # it began, and is measured against them.
+    label, began = np.r_[toggled, 2, 2], np.r_[began, 0.0, 1.0]
+    assert (explained(label, began, 0.01) == np.r_[toggled, 1, 0]).all()
 
 
 def test_a_body_recorded_by_roll_pitch_and_yaw_is_compared_as_its_quaternion_would_be():

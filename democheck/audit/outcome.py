@@ -10,7 +10,8 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
   reached the same outcome (``modes``: an outcome a share ``MODE_SHARE`` of the task reaches, well apart from the
   others; a side, that share of the task too), not against the whole task's median, so the minority's outcome is
   not an anomaly -- where the dataset holds several tasks, only an outcome that follows from where the demos began
-  (``explained``: a toggle) or a spread beside a pile: a fault a few of one task's demos share is no outcome.
+  (``explained``: a toggle; a demo of another outcome is measured against the demos that began as it began) or a
+  spread beside a pile: a fault a few of one task's demos share is no outcome.
   Values piled at one place (a kettle most demos leave where it stands, a slide against its stop) beside a
   spread of others are two outcomes too, each measured in its own spread, once the spread holds that share.
 - **Rotations are compared as rotations** (``democheck.audit.world_record`` groups the record into features): a
@@ -144,18 +145,24 @@ def piled(r: np.ndarray, floor: float) -> np.ndarray:
     return label
 
 
-def explained(label: np.ndarray, began: np.ndarray, floor: float) -> bool:
-    """Whether a task's outcomes (``label``) follow from where its demos began (``began``, the same feature at
-    their first step): each outcome's demos started ``MODE_GAP`` robust SD (at least ``floor``) away from the
-    others' -- a button that toggles ends on where it began off.  A fault shared by a few of one task's demos (the
-    other object pushed too) began where the others did."""
-    if not np.isfinite(began).all():
-        return False
-    for k in np.unique(label):
-        mine, rest = began[label == k], began[label != k]
-        if abs(np.median(mine) - np.median(rest)) <= MODE_GAP * max(_sd(mine), _sd(rest), floor):
-            return False
-    return True
+def explained(label: np.ndarray, began: np.ndarray, floor: float) -> np.ndarray:
+    """``label`` (a task's outcomes) kept where it follows from where its demos began (``began``, the same feature
+    at their first step), else 0: an outcome whose demos started ``MODE_GAP`` robust SD (at least ``floor``) away
+    from the others' is the task's -- a button that toggles ends on where it began off.  A demo of an outcome that
+    does not follow (a fault shared by a few of the task's demos: the other object pushed too; a button never
+    pressed) joins the kept outcome whose demos began nearest to where it began, and is measured against those;
+    with fewer than two outcomes kept, every demo is of one outcome."""
+    kept = []
+    if np.isfinite(began).all():
+        for k in np.unique(label):
+            mine, rest = began[label == k], began[label != k]
+            if abs(np.median(mine) - np.median(rest)) > MODE_GAP * max(_sd(mine), _sd(rest), floor):
+                kept.append(k)
+    if len(kept) < 2:
+        return np.zeros_like(label)
+    starts = np.array([np.median(began[label == k]) for k in kept])
+    out = np.array(kept)[np.argmin(np.abs(began[:, None] - starts[None, :]), axis=1)]
+    return np.where(np.isin(label, kept), label, out)
 
 
 def _several(label: np.ndarray) -> bool:
@@ -370,9 +377,10 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
                             if on.sum() >= max(OUTCOME_MIN_SIDE, MODE_SHARE * len(v)):
                                 centre[on] = np.median(v[on])
                     label = modes(v - centre, floor)
-                    if several_tasks and label.any() and not piled(v - centre, floor).any() and (
-                            began is None or not explained(label, began[rows[ok], c], floor)):
-                        label[:] = 0  # a few of one task's demos that agree: a fault they share
+                    if several_tasks and label.any() and not piled(v - centre, floor).any():
+                        # a few of one task's demos that agree and began as the others did: a fault they share
+                        label = (np.zeros_like(label) if began is None else
+                                 explained(label, began[rows[ok], c], floor))
                     for k in np.unique(label):
                         mine = label == k
                         centre[mine] += np.median((v - centre)[mine])
