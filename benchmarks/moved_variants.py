@@ -19,12 +19,12 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from democheck.audit import moved
+from democheck.audit import colours, moved
 from democheck.audit.metrics import separation
 from democheck.audit.scores import calibrated
 from democheck.data import open_dataset
 
-DEFAULT = dict(side=64, change=moved.MOVED_CHANGE, hues=moved.HUE_BINS, apart=False, combine="rms shown")
+DEFAULT = dict(side=64, change=moved.MOVED_CHANGE, hues=colours.HUE_BINS, apart=False, combine="rms shown")
 VARIANTS = {
     "shipped": {},
     "32 px": dict(side=32),
@@ -47,7 +47,7 @@ def labelled_pictures(root: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def counts(first: np.ndarray, last: np.ndarray, change: int, hues: int, apart: bool) -> np.ndarray:
     pictures = moved.changed_pixels(first, last, change)
-    per = [np.bincount(moved.colour_bins(p, hues), minlength=hues * 4).astype(float) for p in pictures]
+    per = [np.bincount(colours.colour_bins(p, hues), minlength=hues * 4).astype(float) for p in pictures]
     return np.concatenate(per) if apart else per[0] + per[1]
 
 

@@ -104,6 +104,42 @@ def test_clean_demos_stay_within_a_few_robust_sd():
         assert np.nanmax(ev.scores[check]) < 5, (check, np.sort(ev.scores[check])[-3:])
 
 
+def _place(i: int, rng: np.random.Generator) -> Demo:
+    """A yellow object carried onto a white plate, both laid out anew in each demo, the arm home at both ends."""
+    px, py = rng.integers(2, 22, 2)
+    bx, by = rng.integers(2, 26, 2)
+    while abs(bx - px) < 10 and abs(by - py) < 10:
+        bx, by = rng.integers(2, 26, 2)
+    frames = np.full((20, 32, 32, 3), 40, np.uint8) + rng.integers(0, 12, (20, 32, 32, 3), dtype=np.uint8)
+    for t, a in enumerate(np.linspace(0, 1, 20)):
+        frames[t, py:py + 8, px:px + 8] = 230
+        x, y = int(round(bx + a * (px + 2 - bx))), int(round(by + a * (py + 2 - by)))
+        frames[t, y:y + 3, x:x + 4] = (230, 200, 30)
+    state = np.sin(np.linspace(0, np.pi, 20))[:, None] * rng.uniform(0.5, 1.0, (1, 2))
+    return Demo(episode_index=i, task="place", frames=frames, state=state.astype(np.float32),
+                actions=np.gradient(state, axis=0).astype(np.float32))
+
+
+def test_a_reset_is_found_by_what_lies_beside_what_wherever_the_objects_lie():
+    """The object and its plate lie anywhere, and the arm begins and ends at home: which colours lie side by side
+    (the object on the plate, or on the table) tells a task's starts from its ends wherever they lie, and a
+    reset's first picture lies nearer its mates' last ones than their first."""
+    from democheck.audit.timeline import _arranged_part
+
+    rng = np.random.default_rng(3)
+    demos = [_place(i, rng) for i in range(N)]
+    d = demos[REVERSED]
+    demos[REVERSED] = Demo(REVERSED, d.task, d.frames[::-1].copy(), d.state[::-1].copy(), -d.actions[::-1].copy())
+    ev = _evidence(demos)
+    t = ev.behaviour["timeline"]
+    own, cross = _arranged_part(t.first_arranged, np.zeros(N, int), t.last_arranged)
+    clean = np.delete(np.arange(N), REVERSED)
+    assert (own[clean] < cross[clean]).all() and cross[REVERSED] < own[REVERSED]
+    for check, kind in (("start", "where they end"), ("end", "where they begin")):
+        assert _top(ev, check) == REVERSED, (check, np.round(ev.scores[check], 1))
+        assert ev.findings[check][REVERSED].kind == kind
+
+
 def test_a_dataset_without_a_camera_is_judged_by_its_path_alone():
     ev = _evidence(_carries(frames=False))
     assert _top(ev, "path") == REVERSED and ev.findings["path"][REVERSED].params["part"] == "state"

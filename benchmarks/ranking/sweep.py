@@ -64,6 +64,8 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "coupling-exponential": lambda c: _set(c, ("coupling",), tail="exponential"),
     "path-beside": lambda c: _set(c, ("path",), beside=True),
     "time-beside": lambda c: _set(c, TIME_ALIGNED, beside=True),
+    "time-normal": lambda c: _set(c, TIME_ALIGNED, tail="normal"),
+    "start-end-normal": lambda c: _set(c, ("start", "end"), tail="normal"),
     "time-one-look": lambda c: replace(c, specs=tuple(replace(s, look="in time") if s.name in TIME_ALIGNED else s
                                                       for s in c.specs)),
 }

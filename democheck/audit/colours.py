@@ -112,6 +112,30 @@ def named_colour(rgb: tuple[int, int, int], code: bool = True) -> str:
     return f"{name} (#{''.join(f'{c:02x}' for c in rgb)})" if code else name
 
 
+HUE_BINS = 18  # hues of 20 degrees
+SATURATED = 80  # of 255: a more saturated pixel has a hue worth naming; a less saturated one is a grey
+BRIGHT = 128  # of 255: a brighter pixel is light, a darker one dark
+
+
+def colour_bins(pixels: np.ndarray, hues: int = HUE_BINS) -> np.ndarray:
+    """[n] the colour bin of each of ``pixels`` (uint8 RGB [n, 3]): ``hue * 4 + saturated * 2 + bright``."""
+    if not len(pixels):
+        return np.zeros(0, np.int64)
+    hsv = cv2.cvtColor(np.ascontiguousarray(pixels[None], np.uint8), cv2.COLOR_RGB2HSV_FULL)[0].astype(np.int64)
+    return hsv[:, 0] * hues // 256 * 4 + (hsv[:, 1] > SATURATED) * 2 + (hsv[:, 2] > BRIGHT)
+
+
+def saturated(b: int) -> bool:
+    """Whether a colour bin (``colour_bins``) holds saturated colours, a hue worth naming, not greys."""
+    return bool((b // 2) % 2)
+
+
+def bin_colour(b: int) -> str:
+    """A colour bin (``colour_bins``) as a person names it: 'red', 'dark blue', 'light grey'."""
+    rgb = colorsys.hsv_to_rgb((b // 4 + 0.5) / HUE_BINS, 0.8 if saturated(b) else 0.1, 0.85 if b % 2 else 0.35)
+    return named_colour(tuple(int(255 * c) for c in rgb), code=False)
+
+
 COLOURS = Vocabulary("colours", {
     "changed": lambda more, colour, share, median, z: (
         f"the view's colours changed: {'more' if more else 'less'} {colour} than its task's other demos: "

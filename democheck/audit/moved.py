@@ -13,14 +13,12 @@ the colours the task or the demo changed.
 
 from __future__ import annotations
 
-import colorsys
 import warnings
 
-import cv2
 import numpy as np
 import pandas as pd
 
-from democheck.audit.colours import named_colour
+from democheck.audit.colours import HUE_BINS, bin_colour, colour_bins, saturated
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
 from democheck.audit.scores import calibrated
@@ -30,9 +28,6 @@ from democheck.data.demo import Demo
 
 MOVED_SIZE = 64  # px: the side both pictures are compared at (an object a few pixels wide still counts)
 MOVED_CHANGE = 30  # levels of 255: a pixel whose first and last value differ this much in some channel changed
-HUE_BINS = 18  # hues of 20 degrees
-SATURATED = 80  # of 255: a more saturated pixel has a hue worth naming; a less saturated one is a grey
-BRIGHT = 128  # of 255: a brighter pixel is light, a darker one dark
 BINS = HUE_BINS * 4
 MOVED_FLOOR = 1.0  # root-count units: a robust SD stands for at least one pixel's change of a colour
 MOVED_MIN_SCALE = 0.1  # the score's least robust SD within its task, in robust SD of a colour
@@ -72,18 +67,6 @@ def changed_pixels(first: np.ndarray, last: np.ndarray, change: int = MOVED_CHAN
     return first[changed], last[changed]
 
 
-def colour_bins(pixels: np.ndarray, hues: int = HUE_BINS) -> np.ndarray:
-    """[n] the colour bin of each of ``pixels`` (uint8 RGB [n, 3]): ``hue * 4 + saturated * 2 + bright``."""
-    if not len(pixels):
-        return np.zeros(0, np.int64)
-    hsv = cv2.cvtColor(np.ascontiguousarray(pixels[None], np.uint8), cv2.COLOR_RGB2HSV_FULL)[0].astype(np.int64)
-    return hsv[:, 0] * hues // 256 * 4 + (hsv[:, 1] > SATURATED) * 2 + (hsv[:, 2] > BRIGHT)
-
-
-def _saturated(b: int) -> bool:
-    return bool((b // 2) % 2)
-
-
 def changed_colours(first: np.ndarray, last: np.ndarray) -> np.ndarray:
     """[BINS] counts of the changed pixels' colours, in ``first`` and in ``last`` (uint8 RGB [h, w, 3] each)."""
     return np.bincount(colour_bins(np.concatenate(changed_pixels(first, last))), minlength=BINS).astype(float)
@@ -94,12 +77,6 @@ def colour_z(root: np.ndarray, tasks: np.ndarray, floor: float = MOVED_FLOOR) ->
     ``floor``), NaN where neither the task nor the demo changed that colour; and the task's median root count."""
     z, median = task_z(root, tasks, floor, VIEW_MIN_DEMOS, small="all")
     return np.where((median > 0) | (root > 0), z, np.nan), median
-
-
-def bin_colour(b: int) -> str:
-    """A colour bin as a person names it: 'red', 'dark blue', 'light grey'."""
-    rgb = colorsys.hsv_to_rgb((b // 4 + 0.5) / HUE_BINS, 0.8 if _saturated(b) else 0.1, 0.85 if b % 2 else 0.35)
-    return named_colour(tuple(int(255 * c) for c in rgb), code=False)
 
 
 def _listed(names: list[str]) -> str:
@@ -159,7 +136,7 @@ def moved(stats: MovedStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Findin
         lost = list(dict.fromkeys(bin_colour(int(b)) for b in off if root[i, b] <= median[i, b]))
         # A grey that changed more is the arm's, the table's or a shadow's as often as an object's: where only greys
         # were gained and some of the task's colours lost, what the task moves did not move.
-        hue_gained = any(_saturated(b) for b in more)
+        hue_gained = any(saturated(b) for b in more)
         kind = "another object" if hue_gained or not lost else "not moved"
         found.append(MOVED(kind, gained=gained, lost=lost, z=float(z[i, off[0]])))
     return calibrated(rms, tasks, min_scale=MOVED_MIN_SCALE), found

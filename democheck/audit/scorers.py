@@ -231,11 +231,13 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "RMS): another object moved, or none -- the outcome seen by the camera", ("demos", "frames"), _moved,
            decode=lambda ev, rows, device: moved.MovedStats(), short="moved", per_camera=True),
     Scorer("start", "model-free: how unlike its nearest task-mates' the demo's first picture is (share of it "
-           f"over {timeline.UNLIKE:g} robust SD from theirs), robust z within its task: a demo that begins "
-           "elsewhere, or where its task's demos end (done backwards)",
+           f"over {timeline.UNLIKE:g} robust SD from theirs), and how much nearer their last pictures than their "
+           "first its colours side by side lie (wherever they lie), the larger robust z within its task: a demo that "
+           "begins elsewhere, or where its task's demos end (done backwards)",
            ("demos",), _start, behaviour="timeline", decode=_timeline, short="start"),
-    Scorer("end", "model-free: how unlike its nearest task-mates' the demo's last picture is, as the start's: a "
-           "failed place, a knocked-over object, a demo that ends where its task's demos begin",
+    Scorer("end", "model-free: how unlike its nearest task-mates' the demo's last picture is, and how much nearer "
+           "their first, as the start's: a failed place, a knocked-over object, a demo that ends where its task's "
+           "demos begin",
            ("demos",), _end, behaviour="timeline", decode=_timeline, short="end"),
     Scorer("path", f"model-free: how far the demo's path ({timeline.PATH_POINTS} points in normalised time, of its "
            "state and of its camera's grey thumbnail) lies from its nearest task-mates' (RMS distance over the path "

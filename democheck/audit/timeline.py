@@ -21,8 +21,16 @@ mates' by the share of its pixels more than ``UNLIKE`` units from theirs (the me
 check counts; a path by its ``PATH_DISTANCES``, the largest robust z of its state's and its picture's.  The demo
 played backwards gives the words: an end as near its mates' starts as their ends are to each other (``_ordinary``), and
 nearer than to their ends, "ends where its task's demos begin"; a path so near its mates' played backwards "runs
-opposite to its task's".  A dataset with no camera has the path's state part alone; one with no state compares its
-actions instead.
+opposite to its task's".
+
+Where each demo lays its objects out anew, or the camera stands elsewhere, pixel by pixel a first picture is as
+near its mates' last as their first: a reset's start is then no further from theirs than any.  Which colours lie
+beside which (``arrangement``: the object on its plate, or on the table) does not depend on where: a start or an
+end is also scored by how much nearer its mates' other end than their same end it lies, at both ends
+(``toward_other_end``, the lesser of the start's and the end's: done backwards is backwards at both), the larger
+robust z of that and the pixels' counting.
+
+A dataset with no camera has the path's state part alone; one with no state compares its actions instead.
 """
 
 from __future__ import annotations
@@ -30,6 +38,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from democheck.audit.colours import colour_bins
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
 from democheck.audit.scores import calibrated
@@ -40,6 +49,12 @@ END_FRAMES = 3  # frames at each end whose median picture stands for it (one fra
 END_THUMB = 24  # pixels: the side of the thumbnail of a demo's first and last picture
 PATH_POINTS = 32  # points of a demo's path, evenly spaced from its first step to its last
 PATH_THUMB = 8  # pixels: the side of the grey thumbnail at each point of the path
+ARRANGE_SIZE = 64  # pixels: the side of the first and last picture whose colours side by side are counted
+ARRANGE_HUES = 12  # hues of 30 degrees, each saturated or grey, light or dark (``colours.colour_bins``)
+ARRANGE_STEP = 2  # pixels apart: two colours this far apart across or down the picture lie side by side
+ARRANGE_FLOOR = 1.0  # root-count units: a robust SD stands for at least one more pair of a kind
+ARRANGE_MIN_SCALE = 0.05  # log units: the least robust SD of the colour pairs' log distances within a group
+ARRANGE_ALIKE = 0.1  # robust SD: two pictures' colour pairs nearer than this are alike (a distance's least value)
 NEAR = 5  # task-mates a demo is compared with (at most half its group)
 MIN_GROUP = 4  # a group of fewer demos gives its demos no score
 UNLIKE = VIEW_K  # units: a pixel this far from each of its nearest task-mates' differs
@@ -55,12 +70,14 @@ PATH_DISTANCES = ("whole", "furthest")
 
 class Timeline(PerDemo):
     """Consumer of decoded demos: each demo's first and last picture (``END_THUMB`` RGB, median of ``END_FRAMES``
-    frames), its grey thumbnails and state at ``PATH_POINTS`` points, and the state's names (about 8 kB a
-    demo)."""
+    frames) and its colour pairs (``arrangement``, at ``ARRANGE_SIZE`` px), its grey thumbnails and state at
+    ``PATH_POINTS`` points, and the state's names (about 13 kB a demo)."""
 
-    fields = ("first_view", "last_view", "view_path", "state_path", "names")
+    fields = ("first_view", "last_view", "first_arranged", "last_arranged", "view_path", "state_path", "names")
     first_view: list[np.ndarray | None]
     last_view: list[np.ndarray | None]
+    first_arranged: list[np.ndarray | None]
+    last_arranged: list[np.ndarray | None]
     view_path: list[np.ndarray | None]
     state_path: list[np.ndarray]
     names: list[list[str] | None]
@@ -76,12 +93,13 @@ class Timeline(PerDemo):
                                                                                     np.nan, np.float32))
         self.names.append(demo.extra.get(named))
         if frames.ndim != 4 or not frames.shape[1] or not len(frames):
-            self.first_view.append(None)
-            self.last_view.append(None)
-            self.view_path.append(None)
+            for kept in (self.first_view, self.last_view, self.first_arranged, self.last_arranged, self.view_path):
+                kept.append(None)
             return
         self.first_view.append(picture(frames[:END_FRAMES]))
         self.last_view.append(picture(frames[-END_FRAMES:]))
+        self.first_arranged.append(arrangement(picture(frames[:END_FRAMES], ARRANGE_SIZE)))
+        self.last_arranged.append(arrangement(picture(frames[-END_FRAMES:], ARRANGE_SIZE)))
         size = (PATH_THUMB, PATH_THUMB)
         self.view_path.append(np.stack([
             cv2.resize(cv2.cvtColor(np.ascontiguousarray(frames[i]), cv2.COLOR_RGB2GRAY), size,
@@ -97,6 +115,22 @@ def picture(frames: np.ndarray, side: int = END_THUMB) -> np.ndarray:
     size = (side, side)
     small = [cv2.resize(np.ascontiguousarray(f), size, interpolation=cv2.INTER_AREA)[..., :3] for f in frames]
     return np.median(np.stack(small), axis=0).astype(np.uint8)
+
+
+def arrangement(pic: np.ndarray) -> np.ndarray:
+    """How often each two colours lie side by side in a picture (``ARRANGE_STEP`` px apart across or down, two
+    different colours of ``colours.colour_bins`` at ``ARRANGE_HUES``): [k (k - 1) / 2] uint16 counts, one per pair.
+    Where in the picture does not count, so a layout drawn anew does not move it; what touches what does -- an
+    object on its plate or beside it, a part open or shut."""
+    k = ARRANGE_HUES * 4
+    b = colour_bins(pic.reshape(-1, 3), ARRANGE_HUES).reshape(pic.shape[:2])
+    d = ARRANGE_STEP
+    x = np.concatenate([b[:, :-d].ravel(), b[:-d, :].ravel()])
+    y = np.concatenate([b[:, d:].ravel(), b[d:, :].ravel()])
+    apart = x != y
+    lo, hi = np.minimum(x[apart], y[apart]), np.maximum(x[apart], y[apart])
+    counts = np.bincount(lo * k + hi, minlength=k * k).reshape(k, k)
+    return counts[np.triu_indices(k, 1)].astype(np.uint16)
 
 
 def _units(x: np.ndarray, floor: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
@@ -121,6 +155,23 @@ def _nearest(query: np.ndarray, ref: np.ndarray, exclude_self: bool) -> np.ndarr
         near = np.argpartition(d2, k - 1, axis=1)[:, :k]
         out[a:a + len(b)] = np.median(np.abs(b[:, None, :] - r[near]), axis=1)
     return out
+
+
+def _nearest_whole(query: np.ndarray, ref: np.ndarray, exclude_self: bool) -> np.ndarray:
+    """[n] per demo the mean RMS distance (over the features) to the ``NEAR`` demos of ``ref`` nearest it (at most
+    half the others; itself left out where ``exclude_self``).  Unlike ``_nearest``, whole vectors: a few features
+    far off (one object's colours beside another's) count however many others agree."""
+    k = max(1, min(NEAR, (len(ref) - int(exclude_self)) // 2))
+    rr = (ref * ref).sum(1)
+    dist = np.empty(len(query))
+    for a in range(0, len(query), BLOCK):
+        b = query[a:a + BLOCK]
+        d2 = np.maximum((b * b).sum(1)[:, None] + rr[None, :] - 2.0 * b @ ref.T, 0.0)
+        if exclude_self:
+            d2[np.arange(len(b)), np.arange(a, a + len(b))] = np.inf
+        near = np.argpartition(d2, k - 1, axis=1)[:, :k]
+        dist[a:a + len(b)] = np.sqrt(np.take_along_axis(d2, near, axis=1) / query.shape[1]).mean(axis=1)
+    return dist
 
 
 def _grouped(groups: np.ndarray):
@@ -218,6 +269,33 @@ def _view_part(query: list, groups: np.ndarray, cross: list | None = None
     return share, calibrated(share, groups, min_scale=VIEW_MIN_SCALE), masks, cross_share
 
 
+def _arranged_part(query: list, groups: np.ndarray, cross: list) -> tuple[np.ndarray, np.ndarray]:
+    """Per demo, the RMS distance of its picture's colour pairs (``arrangement``: root counts in their group's
+    robust SD, at least ``ARRANGE_FLOOR``, over the pairs some picture of the group shows) to its nearest
+    task-mates', and to ``cross`` (the mates' other end); NaN without a camera."""
+    n = len(query)
+    own, cross_dist = np.full(n, np.nan), np.full(n, np.nan)
+    if any(q is None for q in query):
+        return own, cross_dist
+    for rows in _grouped(groups):
+        q = np.sqrt(np.stack([query[i] for i in rows]).astype(np.float64))
+        c = np.sqrt(np.stack([cross[i] for i in rows]).astype(np.float64))
+        shown = np.flatnonzero((q > 0).any(axis=0) | (c > 0).any(axis=0))
+        z = _in_units(q[:, shown], q[:, shown], ARRANGE_FLOOR)
+        own[rows] = _nearest_whole(z, z, exclude_self=True)
+        cross_dist[rows] = _nearest_whole(z, _in_units(c[:, shown], q[:, shown], ARRANGE_FLOOR), exclude_self=True)
+    return own, cross_dist
+
+
+def toward_other_end(own: np.ndarray, cross: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """[N] robust z within its group of how much nearer a demo's picture lies to its mates' other end than to
+    their same end (the log of ``own`` / ``cross``, each at least ``ARRANGE_ALIKE``): a reset's first picture
+    is its task's last.  Where the colour pairs do not tell a task's starts from its ends, every demo is about
+    as near both and none is far out."""
+    ratio = np.log(np.maximum(own, ARRANGE_ALIKE) / np.maximum(cross, ARRANGE_ALIKE))
+    return calibrated(ratio, groups, min_scale=ARRANGE_MIN_SCALE)
+
+
 def _state_part(query: np.ndarray, groups: np.ndarray, floor: np.ndarray | float, backwards: bool = False,
                 pooled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per demo of a path's part (``query`` [N, PATH_POINTS, ...], any dtype), the RMS distance to its nearest
@@ -278,14 +356,28 @@ def _end(t: Timeline, groups: np.ndarray, which: str) -> tuple[np.ndarray, list[
     first = which == "first"
     vocab, crossed = (START, "where they end") if first else (END, "where they begin")
     views, others = (t.first_view, t.last_view) if first else (t.last_view, t.first_view)
+    arranged, other_arranged = (t.first_arranged, t.last_arranged) if first else (t.last_arranged, t.first_arranged)
     if any(v is None for v in views):
         return np.full(len(views), np.nan), [vocab("no frames")] * len(views)
-    share, score, masks, cross = _view_part(views, groups, others)
+    share, view_z, masks, cross = _view_part(views, groups, others)
+    own, arranged_cross = _arranged_part(arranged, groups, other_arranged)
+    other_own, other_cross = _arranged_part(other_arranged, groups, arranged)
+    # Done backwards is backwards at both ends: the lesser of the two ends' nearness to the other (a card over the
+    # view at one end takes that end's picture away from its mates' same end, and nearer none).
+    toward = np.minimum(toward_other_end(own, arranged_cross, groups),
+                        toward_other_end(other_own, other_cross, groups))
     # near its mates' other end, as near as their own other ends are to each other: done backwards
     like_other = _ordinary(cross, _view_part(others, groups)[0], groups, VIEW_MIN_SCALE)
+    arranged_like_other = _ordinary(arranged_cross, other_own, groups, ARRANGE_MIN_SCALE, log=True)
+    score = np.fmax(view_z, toward)
     found = []
     for i in range(len(score)):
-        if not np.isfinite(score[i]) or not share[i]:
+        by_colours = np.isfinite(toward[i]) and not view_z[i] >= toward[i]
+        if not np.isfinite(score[i]):
+            found.append(vocab("like"))
+        elif by_colours and toward[i] > ORDINARY and arranged_cross[i] < own[i] and arranged_like_other[i]:
+            found.append(vocab(crossed, distance=float(own[i]), cross=float(arranged_cross[i])))
+        elif not share[i]:
             found.append(vocab("like"))
         elif cross[i] < share[i] and like_other[i]:
             found.append(vocab(crossed, share=float(share[i]), cross=float(cross[i])))
