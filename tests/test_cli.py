@@ -134,6 +134,7 @@ def test_ctrl_c_taken_by_another_thread_while_workers_start_is_answered_after_th
     stop = threading.Event()
     other = threading.Thread(target=stop.wait, daemon=True)  # started before the mask: takes what the main blocks
     other.start()
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # whatever an earlier test left
     starting_done = False
     try:
         with pytest.raises(KeyboardInterrupt):
@@ -141,9 +142,11 @@ def test_ctrl_c_taken_by_another_thread_while_workers_start_is_answered_after_th
                 os.kill(os.getpid(), signal.SIGINT)
                 time.sleep(0.2)
                 starting_done = True
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         stop.set()
-    assert starting_done and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        signal.signal(signal.SIGINT, before)
+    assert starting_done
 
 
 def test_info_says_before_any_long_work_that_the_video_files_are_not_where_the_metadata_says(tmp_path):
