@@ -306,19 +306,12 @@ class DemoSet:
         return self._src.action_dim
 
     def names(self, what: str) -> list[str]:
-        """Names of the ``state`` or ``action`` dimensions: the dataset's own where it gives them, else
-        ``state[0]``, ``state[1]``, ..."""
-        dim = self.state_dim if what == "state" else self.action_dim
+        """Names of the ``state``, ``action`` or ``env_state`` dimensions: the dataset's own where it gives them,
+        else ``state[0]``, ``state[1]``, ...; no environment state's where the dataset records none."""
+        dim = {"state": self.state_dim, "action": self.action_dim,
+               "env_state": int(getattr(self._src, "env_state_dim", 0) or 0)}[what]
         given = getattr(self._src, f"{what}_names", None)
         return list(given) if given and len(given) == dim else [f"{what}[{i}]" for i in range(dim)]
-
-    @property
-    def env_state_names(self) -> list[str]:
-        """Names of the environment state's dimensions where the dataset records one (its own, else
-        ``env_state[0]``, ...); none without."""
-        dim = int(getattr(self._src, "env_state_dim", 0) or 0)
-        given = getattr(self._src, "env_state_names", None)
-        return list(given) if given and len(given) == dim else [f"env_state[{i}]" for i in range(dim)]
 
     @property
     def episodes(self) -> pd.DataFrame:

@@ -190,7 +190,7 @@ def make_probes(source: str | Path, out: str | Path, kinds: list[str] | None = N
     tasks = sorted({str(ds.episodes.loc[src, "task"]) for _, src in picks})
     # The probes keep the source's names (democheck's own where its sim records say how to re-simulate).
     names = ((STATE_NAMES, ACTION_NAMES, ENV_STATE_NAMES) if has_sim else
-             (ds.names("state"), ds.names("action"), ds.env_state_names))
+             (ds.names("state"), ds.names("action"), ds.names("env_state")))
     context = {"task_index": {t: i for i, t in enumerate(tasks)}, "fps": int(round(ds.fps)),
                "env_state_dim": len(names[2]),
                "source_codec": source_codec(ds),
