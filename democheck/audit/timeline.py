@@ -351,24 +351,42 @@ def _stack_state(paths: list[np.ndarray], at: int | slice) -> np.ndarray:
     return out[:, at]
 
 
+def _compared_ends(t: Timeline, groups: np.ndarray) -> dict:
+    """Each end's picture against its mates' same end and other end, pixel by pixel (``_view_part``) and by its
+    colour pairs (``_arranged_part``), and the colour pairs' nearness to the other end at both ends (``toward``):
+    what the start and the end checks both read, computed once for ``groups`` (kept on ``t``)."""
+    key = np.asarray(groups).tobytes()
+    kept = getattr(t, "_compared", None)
+    if kept is not None and kept[0] == key:
+        return kept[1]
+    views = {"first": t.first_view, "last": t.last_view}
+    arranged = {"first": t.first_arranged, "last": t.last_arranged}
+    out = {}
+    for which, other in (("first", "last"), ("last", "first")):
+        out[which] = {"view": _view_part(views[which], groups, views[other]),
+                      "arranged": _arranged_part(arranged[which], groups, arranged[other])}
+    # Done backwards is backwards at both ends: the lesser of the two ends' nearness to the other (a card over the
+    # view at one end takes that end's picture away from its mates' same end, and nearer none).
+    out["toward"] = np.minimum(*(toward_other_end(*out[which]["arranged"], groups) for which in ("first", "last")))
+    t._compared = (key, out)
+    return out
+
+
 def _end(t: Timeline, groups: np.ndarray, which: str) -> tuple[np.ndarray, list[Finding]]:
     """The ``start`` (``which`` "first") or ``end`` ("last") check: see the module docstring."""
     first = which == "first"
     vocab, crossed = (START, "where they end") if first else (END, "where they begin")
-    views, others = (t.first_view, t.last_view) if first else (t.last_view, t.first_view)
-    arranged, other_arranged = (t.first_arranged, t.last_arranged) if first else (t.last_arranged, t.first_arranged)
+    views = t.first_view if first else t.last_view
     if any(v is None for v in views):
         return np.full(len(views), np.nan), [vocab("no frames")] * len(views)
-    share, view_z, masks, cross = _view_part(views, groups, others)
-    own, arranged_cross = _arranged_part(arranged, groups, other_arranged)
-    other_own, other_cross = _arranged_part(other_arranged, groups, arranged)
-    # Done backwards is backwards at both ends: the lesser of the two ends' nearness to the other (a card over the
-    # view at one end takes that end's picture away from its mates' same end, and nearer none).
-    toward = np.minimum(toward_other_end(own, arranged_cross, groups),
-                        toward_other_end(other_own, other_cross, groups))
+    ends = _compared_ends(t, groups)
+    mine, other = ends[which], ends["last" if first else "first"]
+    share, view_z, masks, cross = mine["view"]
+    own, arranged_cross = mine["arranged"]
+    toward = ends["toward"]
     # near its mates' other end, as near as their own other ends are to each other: done backwards
-    like_other = _ordinary(cross, _view_part(others, groups)[0], groups, VIEW_MIN_SCALE)
-    arranged_like_other = _ordinary(arranged_cross, other_own, groups, ARRANGE_MIN_SCALE, log=True)
+    like_other = _ordinary(cross, other["view"][0], groups, VIEW_MIN_SCALE)
+    arranged_like_other = _ordinary(arranged_cross, other["arranged"][0], groups, ARRANGE_MIN_SCALE, log=True)
     score = np.fmax(view_z, toward)
     found = []
     for i in range(len(score)):
