@@ -110,7 +110,7 @@ def write_meta(root: Path, rows: list[dict[str, Any]], tasks: list[str], fps: in
     """Write meta/: info.json, tasks.parquet, episodes table, stats.json and democheck's sidecar.  ``image_size``:
     the camera's side (square) or (height, width); no ``env_state_names``: the episodes record no environment
     state (``Demo.env_state`` None)."""
-    height, width = (image_size, image_size) if isinstance(image_size, int) else image_size
+    height, width = video.frame_size(image_size)
     rows = sorted(rows, key=lambda r: r["episode_index"])
     meta = root / "meta"
     (meta / "democheck").mkdir(parents=True, exist_ok=True)

@@ -38,13 +38,18 @@ PRESET = "ultrafast"
 LOSSLESS_CODEC = "libx264rgb"
 
 
+def frame_size(size: int | tuple[int, int]) -> tuple[int, int]:
+    """A camera's (height, width) from its side (square) or from (height, width)."""
+    return (int(size), int(size)) if isinstance(size, (int, np.integer)) else (int(size[0]), int(size[1]))
+
+
 class VideoWriter:
     """Append frames to an MP4; frame ``k`` of the file has timestamp ``k / fps``; ``lossless``: bit-exact."""
 
     def __init__(self, path: str | Path, fps: int, size: int | tuple[int, int], pix_fmt: str = DEFAULT_PIX_FMT,
                  crf: int = DEFAULT_CRF, lossless: bool = False):
         """``size``: the frames' side (square) or (height, width)."""
-        height, width = (size, size) if isinstance(size, (int, np.integer)) else (int(size[0]), int(size[1]))
+        height, width = frame_size(size)
         if pix_fmt == "yuv420p" and (height % 2 or width % 2) and not lossless:
             raise ValueError(f"yuv420p needs an even frame size, got {height}x{width}; use yuv444p")
         self.path = Path(path)
