@@ -231,6 +231,29 @@ def test_the_outcome_says_whether_the_world_differed_from_the_start_and_what_nev
     assert "holds one value" not in found[31].words
 
 
+def test_a_joint_the_robot_turned_once_counts_as_one_far_feature_not_hundreds_of_units():
+    """The robot's own state as the record: 40 demos leave the wrist where it began, two turn it 0.7 rad.  Against
+    the pile's spread of nothing that is hundreds of units; in the score it counts ``ROBOT_CLIP`` (the words keep
+    the distance).  The same turn of an object in the environment state stays as far as it is."""
+    from democheck.audit.outcome import ROBOT_CLIP, OutcomeStats, outcome
+
+    rng = np.random.default_rng(2)
+    scores = {}
+    for source in ("state", "environment state"):
+        stats = OutcomeStats()
+        for i in range(42):
+            first = np.array([0.0, 0.0, 0.0])
+            last = np.array([rng.normal(1.0, 0.05), rng.normal(-0.5, 0.05), 0.7 if i >= 40 else 0.0])
+            stats.ends.append(np.stack([first, last]))
+            stats.sources.append(source)
+            stats.names.append(["shoulder", "elbow", "wrist"])
+            stats.moves.append(np.stack([np.abs(last - first), np.full(3, 1e-6)]))
+        scores[source], found = outcome(stats, np.array(["pick"] * 42))
+        assert found[41].params["name"] == "wrist" and found[41].params["z"] > 100
+    assert scores["state"][40:].max() <= ROBOT_CLIP
+    assert scores["environment state"][40:].min() > 100
+
+
 def test_a_fault_a_few_of_one_tasks_demos_share_is_no_outcome_of_the_task_but_a_toggle_is():
     """Three of a task's twelve demos pushed the other object to the goal too (it began where the others' did):
     in a dataset of several tasks they are far out, not an outcome of their own.  A button that ends on where it

@@ -24,6 +24,9 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
   ``ROTATION_FLOOR``.  For a demo that moved the feature at least ``TASK_FLOOR`` of how far its task's demos
   typically move it, at least that: a job done in part is measured in shares of the job, a part never moved (or
   only stirred) in its task's spread.  A feature no demo moves further than float noise (a fixed part) says nothing.
+- **The robot's own pose is the operator's**: where the record is the state (no environment state), one feature
+  counts at most ``ROBOT_CLIP`` units in the score, so a joint the operator turned once, where the task's demos
+  never turn it, is one far feature rather than the whole outcome.
 - **A switch is a task's, not a stray demo's**: a value is discrete (each measured against the demos that reached
   its outcome) where the demos of two tasks or more each split between outcomes, each held by ``MODE_SHARE`` of
   the task -- one wrong-task demo in each of two tasks makes no switch.
@@ -61,6 +64,11 @@ MOVE_FLOOR = 0.005  # and this share of how far the demos that move it move it (
 # a part a few tenths short of where its task's others pile (a slide short of its stop) did the task's job in part;
 # one that never moved it, or moved what its task leaves alone, stays many units out.
 TASK_FLOOR = 0.1
+# Robust SD: where the record is the robot's own state, a feature further off counts this far in the score (its
+# words keep the distance).  A joint the task's demos leave where it began (a wrist never turned) piles at one value,
+# and an operator who turned it once is then hundreds of the pile's units off: the robot's pose is the operator's
+# choice, not a changed world.
+ROBOT_CLIP = 20.0
 ROTATION_FLOOR = 0.05  # a rotation's least robust SD, in units of q q^T or of cosine and sine (about 3 degrees)
 # A demo moves a dimension when its range over the demo exceeds this many of its jitters (the median size of its
 # second differences: about 0 for smooth motion, and white noise's range is 3-6 of them).
@@ -306,7 +314,9 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Fi
         z = np.column_stack(z_cols)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            out[rows] = np.sqrt(np.nanmean(z ** 2, axis=1))
+            # the robot's own pose: one wild feature is one feature, not the distance (``ROBOT_CLIP``)
+            counted = np.minimum(z, ROBOT_CLIP) if source == "state" else z
+            out[rows] = np.sqrt(np.nanmean(counted ** 2, axis=1))
         for k, i in enumerate(rows):
             if not np.isfinite(z[k]).any():
                 if not np.isfinite(last[k]).any():
