@@ -33,6 +33,18 @@ def _lead(names: list[str], p: list[float], kinds: dict[str, str] | None = None,
     return config.names[lead_of(config, log_p[0], found, tier)[0]]
 
 
+def test_a_reset_names_its_start_and_end_once_not_again_by_the_checks_that_read_them_too():
+    """A demo done backwards, beyond every clean demo on the ``backwards`` check and on its start: the recipe's rule
+    has the reset lead and leaves the start's "begins where its task's demos end" out (``says_again``); the start's
+    other finding, a picture unlike its task's, is its own news and stays."""
+    config = ranking_config(["backwards", "start", "lag"])
+    log_p = np.log(np.array([1e-6, 1e-6, 1e-5]))
+    tier = np.zeros(3, int)
+    for kind, named in (("where they end", ["backwards", "lag"]), ("view", ["backwards", "start", "lag"])):
+        found = [Finding("backwards", "done backwards"), Finding("start", kind), Finding("lag", "delay")]
+        assert [config.names[j] for j in lead_of(config, log_p, found, tier)] == named, kind
+
+
 def test_a_reason_leads_with_what_the_demo_did_over_a_reading_of_it():
     """The coupling (a reading of how actions go with the state) beyond every clean demo, and the arm standing
     still clearly unusual: the reason leads with the arm.  A recording fault beyond every clean demo keeps the lead,

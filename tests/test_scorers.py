@@ -48,7 +48,7 @@ CONTROLS = {"random"}
 # gripper); in tests/test_modelfree.py, another object moved (six demos a task, as here, are too few for a task's
 # usual colours of change: measured on the development sets, docs/results.md).
 ELSEWHERE = {"moved", "frozen_video", "frame_jump", "duplicate", "dynamics", "lag", "timing", "broken", "frozen_state",
-             "coupling", "start", "end", "path", "pause", "grasps"}
+             "coupling", "start", "end", "path", "backwards", "pause", "grasps"}
 
 
 @pytest.fixture(scope="module")
@@ -143,8 +143,8 @@ def test_a_ranking_recipe_with_an_unknown_score_key_tail_or_kind_is_one_clear_er
                        # the reasons' precedence: a kind no check declares, a check not ranked, an unknown key
                        ('demoted = ["motion:less"', 'demoted = ["motion:lesser"'),
                        ('first = "outcome"', 'first = "outcom"'),
-                       ('over = ["view", "colours", "end", "path", "moved"]',
-                        'over = ["view", "colours", "end", "path", "moved"]\nafter = 1'),
+                       ('over = ["view", "colours", "end", "path", "moved", "backwards"]',
+                        'over = ["view", "colours", "end", "path", "moved", "backwards"]\nafter = 1'),
                        ("same_camera = true", 'same_camera = "yes"'), ("task_units = true", "task_units = 1")):
         path = tmp_path / "r.toml"
         path.write_text(shipped.replace(bad, words, 1))

@@ -1,4 +1,4 @@
-"""The time-aligned checks (``start``, ``end``, ``path``) and the probes that plant what they are for.
+"""The time-aligned checks (``start``, ``end``, ``path``, ``backwards``) and the probes that plant what they are for.
 
 A task of 30 demos in which the arm carries a bright block from the left of the view to the right: one demo is
 the recording played backwards (a reset recorded as a demo), one ends with the block knocked down to the bottom
@@ -53,7 +53,7 @@ def _carries(frames: bool = True) -> list[Demo]:
 def _evidence(demos: list[Demo]) -> Evidence:
     ev = Evidence(episodes=pd.DataFrame({"episode_index": [d.episode_index for d in demos],
                                          "task": [d.task for d in demos]}))
-    chosen = select(["start", "end", "path"])
+    chosen = select(["start", "end", "path", "backwards"])
     consumer = chosen[0].decode(ev, slice(0, len(demos)), "cpu")
     for d in demos:
         consumer.add(d)
@@ -73,6 +73,9 @@ def _top(ev: Evidence, check: str) -> int:
 def test_a_demo_played_backwards_begins_where_they_end_ends_where_they_begin_and_runs_opposite(carried):
     for check in ("start", "end", "path"):
         assert _top(carried, check) == REVERSED, check
+    # One block on one background: its colours side by side are the same at both ends, so the ``backwards`` check
+    # cannot tell (where the block lies tells, which the start and the end read)
+    assert carried.findings["backwards"][REVERSED].kind == "forwards"
     assert carried.findings["start"][REVERSED].kind == "where they end"
     assert carried.findings["end"][REVERSED].kind == "where they begin"
     assert carried.findings["path"][REVERSED].kind == "backwards"
@@ -85,8 +88,9 @@ def test_a_knocked_over_object_is_an_end_unlike_its_tasks_and_says_where(carried
     assert end[KNOCKED] > np.delete(end, [REVERSED, KNOCKED]).max() + 2
     finding = carried.findings["end"][KNOCKED]
     assert finding.kind == "view" and finding.params["place"] == "the bottom right"
-    # its start is its task's
+    # its start is its task's, and it went forwards
     assert carried.findings["start"][KNOCKED].kind == "like"
+    assert carried.findings["backwards"][KNOCKED].kind == "forwards"
 
 
 def test_a_detour_strays_in_the_joint_it_took_half_way(carried):
@@ -100,7 +104,7 @@ def test_a_detour_strays_in_the_joint_it_took_half_way(carried):
 
 def test_clean_demos_stay_within_a_few_robust_sd():
     ev = _evidence([_carry(i, np.random.default_rng(100 + i)) for i in range(N)])
-    for check in ("start", "end", "path"):
+    for check in ("start", "end", "path", "backwards"):
         assert np.nanmax(ev.scores[check]) < 5, (check, np.sort(ev.scores[check])[-3:])
 
 
@@ -135,7 +139,7 @@ def test_a_reset_is_found_by_what_lies_beside_what_wherever_the_objects_lie():
     own, cross = _arranged_part(t.first_arranged, np.zeros(N, int), t.last_arranged)
     clean = np.delete(np.arange(N), REVERSED)
     assert (own[clean] < cross[clean]).all() and cross[REVERSED] < own[REVERSED]
-    for check, kind in (("start", "where they end"), ("end", "where they begin")):
+    for check, kind in (("start", "where they end"), ("end", "where they begin"), ("backwards", "done backwards")):
         assert _top(ev, check) == REVERSED, (check, np.round(ev.scores[check], 1))
         assert ev.findings[check][REVERSED].kind == kind
 

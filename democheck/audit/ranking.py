@@ -40,13 +40,15 @@ class Rule:
     and ``first`` is beyond every clean demo too, ``first`` leads -- where every finding of ``when`` is beyond
     too and none of ``unless`` is named in the reason (a rule applies on clear evidence; any evidence against it
     stops it).  ``same_camera``: only over a finding read from the camera ``first`` was read from (a camera that
-    stopped explains its own pictures, not another camera's)."""
+    stopped explains its own pictures, not another camera's).  ``says_again``: findings that tell the lead's story
+    again in part (a reset's start, where it ends): where ``first`` leads, its reason leaves them out."""
 
     first: str
     over: tuple[str, ...]
     when: tuple[str, ...] = ()
     unless: tuple[str, ...] = ()
     same_camera: bool = False
+    says_again: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -64,7 +66,8 @@ class Precedence:
 
     @classmethod
     def from_dict(cls, d: Mapping) -> Precedence:
-        return cls(**{k: tuple(Rule(**{**r, **{f: tuple(r.get(f, ())) for f in ("over", "when", "unless")}})
+        return cls(**{k: tuple(Rule(**{**r, **{f: tuple(r.get(f, ())) for f in ("over", "when", "unless",
+                                                                           "says_again")}})
                                for r in v) if k == "rules" else tuple(v) for k, v in d.items()})
 
 

@@ -156,7 +156,9 @@ def lead_of(config: RankingConfig, row: np.ndarray, found: list[Finding | None],
     if check_of(names[lead]) not in pre.behaviour and not specs[lead].alone:  # a reading: what the demo did leads
         plain = [j for j in order if check_of(names[j]) in pre.behaviour]
         lead = first(plain) if plain else lead
-    return [lead, *[j for j in order if j != lead]][:CLAUSES]
+    again = [a for rule in pre.rules if _matches(found[lead], rule.first, names[lead]) for a in rule.says_again]
+    rest = [j for j in order if j != lead and not any(_matches(found[j], a, names[j]) for a in again)]
+    return [lead, *rest][:CLAUSES]
 
 
 def explain(ranking: Ranking, findings: Mapping[str, list[Finding]], fpr: float, broken: np.ndarray | None = None,
@@ -218,7 +220,8 @@ def precedence_table(config: RankingConfig, kinds: Mapping[str, tuple[str, ...]]
         when = f"; when {', '.join(rule.when)} is beyond too" if rule.when else ""
         unless = f"; unless {', '.join(rule.unless)} is named" if rule.unless else ""
         same = " on its own camera" if rule.same_camera else ""
-        lines.append(f"| rule | {rule.first} leads over {', '.join(rule.over)}{same}{when}{unless} |")
+        again = f"; its reason leaves out {', '.join(rule.says_again)}" if rule.says_again else ""
+        lines.append(f"| rule | {rule.first} leads over {', '.join(rule.over)}{same}{when}{unless}{again} |")
     lines += ["", "| check | kinds |", "|---|---|"]
     lines += [f"| `{check}` | {', '.join(found)} |" for check, found in kinds.items()]
     return "\n".join(lines) + "\n"

@@ -135,6 +135,10 @@ def _path(ev: Evidence) -> Scores:
     return timeline.path(ev.behaviour["timeline"], ev.groups)
 
 
+def _backwards(ev: Evidence) -> Scores:
+    return timeline.backwards(ev.behaviour["timeline"], ev.groups)
+
+
 def _timeline(ev: Evidence, rows: slice, device: Any) -> timeline.Timeline:
     return timeline.Timeline()
 
@@ -244,6 +248,10 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "and at its furthest point, log, the largest robust z within its task): a detour, a regrasp, a path run "
            "backwards",
            ("demos",), _path, behaviour="timeline", decode=_timeline, short="path"),
+    Scorer("backwards", "model-free: how much nearer its nearest task-mates' last pictures than their first the "
+           "demo's first picture lies, and its last nearer their first, by which colours lie beside which (the lesser "
+           "of its two ends, robust z within its task): a reset recorded as a demo",
+           ("demos",), _backwards, behaviour="timeline", decode=_timeline, short="backw."),
     Scorer("coupling", "model-free: how little the demo's actions go with its state (minus their mutual "
            "information over its steps, KSG estimate, nats); one look with the action error in the ranking",
            ("demos",), _coupling,
@@ -277,7 +285,7 @@ TAILS = ("exponential", "normal")  # the families a score's clean right tail may
 RANKING_KEYS = {"log": bool, "in_robust_sd": bool, "floor": float, "tail": str, "alone": bool, "beside": bool,
                 "look": str, "single_task": bool}
 REASON_KEYS = {"order", "demoted", "behaviour", "rules"}
-RULE_KEYS = {"first", "over", "when", "unless", "same_camera"}
+RULE_KEYS = {"first", "over", "when", "unless", "same_camera", "says_again"}
 
 
 def _precedence_errors(section: dict, scores: dict) -> list[str]:
@@ -287,7 +295,7 @@ def _precedence_errors(section: dict, scores: dict) -> list[str]:
     names = [*section.get("order", []), *section.get("demoted", []), *section.get("behaviour", [])]
     for r in section.get("rules", []):
         bad += [f"reasons.rules.{k}" for k in sorted(set(r) - RULE_KEYS)]
-        names += [r.get("first", "")] + [n for k in ("over", "when", "unless") for n in r.get(k, [])]
+        names += [r.get("first", "")] + [n for k in ("over", "when", "unless", "says_again") for n in r.get(k, [])]
         if not isinstance(r.get("same_camera", False), bool):
             bad.append(f"reasons.rules.same_camera: {r['same_camera']!r}")
     bad += [f"reasons: {n!r}" for n in names if not known(n) or n.partition(":")[0] not in scores]

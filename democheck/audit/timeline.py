@@ -229,6 +229,18 @@ END = Vocabulary("end", {
 })
 
 
+BACKWARDS = Vocabulary("backwards", {
+    # both its ends nearer its task-mates' other end than their same end, and as near as their ends are to each other
+    "done backwards": "begins where its task's demos end and ends where they begin: done backwards (a reset recorded "
+                      "as a demo?)",
+    # both ends nearer the mates' other end than the task's demos are, not as near as those are to each other
+    "toward the other end": "its first picture lies nearer its task's last pictures, and its last nearer their first, "
+                            "than its task's demos do: partly done backwards?",
+    "forwards": "goes the way its task's demos go",
+    "no frames": "no camera to compare",
+})
+
+
 def _backwards_words(part: str, **_) -> str:
     what = "its state" if part == "state" else "what its camera sees"
     return f"its path runs opposite to its task's: {what}, played backwards, is nearer its task's demos than forwards"
@@ -402,6 +414,31 @@ def _end(t: Timeline, groups: np.ndarray, which: str) -> tuple[np.ndarray, list[
         else:
             found.append(vocab("view", share=float(share[i]), place=place(masks[i])))
     return score, found
+
+
+def backwards(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
+    """How much nearer its task-mates' other end than their same end a demo's first and last pictures lie, by which
+    colours lie beside which (``toward_other_end``, the lesser of its two ends, robust z within its task): a reset
+    recorded as a demo, the object carried from where the task's demos leave it to where they find it.  Its own
+    check beside the start's and the end's, which read it too: a recording that should not be a demo is a defect
+    whatever else the demo did, and as one of the three looks in time it would be diluted by their pixels."""
+    n = len(t.first_view)
+    if any(v is None for v in t.first_view):
+        return np.full(n, np.nan), [BACKWARDS("no frames")] * n
+    ends = _compared_ends(t, groups)
+    toward = ends["toward"]
+    crossed = np.ones(n, bool)
+    for which, other in (("first", "last"), ("last", "first")):
+        own, cross = ends[which]["arranged"]
+        crossed &= (cross < own) & _ordinary(cross, ends[other]["arranged"][0], groups, ARRANGE_MIN_SCALE, log=True)
+    found = []
+    for i in range(n):
+        if not toward[i] > ORDINARY:
+            found.append(BACKWARDS("forwards"))
+            continue
+        params = {"z": float(toward[i])}
+        found.append(BACKWARDS("done backwards" if crossed[i] else "toward the other end", **params))
+    return toward, found
 
 
 def start(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
