@@ -254,6 +254,25 @@ def test_a_joint_the_robot_turned_once_counts_as_one_far_feature_not_hundreds_of
     assert scores["environment state"][40:].min() > 100
 
 
+def test_how_fast_a_joint_moved_at_the_last_step_is_no_outcome():
+    """Two of 30 demos stop recording with the wrist still turning (its velocity -1.8 where the others' is 0): the
+    outcome reads where the record was left, not how fast a part moved then; a wrist left elsewhere still counts."""
+    from democheck.audit.outcome import OutcomeStats, outcome
+
+    rng = np.random.default_rng(4)
+    stats = OutcomeStats()
+    for i in range(30):
+        first = np.zeros(2)
+        last = np.array([rng.normal(1.0, 0.05) + (0.8 if i == 29 else 0.0), -1.8 if i in (27, 28) else 0.0])
+        stats.ends.append(np.stack([first, last]))
+        stats.sources.append("state")
+        stats.names.append(["wrist.pos", "wrist.vel"])
+        stats.moves.append(np.stack([np.abs(last - first) + 0.5, np.full(2, 1e-6)]))
+    score, found = outcome(stats, np.array(["pick"] * 30))
+    assert score[27:29].max() < 1 and score[29] > 3 * np.delete(score, 29).max()
+    assert {f.params["name"] for f in found} == {"wrist.pos"}
+
+
 def test_a_fault_a_few_of_one_tasks_demos_share_is_no_outcome_of_the_task_but_a_toggle_is():
     """Three of a task's twelve demos pushed the other object to the goal too (it began where the others' did):
     in a dataset of several tasks they are far out, not an outcome of their own.  A button that ends on where it

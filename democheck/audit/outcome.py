@@ -24,6 +24,8 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
   ``ROTATION_FLOOR``.  For a demo that moved the feature at least ``TASK_FLOOR`` of how far its task's demos
   typically move it, at least that: a job done in part is measured in shares of the job, a part never moved (or
   only stirred) in its task's spread.  A feature no demo moves further than float noise (a fixed part) says nothing.
+- **Where, not how fast**: a dimension the record names a velocity (``reorder.velocities``) is left out -- its value
+  at the last step says how the demo stopped, not where it left anything.
 - **The robot's own pose is the operator's**: where the record is the state (no environment state), one feature
   counts at most ``ROBOT_CLIP`` units in the score, so a joint the operator turned once, where the task's demos
   never turn it, is one far feature rather than the whole outcome.
@@ -49,6 +51,7 @@ from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
 from democheck.audit.world_record import Feature, features_of, represent
 from democheck.data.demo import Demo
+from democheck.data.reorder import velocities
 
 OUTCOME_MIN_DEMOS = 4
 MODE_SHARE = 0.2  # an outcome this share of a task's demos reach (at least 2) is one of its outcomes,
@@ -286,7 +289,10 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Fi
         moves = np.stack([_padded_pair(stats.moves[i], last.shape[1]) for i in rows])
         names = next((stats.names[i] for i in rows if stats.names[i]), None)
         z_cols, what, values, refs, before, held = [], [], [], [], [], []
+        rates = velocities(names, last.shape[1])
         for f in features_of(names, first, last, source):
+            if rates[f.columns].all():  # how fast a part moved at the last step is how the demo stopped
+                continue
             end, start = represent(f, last), represent(f, first)
             u = unit(f, end, moves, tasks[rows])
             if u is None:
