@@ -273,6 +273,25 @@ def test_how_fast_a_joint_moved_at_the_last_step_is_no_outcome():
     assert {f.params["name"] for f in found} == {"wrist.pos"}
 
 
+def test_a_job_undone_is_told_from_another_scene():
+    """Twenty demos push a block from 0 to 0.3.  One begins with it at 0.3 and pushes it back to 0 (a reset
+    recorded as a demo): its job undone.  One begins with it at 0.3 and leaves it there: another scene."""
+    from democheck.audit.outcome import OutcomeStats, outcome
+
+    rng = np.random.default_rng(5)
+    stats = OutcomeStats()
+    for start, end in [(0.0, 0.3)] * 20 + [(0.3, 0.0), (0.3, 0.3)]:
+        first, last = np.array([start + rng.normal(0, 0.005)]), np.array([end + rng.normal(0, 0.005)])
+        stats.ends.append(np.stack([first, last]))
+        stats.sources.append("environment state")
+        stats.names.append(["block.x"])
+        stats.moves.append(np.stack([np.abs(last - first) + 1e-3, np.full(1, 1e-6)]))
+    _, found = outcome(stats, np.array(["push"] * 22))
+    assert found[20].kind == "undone" and found[20].params["part"] == "change"
+    assert "undid its task's job" in found[20].words and "done backwards" in found[20].words
+    assert found[21].kind == "another scene"
+
+
 def test_a_fault_a_few_of_one_tasks_demos_share_is_no_outcome_of_the_task_but_a_toggle_is():
     """Three of a task's twelve demos pushed the other object to the goal too (it began where the others' did):
     in a dataset of several tasks they are far out, not an outcome of their own.  A button that ends on where it

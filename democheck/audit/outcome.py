@@ -76,6 +76,7 @@ ROTATION_FLOOR = 0.05  # a rotation's least robust SD, in units of q q^T or of c
 # A demo moves a dimension when its range over the demo exceeds this many of its jitters (the median size of its
 # second differences: about 0 for smooth motion, and white noise's range is 3-6 of them).
 STILL = 10.0
+UNDONE = 0.5  # a change opposite to its task's, within this share of its size, undid the task's job
 ALREADY = 0.5  # a difference this share of which the feature showed at the first step was there before the demo
 RESOLUTION = 1e-5  # ... and more than this share of its size (at least 1): what float noise cannot reach
 
@@ -263,9 +264,23 @@ def _held_words(name: str, part: str, value: float, ref: float, z: float, source
             f"{theirs} ({_robust_sd_text(z)})")
 
 
+def _undone(value: float, ref: float) -> bool:
+    """A change opposite to its task's, of about its size (within ``UNDONE`` of it)."""
+    return bool(ref != 0 and value * ref < 0 and abs(value + ref) <= UNDONE * abs(ref))
+
+
+def _undone_words(name: str, value: float, ref: float, **_) -> str:
+    value_text, ref_text = words.pair(value, ref, 3)
+    return (f"undid its task's job: began where its task's demos leave {name} and changed it by {value_text} "
+            f"where they change it by {ref_text} (done backwards: a reset recorded as a demo?)")
+
+
 OUTCOME = Vocabulary("outcome", {
     "another job": _world_words,  # the world the demo left differs from its task's: the wrong object, a job half done
     "held": _held_words,  # the part that differs most never changed in the demo
+    # the part that differs most already differed at the first step, as its task's demos leave it, and the demo
+    # changed it about as they do, the other way: the task done backwards
+    "undone": _undone_words,
     # the part that differs most already differed, by ``ALREADY`` of the difference or more, at the first step:
     # another scene, not what the demo did to it
     "another scene": lambda held, **p: (_held_words if held else _world_words)(**p),
@@ -333,7 +348,14 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Fi
             still = bool(held[j][k])
             params = dict(name=feature.name, form=feature.kind, part=part, value=float(values[j][k]),
                           ref=float(refs[j][k]), z=float(z[k, j]), source=source, columns=list(feature.columns))
-            if before[j][k] >= ALREADY * z[k, j]:
+            c = j if part == "change" else j + 1  # the same feature's change
+            undone = (source == "environment state" and feature.kind == "value" and z[k, c] >= MODE_GAP
+                      and _undone(values[c][k], refs[c][k]))
+            if before[j][k] >= ALREADY * z[k, j] and undone:
+                # begun where its task's demos leave the part, and changed it back: the task done backwards
+                found[i] = OUTCOME("undone", **{**params, "part": "change", "value": float(values[c][k]),
+                                                "ref": float(refs[c][k]), "z": float(z[k, c])})
+            elif before[j][k] >= ALREADY * z[k, j]:
                 found[i] = OUTCOME("another scene", held=still, **params)
             else:
                 found[i] = OUTCOME("held" if still else "another job", **params)
