@@ -48,6 +48,7 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "without-grasps": lambda c: c.without("grasps"),
     "without-faults": lambda c: c.without(*RECORDING_FAULTS),
     "without-time": lambda c: c.without(*TIME_ALIGNED),
+    "without-backwards": lambda c: c.without("backwards"),
     "without-time-and-pause": lambda c: c.without(*TIME_ALIGNED, "pause"),
     "time-apart": lambda c: replace(c, specs=tuple(replace(s, alone=True) if s.name in TIME_ALIGNED + ("pause",)
                                                    else s for s in c.specs)),
@@ -66,6 +67,9 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "time-beside": lambda c: _set(c, TIME_ALIGNED, beside=True),
     "time-normal": lambda c: _set(c, TIME_ALIGNED, tail="normal"),
     "start-end-normal": lambda c: _set(c, ("start", "end"), tail="normal"),
+    "path-own-look": lambda c: _set(c, ("path",), look=""),
+    "path-beside": lambda c: _set(c, ("path",), beside=True),
+    "path-own-beside": lambda c: _set(c, ("path",), look="", beside=True),
     "time-one-look": lambda c: replace(c, specs=tuple(replace(s, look="in time") if s.name in TIME_ALIGNED else s
                                                       for s in c.specs)),
 }
