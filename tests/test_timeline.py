@@ -154,6 +154,7 @@ def test_a_dataset_without_a_camera_is_judged_by_its_path_alone():
 def test_a_group_too_small_to_compare_gives_no_score():
     ev = _evidence(_carries()[:3])
     assert np.isnan(ev.scores["end"]).all() and {f.kind for f in ev.findings["end"]} == {"like"}
+    assert np.isnan(ev.scores["backwards"]).all() and {f.kind for f in ev.findings["backwards"]} == {"too few demos"}
 
 
 @pytest.fixture(scope="module")

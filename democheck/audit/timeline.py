@@ -237,6 +237,7 @@ BACKWARDS = Vocabulary("backwards", {
     "toward the other end": "its first picture lies nearer its task's last pictures, and its last nearer their first, "
                             "than its task's demos do: partly done backwards?",
     "forwards": "goes the way its task's demos go",
+    "too few demos": "no task of enough demos to compare with",
     "no frames": "no camera to compare",
 })
 
@@ -433,6 +434,9 @@ def backwards(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding
         crossed &= (cross < own) & _ordinary(cross, ends[other]["arranged"][0], groups, ARRANGE_MIN_SCALE, log=True)
     found = []
     for i in range(n):
+        if not np.isfinite(toward[i]):
+            found.append(BACKWARDS("too few demos"))
+            continue
         if not toward[i] > ORDINARY:
             found.append(BACKWARDS("forwards"))
             continue
