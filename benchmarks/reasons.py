@@ -21,7 +21,7 @@ from pathlib import Path
 import pandas as pd
 
 STILL = ("idle", "motion:hardly", "motion:less")
-FLAIL = ("motion:more", "motion:flails", "jerk:shakes")
+FLAIL = ("motion:more", "motion:flails", "jerk:shakes", "grasps:chatters")
 # a picture unlike its task's, over the demo or at its first or last frames (where a card or a moved camera shows)
 VIEW = ("view:changed", "colours:changed", "start:view", "end:view", "moved:view")
 WORLD = ("outcome", "moved")  # the world left: as recorded, or as the camera saw it

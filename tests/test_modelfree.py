@@ -125,6 +125,20 @@ def test_grasps_counts_a_grasp_tried_again_and_names_its_frames():
     assert _evidence(demos, ["grasps"]).findings["grasps"][17].kind == "ends otherwise"
 
 
+def test_a_gripper_command_that_flickers_is_told_from_a_grasp_tried_again_and_leads_no_reason_of_its_own():
+    """The planted demo's gripper command flips between open and closed at every step over frames 30-40 before it
+    stays closed: eleven changes, ten of them a step after the last.  No gripper follows that; the words say the command flickers, and
+    the kind is demoted, so that the actions' shaking the jerk reads leads its reason."""
+    demos, _ = _planted("grasps")
+    demos[17].actions[:, -1] = np.where(np.arange(len(demos[17].actions)) < 30, 1.0, -1.0)
+    demos[17].actions[30:41:2, -1] = 1.0
+    ev = _evidence(demos, ["grasps", "motion", "idle", "jerk", "suspicion"])
+    found = ev.findings["grasps"][17]
+    assert found.kind == "chatters" and found.params["flickers"] == 10, found
+    assert found.words.startswith("the gripper command flickers: opens or closes 11 times")
+    assert explanation(ev).lead[17] != "grasps:chatters"
+
+
 def test_grasps_reads_a_named_gripper_only_and_a_command_that_crosses_its_range():
     from democheck.audit.grasps import changes
 

@@ -200,7 +200,7 @@ def test_every_template_of_every_check_renders_its_words():
                   more=False, colour="grey (#a0a0a0)", median=0.5, z=12.0, value=0.25, steps=3, gain=1.6,
                   named=True, size=3.5, last=30, name="target.x", part="at the end", ref=0.7, source="environment state",
                   columns=[0], held=False, files=[], form="value", level=0.0, at=0.5, count=3, typical=1.0,
-                  frames=[57, 71, 85], gained=["red"], lost=["pink", "dark grey"])
+                  frames=[57, 71, 85], gained=["red"], lost=["pink", "dark grey"], flickers=2)
     words = {f"{check}:{kind}": vocabulary(kind, **params).words
              for check, vocabulary in VOCABULARIES.items() for kind in vocabulary.kinds}
     assert words["idle:still"] == "the arm stands still at 25% of steps, longest frames 3-9 (35% of the demo)"
@@ -228,6 +228,14 @@ def test_every_template_of_every_check_renders_its_words():
         "its path runs opposite to its task's: its state, played backwards, is nearer its task's demos than forwards")
     assert words["grasps:again"] == ("the gripper opens or closes 3 times (at frames 57, 71 and 85) where its task's "
                                     "demos do so once: a grasp tried again, or an object dropped and picked up?")
+    assert words["grasps:chatters"] == ("the gripper command flickers: opens or closes 3 times (at frames 57, 71 and "
+                                        "85) where its task's demos do so once, 2 of them a step after the last: a "
+                                        "noisy or random command?")
+    assert words["backwards:done backwards"] == ("begins where its task's demos end and ends where they begin: done "
+                                                 "backwards (a reset recorded as a demo?)")
+    assert words["outcome:undone"] == ("undid its task's job: began where its task's demos leave target.x and "
+                                       "changed it by 0.25 where they change it by 0.7 (done backwards: a reset "
+                                       "recorded as a demo?)")
     assert words["moved:another object"] == ("what changed between its first and last picture is unlike its task's "
                                              "demos: more red, less pink and dark grey than theirs (another object "
                                              "moved?)")

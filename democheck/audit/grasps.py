@@ -2,7 +2,9 @@
 
 A grasp that missed and was tried again, an object dropped on the way and picked up again: the gripper's command
 changes between open and closed more often than in its task's other demos, while every other check sees the demo
-only a little unlike them (a few more steps, a short detour).  A count says it plainly.
+only a little unlike them (a few more steps, a short detour).  A count says it plainly.  A command that flickers
+(most of its changes a single step after the one before: a noisy or random command, which no gripper follows) is
+told apart from a grasp tried again.
 
 The gripper is the action dimensions the dataset names so ("gripper", "grip"); a dataset that names none has no
 such check (NaN).  Each task has its own open and closed ends of each such dimension, the medians of its demos'
@@ -57,7 +59,16 @@ def _otherwise(count: int, typical: float, frames: list[int]) -> str:
             "object let go where they hold it, or held where they let go?")
 
 
+def _chatters(count: int, typical: float, frames: list[int], flickers: int) -> str:
+    return (f"the gripper command flickers: {_gripper(count).removeprefix('the gripper ')} (at frames "
+            f"{_frames(frames)}) where {_theirs(typical)}, {flickers} of them a step after the last: a noisy or "
+            "random command?")
+
+
 GRASPS = Vocabulary("grasps", {
+    # More changes than its task's demos make, at least half of them a single step after the one before: the
+    # command flickers between open and closed (no gripper closes, opens and closes again in a step).
+    "chatters": _chatters,
     # More changes than its task's demos make: an even number more ends as theirs do (closed again), an odd number
     # ends the other way.
     "again": _again,
@@ -111,13 +122,19 @@ def grasps(traces: ActionTraces, groups: np.ndarray) -> tuple[np.ndarray, list[F
              for i, c in enumerate(commands)]
     count = np.array([len(s) for s in steps], np.float64)
     typical = pd.Series(count).groupby(groups).transform("median").to_numpy()
-    found = [GRASPS(_kind(c, m), count=int(c), typical=float(m), frames=s) for c, m, s in zip(count, typical, steps)]
+    found = []
+    for c, m, s in zip(count, typical, steps):
+        flickers = int(np.sum(np.diff(s) == 1)) if len(s) > 1 else 0
+        extra = {"flickers": flickers} if _kind(c, m, flickers) == "chatters" else {}
+        found.append(GRASPS(_kind(c, m, flickers), count=int(c), typical=float(m), frames=s, **extra))
     return count, found
 
 
-def _kind(count: float, typical: float) -> str:
-    """More changes than its task's demos make: an even number more ends as theirs do (``again``), an odd number
-    ends the other way."""
+def _kind(count: float, typical: float, flickers: int = 0) -> str:
+    """More changes than its task's demos make: at least half of them a step after the one before (``chatters``),
+    else an even number more ends as theirs do (``again``), an odd number ends the other way."""
     if count > typical:
+        if flickers and 2 * flickers >= count - 1:
+            return "chatters"
         return "again" if (count - round(typical)) % 2 == 0 else "ends otherwise"
     return "fewer" if count < typical else "as its task's"
