@@ -149,6 +149,7 @@ def test_a_dataset_without_a_camera_is_judged_by_its_path_alone():
     assert _top(ev, "path") == REVERSED and ev.findings["path"][REVERSED].params["part"] == "state"
     assert ev.findings["path"][DETOUR].kind == "state"
     assert np.isnan(ev.scores["end"]).all() and {f.kind for f in ev.findings["end"]} == {"no frames"}
+    assert np.isnan(ev.scores["backwards"]).all() and {f.kind for f in ev.findings["backwards"]} == {"no frames"}
 
 
 def test_a_group_too_small_to_compare_gives_no_score():
