@@ -233,8 +233,8 @@ def test_every_template_of_every_check_renders_its_words():
                                         "noisy or random command?")
     assert words["backwards:done backwards"] == ("begins where its task's demos end and ends where they begin: done "
                                                  "backwards (a reset recorded as a demo?)")
-    assert words["outcome:undone"] == ("undid its task's job: began where its task's demos leave target.x and "
-                                       "changed it by 0.25 where they change it by 0.7 (done backwards: a reset "
+    assert words["outcome:undone"] == ("undid its task's job: began where its task's demos leave target.x, and "
+                                       "target.x at the end is 0.25 where theirs is 0.7 (done backwards: a reset "
                                        "recorded as a demo?)")
     assert words["moved:another object"] == ("what changed between its first and last picture is unlike its task's "
                                              "demos: more red, less pink and dark grey than theirs (another object "

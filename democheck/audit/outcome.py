@@ -76,7 +76,7 @@ ROTATION_FLOOR = 0.05  # a rotation's least robust SD, in units of q q^T or of c
 # A demo moves a dimension when its range over the demo exceeds this many of its jitters (the median size of its
 # second differences: about 0 for smooth motion, and white noise's range is 3-6 of them).
 STILL = 10.0
-UNDONE = 0.5  # a change opposite to its task's, within this share of its size, undid the task's job
+ORDINARY = 3.0  # robust SD: a start this near its task's demos' ends began where they end (a job undone)
 ALREADY = 0.5  # a difference this share of which the feature showed at the first step was there before the demo
 RESOLUTION = 1e-5  # ... and more than this share of its size (at least 1): what float noise cannot reach
 
@@ -264,22 +264,17 @@ def _held_words(name: str, part: str, value: float, ref: float, z: float, source
             f"{theirs} ({_robust_sd_text(z)})")
 
 
-def _undone(value: float, ref: float) -> bool:
-    """A change opposite to its task's, of about its size (within ``UNDONE`` of it)."""
-    return bool(ref != 0 and value * ref < 0 and abs(value + ref) <= UNDONE * abs(ref))
-
-
-def _undone_words(name: str, value: float, ref: float, **_) -> str:
+def _undone_words(name: str, part: str, value: float, ref: float, **_) -> str:
     value_text, ref_text = words.pair(value, ref, 3)
-    return (f"undid its task's job: began where its task's demos leave {name} and changed it by {value_text} "
-            f"where they change it by {ref_text} (done backwards: a reset recorded as a demo?)")
+    what = f"{name} at the end" if part == "at the end" else f"the change of {name}"
+    return (f"undid its task's job: began where its task's demos leave {name}, and {what} is {value_text} where "
+            f"theirs is {ref_text} (done backwards: a reset recorded as a demo?)")
 
 
 OUTCOME = Vocabulary("outcome", {
     "another job": _world_words,  # the world the demo left differs from its task's: the wrong object, a job half done
     "held": _held_words,  # the part that differs most never changed in the demo
-    # the part that differs most already differed at the first step, as its task's demos leave it, and the demo
-    # changed it about as they do, the other way: the task done backwards
+    # the part that differs most began where its task's demos leave it, and the demo moved it: done backwards
     "undone": _undone_words,
     # the part that differs most already differed, by ``ALREADY`` of the difference or more, at the first step:
     # another scene, not what the demo did to it
@@ -303,7 +298,7 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Fi
         last = _padded([stats.ends[i][1] for i in rows])
         moves = np.stack([_padded_pair(stats.moves[i], last.shape[1]) for i in rows])
         names = next((stats.names[i] for i in rows if stats.names[i]), None)
-        z_cols, what, values, refs, before, held = [], [], [], [], [], []
+        z_cols, what, values, refs, before, held, began_at_end = [], [], [], [], [], [], []
         rates = velocities(names, last.shape[1])
         for f in features_of(names, first, last, source):
             if rates[f.columns].all():  # how fast a part moved at the last step is how the demo stopped
@@ -317,6 +312,7 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Fi
                 warnings.simplefilter("ignore", RuntimeWarning)
                 at_start = np.nanmax(_task_gaps(start, None, tasks[rows], u, began=start)[0], axis=1,
                                      initial=-np.inf)
+            ended = _began_where_they_end(start, end, moves[:, 0, f.columns].max(axis=1), tasks[rows], u)
             for part, x, sided in (("at the end", end, True), ("change", end - start, False)):
                 z, ref = _task_gaps(x, start if sided else None, tasks[rows], u, own, began=start)
                 best = np.nanargmax(np.where(np.isnan(z), -np.inf, z), axis=1)
@@ -327,6 +323,7 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Fi
                 values.append(x[np.arange(len(x)), best])
                 refs.append(ref[np.arange(len(x)), best])
                 before.append(at_start)
+                began_at_end.append(ended)
                 held.append((moves[:, 0, f.columns] == 0).all(axis=1) & (f.kind == "value"))
         if not z_cols:
             for i in rows:
@@ -348,18 +345,37 @@ def outcome(stats: OutcomeStats, tasks: np.ndarray) -> tuple[np.ndarray, list[Fi
             still = bool(held[j][k])
             params = dict(name=feature.name, form=feature.kind, part=part, value=float(values[j][k]),
                           ref=float(refs[j][k]), z=float(z[k, j]), source=source, columns=list(feature.columns))
-            c = j if part == "change" else j + 1  # the same feature's change
-            undone = (source == "environment state" and feature.kind == "value" and z[k, c] >= MODE_GAP
-                      and _undone(values[c][k], refs[c][k]))
-            if before[j][k] >= ALREADY * z[k, j] and undone:
-                # begun where its task's demos leave the part, and changed it back: the task done backwards
-                found[i] = OUTCOME("undone", **{**params, "part": "change", "value": float(values[c][k]),
-                                                "ref": float(refs[c][k]), "z": float(z[k, c])})
+            if (source == "environment state" and feature.kind in ("value", "relative") and not still
+                    and z[k, j] >= MODE_GAP and began_at_end[j][k]):
+                # begun where its task's demos leave the part, and left it elsewhere: the task done backwards
+                found[i] = OUTCOME("undone", **params)
             elif before[j][k] >= ALREADY * z[k, j]:
                 found[i] = OUTCOME("another scene", held=still, **params)
             else:
                 found[i] = OUTCOME("held" if still else "another job", **params)
     return out, found
+
+
+def _began_where_they_end(start: np.ndarray, end: np.ndarray, travel: np.ndarray, tasks: np.ndarray, floor: float
+                          ) -> np.ndarray:
+    """[N] bool: the demo began where its task's demos leave the feature (``start``, ``end`` [N, m] its values),
+    within ``ORDINARY`` of their ends' robust SD (at least ``floor``) of their median end, in every column, and
+    moved it (its range over the demo, ``travel`` [N], at least half its task's typical), where the task's demos
+    move it (they typically begin ``MODE_GAP`` of those SD or more from their median end)."""
+    out = np.zeros(len(start), bool)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for t in np.unique(tasks):
+            rows = np.flatnonzero(tasks == t)
+            if len(rows) < OUTCOME_MIN_DEMOS:
+                continue
+            ends, starts = end[rows], start[rows]
+            centre = np.nanmedian(ends, axis=0)
+            scale = np.maximum(1.4826 * np.nanmedian(np.abs(ends - centre), axis=0), floor)
+            moved = np.nanmedian(np.abs(starts - centre), axis=0) >= MODE_GAP * scale
+            near = (np.abs(starts - centre) <= ORDINARY * scale).all(axis=1)
+            out[rows] = moved.all() & near & (travel[rows] >= 0.5 * np.nanmedian(travel[rows]))
+    return out
 
 
 def _robust_sd_text(z: float) -> str:
