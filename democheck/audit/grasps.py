@@ -125,8 +125,9 @@ def grasps(traces: ActionTraces, groups: np.ndarray) -> tuple[np.ndarray, list[F
     found = []
     for c, m, s in zip(count, typical, steps):
         flickers = int(np.sum(np.diff(s) == 1)) if len(s) > 1 else 0
-        extra = {"flickers": flickers} if _kind(c, m, flickers) == "chatters" else {}
-        found.append(GRASPS(_kind(c, m, flickers), count=int(c), typical=float(m), frames=s, **extra))
+        kind = _kind(c, m, flickers)
+        extra = {"flickers": flickers} if kind == "chatters" else {}
+        found.append(GRASPS(kind, count=int(c), typical=float(m), frames=s, **extra))
     return count, found
 
 

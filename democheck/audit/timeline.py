@@ -366,8 +366,9 @@ def _stack_state(paths: list[np.ndarray], at: int | slice) -> np.ndarray:
 
 def _compared_ends(t: Timeline, groups: np.ndarray) -> dict:
     """Each end's picture against its mates' same end and other end, pixel by pixel (``_view_part``) and by its
-    colour pairs (``_arranged_part``), and the colour pairs' nearness to the other end at both ends (``toward``):
-    what the start and the end checks both read, computed once for ``groups`` (kept on ``t``)."""
+    colour pairs (``_arranged_part``, and whether that end ``crossed`` over to the other), and the colour pairs'
+    nearness to the other end at both ends (``toward``): what the start, end and backwards checks read, computed
+    once for ``groups`` (kept on ``t``)."""
     key = np.asarray(groups).tobytes()
     kept = getattr(t, "_compared", None)
     if kept is not None and kept[0] == key:
@@ -378,6 +379,12 @@ def _compared_ends(t: Timeline, groups: np.ndarray) -> dict:
     for which, other in (("first", "last"), ("last", "first")):
         out[which] = {"view": _view_part(views[which], groups, views[other]),
                       "arranged": _arranged_part(arranged[which], groups, arranged[other])}
+    for which, other in (("first", "last"), ("last", "first")):
+        # by its colour pairs nearer its mates' other end than their same end, and as near as their own ends are to
+        # each other: that end crossed over
+        own, cross = out[which]["arranged"]
+        out[which]["crossed"] = (cross < own) & _ordinary(cross, out[other]["arranged"][0], groups, ARRANGE_MIN_SCALE,
+                                                          log=True)
     # Done backwards is backwards at both ends: the lesser of the two ends' nearness to the other (a card over the
     # view at one end takes that end's picture away from its mates' same end, and nearer none).
     out["toward"] = np.minimum(*(toward_other_end(*out[which]["arranged"], groups) for which in ("first", "last")))
@@ -399,14 +406,13 @@ def _end(t: Timeline, groups: np.ndarray, which: str) -> tuple[np.ndarray, list[
     toward = ends["toward"]
     # near its mates' other end, as near as their own other ends are to each other: done backwards
     like_other = _ordinary(cross, other["view"][0], groups, VIEW_MIN_SCALE)
-    arranged_like_other = _ordinary(arranged_cross, other["arranged"][0], groups, ARRANGE_MIN_SCALE, log=True)
     score = np.fmax(view_z, toward)
     found = []
     for i in range(len(score)):
         by_colours = np.isfinite(toward[i]) and not view_z[i] >= toward[i]
         if not np.isfinite(score[i]):
             found.append(vocab("like"))
-        elif by_colours and toward[i] > ORDINARY and arranged_cross[i] < own[i] and arranged_like_other[i]:
+        elif by_colours and toward[i] > ORDINARY and mine["crossed"][i]:
             found.append(vocab(crossed, distance=float(own[i]), cross=float(arranged_cross[i])))
         elif not share[i]:
             found.append(vocab("like"))
@@ -428,10 +434,7 @@ def backwards(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding
         return np.full(n, np.nan), [BACKWARDS("no frames")] * n
     ends = _compared_ends(t, groups)
     toward = ends["toward"]
-    crossed = np.ones(n, bool)
-    for which, other in (("first", "last"), ("last", "first")):
-        own, cross = ends[which]["arranged"]
-        crossed &= (cross < own) & _ordinary(cross, ends[other]["arranged"][0], groups, ARRANGE_MIN_SCALE, log=True)
+    crossed = ends["first"]["crossed"] & ends["last"]["crossed"]
     found = []
     for i in range(n):
         if not np.isfinite(toward[i]):
