@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from democheck.audit import timeline
+from democheck.audit import neighbours, timeline
 from democheck.audit.evidence import comparison_groups
 from democheck.audit.metrics import detection
 from democheck.data import open_dataset
@@ -44,7 +44,7 @@ def dtw_scores(t: timeline.Timeline, groups: np.ndarray, points: int, band: floa
     """The path's state part by dynamic time warping instead of normalised time: each state dimension in units of
     its task's robust SD over every point (at least ``timeline.STATE_FLOOR`` of its range), the mean cost of the best
     monotone alignment of two paths (steps of one point on either or both; within ``band`` x ``points`` of the
-    diagonal where given), the median over the ``timeline.NEAR`` nearest task-mates, and its robust z of log1p
+    diagonal where given), the median over the ``neighbours.NEAR`` nearest task-mates, and its robust z of log1p
     within the task, as the audit scores its distances."""
     from democheck.audit.scores import calibrated
 
@@ -52,11 +52,11 @@ def dtw_scores(t: timeline.Timeline, groups: np.ndarray, points: int, band: floa
     x_all = timeline._stack_state([p[at] if len(p) else p for p in t.state_path], slice(None))[:, :points]
     floor = timeline._state_floor(t.state_path)
     dist = np.full(len(x_all), np.nan)
-    for rows in timeline._grouped(groups):
+    for rows in neighbours.grouped(groups):
         x = np.nan_to_num(x_all[rows])
         med = np.median(x.reshape(-1, x.shape[2]), axis=0)
         unit = np.fmax(1.4826 * np.median(np.abs(x.reshape(-1, x.shape[2]) - med), axis=0), floor)
-        x = np.clip((x - med) / unit, -timeline.CLIP, timeline.CLIP)
+        x = np.clip((x - med) / unit, -neighbours.CLIP, neighbours.CLIP)
         n = len(rows)
         i, j = np.triu_indices(n, 1)
         cost = ((x[i][:, :, None, :] - x[j][:, None, :, :]) ** 2).mean(axis=3)  # [pairs, T, T]
@@ -72,7 +72,7 @@ def dtw_scores(t: timeline.Timeline, groups: np.ndarray, points: int, band: floa
         d = np.zeros((n, n))
         d[i, j] = d[j, i] = np.sqrt(acc[:, points, points] / (2 * points))
         np.fill_diagonal(d, np.inf)
-        k = max(1, min(timeline.NEAR, (n - 1) // 2))
+        k = max(1, min(neighbours.NEAR, (n - 1) // 2))
         dist[rows] = np.median(np.sort(d, axis=1)[:, :k], axis=1)
     return calibrated(np.log1p(dist), groups, min_scale=timeline.STATE_MIN_SCALE)
 

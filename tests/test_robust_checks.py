@@ -145,7 +145,7 @@ def test_a_spread_beside_a_pile_is_an_outcome_and_a_few_failures_beside_it_are_n
     """Half a task's kettles rest where they stood (a pile), the rest were pushed up onto the grate at any height:
     the pushed ones are an outcome of their own.  Three failures of twelve beside a pile of successes are not, and a
     pile of a few demos that happen to agree is no pile."""
-    from democheck.audit.outcome import modes
+    from democheck.audit.outcome_modes import modes
 
     rng = np.random.default_rng(0)
     pile = 1.619 + rng.normal(0, 2e-4, 27)
@@ -297,7 +297,8 @@ def test_a_fault_a_few_of_one_tasks_demos_share_is_no_outcome_of_the_task_but_a_
     """Three of a task's twelve demos pushed the other object to the goal too (it began where the others' did):
     in a dataset of several tasks they are far out, not an outcome of their own.  A button that ends on where it
     began off, and off where it began on, ends two ways because it began two ways: both are outcomes."""
-    from democheck.audit.outcome import OutcomeStats, explained, outcome
+    from democheck.audit.outcome import OutcomeStats, outcome
+    from democheck.audit.outcome_modes import explained
 
     rng = np.random.default_rng(4)
     stats, tasks = OutcomeStats(), []

@@ -35,8 +35,8 @@ the wrong object pushed, both pushed, the job left half done.  The check is buil
 
 ``compare`` also says where each demo differs most and whether that part already differed at its first step
 (another scene, not what the demo did: ``Differs``), and the reason says when the part never changed in the demo.
-NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.  Over 400 lines: one check, whose units and outcomes
-are each a short function the others need.  A consumer of the audit's decoding pass like the other
+NaN for a task of fewer than ``OUTCOME_MIN_DEMOS`` demos.  A task's several outcomes (``modes``, ``piled``,
+``explained``) are ``democheck.audit.outcome_modes``'.  A consumer of the audit's decoding pass like the other
 model-free checks (``democheck.audit.modelfree``); ``benchmarks/shapes.py`` measures what the shapes cost.
 """
 
@@ -49,14 +49,12 @@ import numpy as np
 from democheck.audit import words
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
+from democheck.audit.outcome_modes import MODE_GAP, MODE_SHARE, explained, modes, piled, sd, several
 from democheck.audit.world_record import Feature, features_of, represent
 from democheck.data.demo import Demo
 from democheck.data.reorder import velocities
 
 OUTCOME_MIN_DEMOS = 4
-MODE_SHARE = 0.2  # an outcome this share of a task's demos reach (at least 2) is one of its outcomes,
-MODE_GAP = 6.0  # when it lies this many robust SD from the task's other outcomes
-PILE_MIN = 10  # demos in a pile: fewer that happen to agree are no pile (see ``modes``)
 # Demos (itself among them) that started on its side for the side to be its reference: this many and
 # ``MODE_SHARE`` of its task's -- two demos of another scene whose parts start elsewhere are no side of the task.
 OUTCOME_MIN_SIDE = 2
@@ -104,88 +102,6 @@ class OutcomeStats(PerDemo):
             warnings.simplefilter("ignore", RuntimeWarning)
             jitter = np.nanmedian(np.abs(np.diff(x, 2, axis=0)), 0) if len(x) > 2 else np.zeros(x.shape[1])
             self.moves.append(np.stack([np.ptp(x, 0) if len(x) else np.zeros(x.shape[1]), jitter]))
-
-
-def modes(r: np.ndarray, floor: float, depth: int = 2, piles: bool = True) -> np.ndarray:
-    """[m] which outcome each of a task's values ``r`` (finite) belongs to: the values split at their widest gap
-    where both sides hold at least ``MODE_SHARE`` of them (and 2) and the gap is ``MODE_GAP`` times either side's
-    robust SD (at least ``floor``) -- twice over at most, so up to four outcomes; one outcome (all 0) otherwise.
-
-    With ``piles``, a pile comes first: where half the values (at least ``PILE_MIN``) lie close together (a part
-    against its stop, an object most demos leave where it rests) and the values above it or below it spread
-    ``MODE_GAP`` times wider, each such side that holds ``MODE_SHARE`` of them is an outcome of its own -- a
-    spread beside a pile is not measured in the pile's spread of almost nothing, while a few failures beside a
-    pile of successes stay failures.  A pile is no switch: without ``piles`` only gaps split."""
-    m = len(r)
-    label = np.zeros(m, int)
-    least = max(2, int(np.ceil(MODE_SHARE * m)))
-    if depth == 0 or m < 2 * least:
-        return label
-    if piles:
-        label = piled(r, floor)
-        if label.any():
-            return label
-    order = np.argsort(r, kind="stable")
-    v = r[order]
-    cuts = np.arange(least, m - least + 1)  # the split before position c
-    gaps = v[cuts] - v[cuts - 1]
-    c = int(cuts[np.argmax(gaps)])
-    spread = max(_sd(v[:c]), _sd(v[c:]), floor)
-    if v[c] - v[c - 1] <= MODE_GAP * spread:
-        return label
-    low, high = order[:c], order[c:]
-    label[low] = modes(r[low], floor, depth - 1, piles)
-    label[high] = modes(r[high], floor, depth - 1, piles) + label[low].max() + 1
-    return label
-
-
-def piled(r: np.ndarray, floor: float) -> np.ndarray:
-    """[m] ``modes``' pile rule alone: 0 for the pile and the values near it, 1 and 2 for a side beside it that
-    spreads ``MODE_GAP`` times wider and holds ``MODE_SHARE`` of the values; all 0 where there is no pile."""
-    m = len(r)
-    label = np.zeros(m, int)
-    least = max(2, int(np.ceil(MODE_SHARE * m)))
-    half = (m + 1) // 2
-    if m < 2 * least or half < PILE_MIN:
-        return label
-    v = np.sort(r)
-    i = int(np.argmin(v[half - 1:] - v[:m - half + 1]))  # the shortest run of half the values
-    centre, reach = np.median(v[i:i + half]), MODE_GAP * max(_sd(v[i:i + half]), floor)
-    for side in (r < centre - reach, r > centre + reach):
-        if side.sum() >= least and _sd(r[side]) > reach:
-            label[side] = label.max() + 1
-    return label
-
-
-def explained(label: np.ndarray, began: np.ndarray, floor: float) -> np.ndarray:
-    """``label`` (a task's outcomes) kept where it follows from where its demos began (``began``, the same feature
-    at their first step), else 0: an outcome whose demos started ``MODE_GAP`` robust SD (at least ``floor``) away
-    from the others' is the task's -- a button that toggles ends on where it began off.  A demo of an outcome that
-    does not follow (a fault shared by a few of the task's demos: the other object pushed too; a button never
-    pressed) joins the kept outcome whose demos began nearest to where it began, and is measured against those;
-    with fewer than two outcomes kept, every demo is of one outcome."""
-    kept = []
-    if np.isfinite(began).all():
-        for k in np.unique(label):
-            mine, rest = began[label == k], began[label != k]
-            if abs(np.median(mine) - np.median(rest)) > MODE_GAP * max(_sd(mine), _sd(rest), floor):
-                kept.append(k)
-    if len(kept) < 2:
-        return np.zeros_like(label)
-    starts = np.array([np.median(began[label == k]) for k in kept])
-    out = np.array(kept)[np.argmin(np.abs(began[:, None] - starts[None, :]), axis=1)]
-    return np.where(np.isin(label, kept), label, out)
-
-
-def _several(label: np.ndarray) -> bool:
-    """Whether a task's demos reach more than one of ``label``'s outcomes, each held by ``MODE_SHARE`` of them
-    (at least 2)."""
-    counts = np.unique(label, return_counts=True)[1]
-    return int((counts >= max(2, MODE_SHARE * len(label))).sum()) > 1
-
-
-def _sd(v: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(v - np.median(v))))
 
 
 def unit(feature: Feature, value: np.ndarray, moves: np.ndarray, tasks: np.ndarray) -> float | None:
@@ -394,7 +310,8 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
     started on the same side of the task's median value, where at least ``OUTCOME_MIN_SIDE`` and ``MODE_SHARE`` of
     the task's did -- and, where the task's own values fall into several outcomes, of those that reached the same
     one: a spread beside a pile (``piled``), or, in a dataset of several tasks, outcomes that follow from where
-    the demos began (``explained``, by ``began``: the feature at the first step); in a dataset of one task, any.  The unit: the task's robust SD about those medians, at least ``floor``, each demo's own floor in ``own``
+    the demos began (``explained``, by ``began``: the feature at the first step); in a dataset of one task, any.
+    The unit: the task's robust SD about those medians, at least ``floor``, each demo's own floor in ``own``
     and ``POOLED_SCALE`` of the typical task's (a task of a few demos that happen to agree is not that precise)."""
     own = np.zeros(len(x)) if own is None else own
     z, ref = np.full(x.shape, np.nan), np.full(x.shape, np.nan)
@@ -407,7 +324,7 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
             outcomes[every] = modes(x[every, c], floor, piles=False)
             # Several outcomes that recur within more than one task: a switch, not where one task's demos went --
             # each an outcome of the task (``MODE_SHARE`` of its demos, at least 2), not a stray demo or two.
-            spans = [_several(outcomes[every][tasks[every] == t]) for t in np.unique(tasks[every])]
+            spans = [several(outcomes[every][tasks[every] == t]) for t in np.unique(tasks[every])]
             discrete = outcomes.max() > 0 and sum(spans) >= 2
             fitted = []
             for t in np.unique(tasks):
@@ -438,11 +355,11 @@ def _task_gaps(x: np.ndarray, start: np.ndarray | None, tasks: np.ndarray, floor
                     for k in np.unique(label):
                         mine = label == k
                         centre[mine] += np.median((v - centre)[mine])
-                pooled = max(_sd(v - centre), floor)
+                pooled = max(sd(v - centre), floor)
                 # Each outcome in its own spread where that is wider than the task's (a spread beside a pile).
                 scale = np.full(len(v), pooled)
                 for k in np.unique(label):
-                    scale[label == k] = max(pooled, _sd((v - centre)[label == k]))
+                    scale[label == k] = max(pooled, sd((v - centre)[label == k]))
                 scale = np.maximum(scale, own[rows[ok]])
                 fitted.append((rows[ok], v, centre, scale, pooled))
             typical = POOLED_SCALE * np.median([f[4] for f in fitted]) if fitted else 0.0

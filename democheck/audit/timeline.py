@@ -12,16 +12,16 @@ failed place or a knocked-over object shows in the last frames, a detour or a re
   ``PATH_THUMB`` px thumbnail.
 
 The start and end read the camera alone: where the state ends, and how far it moved, is the outcome check's
-(``democheck.audit.outcome``), which knows rotations, piles and a task's several outcomes; read twice, one end
-state would count twice.  A demo is compared with its ``NEAR`` nearest task-mates, not with the task's median, so
-that a task done two ways (the object placed left or right) has two kinds of clean end.  Each feature is in units
+(``democheck.audit.outcome``), which knows rotations, piles and a task's several outcomes; read twice, one end state
+would count twice.  A demo is compared with its ``neighbours.NEAR`` nearest task-mates, not with the task's median,
+so that a task done two ways (the object placed left or right) has two kinds of clean end.  Each feature is in units
 of its robust SD over the group (at least ``VIEW_FLOOR`` grey levels, or ``STATE_FLOOR`` of the dimension's whole
 range over the dataset; a path's picture in one unit for all its pixels).  A start's or end's picture is unlike its
 mates' by the share of its pixels more than ``UNLIKE`` units from theirs (the median over the mates), as the view
 check counts; a path by its ``PATH_DISTANCES``, the largest robust z of its state's and its picture's.  The demo
-played backwards gives the words: an end as near its mates' starts as their ends are to each other (``_ordinary``), and
-nearer than to their ends, "ends where its task's demos begin"; a path so near its mates' played backwards "runs
-opposite to its task's".
+played backwards gives the words: an end as near its mates' starts as their ends are to each other
+(``neighbours.ordinary``), and nearer than to their ends, "ends where its task's demos begin"; a path so near its
+mates' played backwards "runs opposite to its task's".
 
 Where each demo lays its objects out anew, or the camera stands elsewhere, pixel by pixel a first picture is as
 near its mates' last as their first: a reset's start is then no further from theirs than any.  Which colours lie
@@ -41,6 +41,7 @@ import numpy as np
 from democheck.audit.colours import colour_bins
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
+from democheck.audit.neighbours import ORDINARY, grouped, in_units, nearest, nearest_whole, ordinary, rms
 from democheck.audit.scores import calibrated
 from democheck.audit.view import VIEW_FLOOR, VIEW_K, VIEW_MIN_SCALE, place
 from democheck.data.demo import Demo
@@ -55,14 +56,9 @@ ARRANGE_STEP = 2  # pixels apart: two colours this far apart across or down the 
 ARRANGE_FLOOR = 1.0  # root-count units: a robust SD stands for at least one more pair of a kind
 ARRANGE_MIN_SCALE = 0.05  # log units: the least robust SD of the colour pairs' log distances within a group
 ARRANGE_ALIKE = 0.1  # robust SD: two pictures' colour pairs nearer than this are alike (a distance's least value)
-NEAR = 5  # task-mates a demo is compared with (at most half its group)
-MIN_GROUP = 4  # a group of fewer demos gives its demos no score
 UNLIKE = VIEW_K  # units: a pixel this far from each of its nearest task-mates' differs
 STATE_FLOOR = 0.05  # a state dimension's least robust SD: this share of its whole range over the demos' paths
 STATE_MIN_SCALE = 0.25  # log units: the least robust SD of the state's and path's log distance within a group
-CLIP = 20.0  # units: a feature further off counts as this far (one wild value is one feature, not the distance)
-BLOCK = 256  # demos whose nearest task-mates are found at once
-ORDINARY = 3.0  # robust SD: a distance at most this far above its group's usual one is ordinary (``_ordinary``)
 # How far a path lies from its mates' is read two ways, and the larger robust z counts: the RMS over the whole path
 # (a path unlike throughout) and the RMS at its furthest point (a few points far off: a detour, a drop and regrasp).
 PATH_DISTANCES = ("whole", "furthest")
@@ -133,62 +129,6 @@ def arrangement(pic: np.ndarray) -> np.ndarray:
     return counts[np.triu_indices(k, 1)].astype(np.uint16)
 
 
-def _units(x: np.ndarray, floor: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-    """Per feature of ``x`` [n, m], the group's median and robust SD (at least ``floor``)."""
-    med = np.nanmedian(x, axis=0)
-    return med, np.fmax(1.4826 * np.nanmedian(np.abs(x - med), axis=0), floor)
-
-
-def _nearest(query: np.ndarray, ref: np.ndarray, exclude_self: bool) -> np.ndarray:
-    """[n, m] per demo and feature, the median |query_i - ref_j| over the ``NEAR`` demos j nearest it (RMS over
-    the features; at most half the others), itself left out where ``exclude_self``.  ``BLOCK`` queries at a time,
-    so that memory grows with the group's size, not its square."""
-    q, r = np.nan_to_num(query), np.nan_to_num(ref)
-    k = max(1, min(NEAR, (len(ref) - int(exclude_self)) // 2))
-    rr = (r * r).sum(1)
-    out = np.empty(q.shape)
-    for a in range(0, len(q), BLOCK):
-        b = q[a:a + BLOCK]
-        d2 = (b * b).sum(1)[:, None] + rr[None, :] - 2.0 * b @ r.T
-        if exclude_self:
-            d2[np.arange(len(b)), np.arange(a, a + len(b))] = np.inf
-        near = np.argpartition(d2, k - 1, axis=1)[:, :k]
-        out[a:a + len(b)] = np.median(np.abs(b[:, None, :] - r[near]), axis=1)
-    return out
-
-
-def _nearest_whole(query: np.ndarray, ref: np.ndarray, exclude_self: bool) -> np.ndarray:
-    """[n] per demo the mean RMS distance (over the features) to the ``NEAR`` demos of ``ref`` nearest it (at most
-    half the others; itself left out where ``exclude_self``).  Unlike ``_nearest``, whole vectors: a few features
-    far off (one object's colours beside another's) count however many others agree."""
-    k = max(1, min(NEAR, (len(ref) - int(exclude_self)) // 2))
-    rr = (ref * ref).sum(1)
-    dist = np.empty(len(query))
-    for a in range(0, len(query), BLOCK):
-        b = query[a:a + BLOCK]
-        d2 = np.maximum((b * b).sum(1)[:, None] + rr[None, :] - 2.0 * b @ ref.T, 0.0)
-        if exclude_self:
-            d2[np.arange(len(b)), np.arange(a, a + len(b))] = np.inf
-        near = np.argpartition(d2, k - 1, axis=1)[:, :k]
-        dist[a:a + len(b)] = np.sqrt(np.take_along_axis(d2, near, axis=1) / query.shape[1]).mean(axis=1)
-    return dist
-
-
-def _grouped(groups: np.ndarray):
-    for g in np.unique(groups):
-        rows = np.flatnonzero(groups == g)
-        if len(rows) >= MIN_GROUP:
-            yield rows
-
-
-def _in_units(x: np.ndarray, unit_of: np.ndarray, floor, pooled: bool = False) -> np.ndarray:
-    """``x`` in units of ``unit_of``'s robust SD per feature (``pooled``: their median, one unit for all)."""
-    med, unit = _units(unit_of, floor)
-    if pooled:
-        unit = np.fmax(np.nanmedian(unit), floor)
-    return np.clip((x - med) / unit, -CLIP, CLIP)
-
-
 def _state_floor(paths: list[np.ndarray]) -> np.ndarray:
     """Per state dimension, the least robust SD: ``STATE_FLOOR`` of its whole range over every demo's path.  Its
     whole range, not a central one: a dimension that moves in a few demos alone (a block that tumbles) is measured
@@ -197,10 +137,6 @@ def _state_floor(paths: list[np.ndarray]) -> np.ndarray:
     if not every.size:
         return np.ones(every.shape[1] if every.ndim == 2 else 1)
     return np.maximum(STATE_FLOOR * (np.nanmax(every, axis=0) - np.nanmin(every, axis=0)), 1e-9)
-
-
-def _rms(diff: np.ndarray) -> np.ndarray:
-    return np.sqrt(np.mean(diff ** 2, axis=1))
 
 
 def _names(names: list[str] | None, dims: np.ndarray, source: str) -> str:
@@ -264,20 +200,20 @@ def _view_part(query: list, groups: np.ndarray, cross: list | None = None
     share, cross_share, masks = np.full(n, np.nan), np.full(n, np.nan), [None] * n
     if any(q is None for q in query):
         return share, np.full(n, np.nan), masks, cross_share
-    for rows in _grouped(groups):
+    for rows in grouped(groups):
         q = np.stack([query[i] for i in rows]).astype(np.float64)
         shape = q.shape[1:]
         q = q.reshape(len(rows), -1)
-        z = _in_units(q, q, VIEW_FLOOR)
-        diff = _nearest(z, z, exclude_self=True).reshape(len(rows), *shape)
+        z = in_units(q, q, VIEW_FLOOR)
+        diff = nearest(z, z, exclude_self=True).reshape(len(rows), *shape)
         unlike = (diff > UNLIKE).max(axis=-1)
         share[rows] = unlike.mean(axis=(1, 2))
         for k, i in enumerate(rows):
             masks[i] = unlike[k]
         if cross is not None:
             c = np.stack([cross[i] for i in rows]).astype(np.float64).reshape(len(rows), -1)
-            cz = _in_units(c, q, VIEW_FLOOR)
-            d = _nearest(z, cz, exclude_self=True).reshape(len(rows), *shape)
+            cz = in_units(c, q, VIEW_FLOOR)
+            d = nearest(z, cz, exclude_self=True).reshape(len(rows), *shape)
             cross_share[rows] = (d > UNLIKE).max(axis=-1).mean(axis=(1, 2))
     return share, calibrated(share, groups, min_scale=VIEW_MIN_SCALE), masks, cross_share
 
@@ -290,13 +226,13 @@ def _arranged_part(query: list, groups: np.ndarray, cross: list) -> tuple[np.nda
     own, cross_dist = np.full(n, np.nan), np.full(n, np.nan)
     if any(q is None for q in query):
         return own, cross_dist
-    for rows in _grouped(groups):
+    for rows in grouped(groups):
         q = np.sqrt(np.stack([query[i] for i in rows]).astype(np.float64))
         c = np.sqrt(np.stack([cross[i] for i in rows]).astype(np.float64))
         shown = np.flatnonzero((q > 0).any(axis=0) | (c > 0).any(axis=0))
-        z = _in_units(q[:, shown], q[:, shown], ARRANGE_FLOOR)
-        own[rows] = _nearest_whole(z, z, exclude_self=True)
-        cross_dist[rows] = _nearest_whole(z, _in_units(c[:, shown], q[:, shown], ARRANGE_FLOOR), exclude_self=True)
+        z = in_units(q[:, shown], q[:, shown], ARRANGE_FLOOR)
+        own[rows] = nearest_whole(z, z, exclude_self=True)
+        cross_dist[rows] = nearest_whole(z, in_units(c[:, shown], q[:, shown], ARRANGE_FLOOR), exclude_self=True)
     return own, cross_dist
 
 
@@ -321,39 +257,24 @@ def _state_part(query: np.ndarray, groups: np.ndarray, floor: np.ndarray | float
     m = int(np.prod(query.shape[2:]))
     dist = {name: np.full(n, np.nan) for name in ("whole", "furthest")}
     cross_dist, at_point, in_feature = np.full(n, np.nan), np.full((n, PATH_POINTS), np.nan), np.full((n, m), np.nan)
-    for rows in _grouped(groups):
+    for rows in grouped(groups):
         x = np.asarray(query[rows], np.float64)
         flat = x.reshape(len(rows), -1)
-        z = _in_units(flat, flat, floor, pooled)
-        diff = _nearest(z, z, exclude_self=True)
-        dist["whole"][rows] = _rms(diff)
+        z = in_units(flat, flat, floor, pooled)
+        diff = nearest(z, z, exclude_self=True)
+        dist["whole"][rows] = rms(diff)
         points = diff.reshape(len(rows), PATH_POINTS, -1)
-        dist["furthest"][rows] = _rms(points.transpose(0, 2, 1)).max(axis=1)
+        dist["furthest"][rows] = rms(points.transpose(0, 2, 1)).max(axis=1)
         filled = np.nan_to_num(points)
         at_point[rows], in_feature[rows] = filled.mean(axis=2), filled.mean(axis=1)
         del diff, points, filled
         if backwards:
-            cz = _in_units(x[:, ::-1].reshape(len(rows), -1), flat, floor, pooled)
-            cross_dist[rows] = _rms(_nearest(z, cz, exclude_self=True))
+            cz = in_units(x[:, ::-1].reshape(len(rows), -1), flat, floor, pooled)
+            cross_dist[rows] = rms(nearest(z, cz, exclude_self=True))
     score = np.full(n, np.nan)
     for name in PATH_DISTANCES:
         score = np.fmax(score, calibrated(np.log1p(dist[name]), groups, min_scale=STATE_MIN_SCALE))
     return dist["whole"], score, at_point, in_feature, cross_dist
-
-
-def _ordinary(x: np.ndarray, usual: np.ndarray, groups: np.ndarray, min_scale: float, log: bool = False
-              ) -> np.ndarray:
-    """[N] bool: ``x`` at most ``ORDINARY`` robust SD (at least ``min_scale``; of log1p where ``log``) above the
-    median of ``usual`` in the demo's group -- a distance its group's demos commonly have."""
-    out = np.zeros(len(x), bool)
-    f = np.log1p if log else np.asarray
-    for rows in _grouped(groups):
-        ref = f(usual[rows])
-        ref = ref[np.isfinite(ref)]
-        if len(ref):
-            med = np.median(ref)
-            out[rows] = f(x[rows]) <= med + ORDINARY * max(1.4826 * np.median(np.abs(ref - med)), min_scale)
-    return out
 
 
 def _stack_state(paths: list[np.ndarray], at: int | slice) -> np.ndarray:
@@ -383,7 +304,7 @@ def _compared_ends(t: Timeline, groups: np.ndarray) -> dict:
         # by its colour pairs nearer its mates' other end than their same end, and as near as their own ends are to
         # each other: that end crossed over
         own, cross = out[which]["arranged"]
-        out[which]["crossed"] = (cross < own) & _ordinary(cross, out[other]["arranged"][0], groups, ARRANGE_MIN_SCALE,
+        out[which]["crossed"] = (cross < own) & ordinary(cross, out[other]["arranged"][0], groups, ARRANGE_MIN_SCALE,
                                                           log=True)
     # Done backwards is backwards at both ends: the lesser of the two ends' nearness to the other (a card over the
     # view at one end takes that end's picture away from its mates' same end, and nearer none).
@@ -405,7 +326,7 @@ def _end(t: Timeline, groups: np.ndarray, which: str) -> tuple[np.ndarray, list[
     own, arranged_cross = mine["arranged"]
     toward = ends["toward"]
     # near its mates' other end, as near as their own other ends are to each other: done backwards
-    like_other = _ordinary(cross, other["view"][0], groups, VIEW_MIN_SCALE)
+    like_other = ordinary(cross, other["view"][0], groups, VIEW_MIN_SCALE)
     score = np.fmax(view_z, toward)
     found = []
     for i in range(len(score)):
@@ -470,7 +391,7 @@ def path(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
         own[name], z[name], at_point[name], in_feature[name], reversed_[name] = _state_part(
             x, groups, fl, backwards=True, pooled=name == "view")
     # nearer its mates' paths played backwards than forwards, and as near as their paths are to each other
-    ordinary = {name: _ordinary(reversed_[name], own[name], groups, STATE_MIN_SCALE, True) for name in z}
+    near_enough = {name: ordinary(reversed_[name], own[name], groups, STATE_MIN_SCALE, True) for name in z}
     score = np.full(n, np.nan)
     for name in z:
         score = np.fmax(score, z[name])
@@ -480,7 +401,7 @@ def path(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
             found.append(PATH("like"))
             continue
         name = max(z, key=lambda p: z[p][i] if np.isfinite(z[p][i]) else -np.inf)
-        if reversed_[name][i] < own[name][i] and ordinary[name][i]:
+        if reversed_[name][i] < own[name][i] and near_enough[name][i]:
             found.append(PATH("backwards", part="state" if name == "state" else "picture", own=float(own[name][i]),
                               backwards=float(reversed_[name][i])))
             continue
