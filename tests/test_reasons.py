@@ -200,7 +200,8 @@ def test_every_template_of_every_check_renders_its_words():
                   more=False, colour="grey (#a0a0a0)", median=0.5, z=12.0, value=0.25, steps=3, gain=1.6,
                   named=True, size=3.5, last=30, name="target.x", part="at the end", ref=0.7, source="environment state",
                   columns=[0], held=False, files=[], form="value", level=0.0, at=0.5, count=3, typical=1.0,
-                  frames=[57, 71, 85], gained=["red"], lost=["pink", "dark grey"], flickers=2)
+                  frames=[57, 71, 85], gained=["red"], lost=["pink", "dark grey"], flickers=2, began=0.9,
+                  ended=0.05)
     words = {f"{check}:{kind}": vocabulary(kind, **params).words
              for check, vocabulary in VOCABULARIES.items() for kind in vocabulary.kinds}
     assert words["idle:still"] == "the arm stands still at 25% of steps, longest frames 3-9 (35% of the demo)"
@@ -233,6 +234,9 @@ def test_every_template_of_every_check_renders_its_words():
                                         "noisy or random command?")
     assert words["backwards:done backwards"] == ("begins where its task's demos end and ends where they begin: done "
                                                  "backwards (a reset recorded as a demo?)")
+    assert words["backwards_state:done backwards"] == (
+        "its arm begins where its task's demos end and ends where they begin (its first state 90% of their way from "
+        "start to end, its last 5%): done backwards (a reset recorded as a demo?)")
     assert words["outcome:undone"] == ("undid its task's job: began where its task's demos leave target.x, and "
                                        "target.x at the end is 0.25 where theirs is 0.7 (done backwards: a reset "
                                        "recorded as a demo?)")

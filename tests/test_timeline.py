@@ -1,4 +1,5 @@
-"""The time-aligned checks (``start``, ``end``, ``path``, ``backwards``) and the probes that plant what they are for.
+"""The time-aligned checks (``start``, ``end``, ``path``, ``backwards``, ``backwards_state``) and the probes that plant
+what they are for.
 
 A task of 30 demos in which the arm carries a bright block from the left of the view to the right: one demo is
 the recording played backwards (a reset recorded as a demo), one ends with the block knocked down to the bottom
@@ -53,7 +54,7 @@ def _carries(frames: bool = True) -> list[Demo]:
 def _evidence(demos: list[Demo]) -> Evidence:
     ev = Evidence(episodes=pd.DataFrame({"episode_index": [d.episode_index for d in demos],
                                          "task": [d.task for d in demos]}))
-    chosen = select(["start", "end", "path", "backwards"])
+    chosen = select(["start", "end", "path", "backwards", "backwards_state"])
     consumer = chosen[0].decode(ev, slice(0, len(demos)), "cpu")
     for d in demos:
         consumer.add(d)
@@ -81,6 +82,10 @@ def test_a_demo_played_backwards_begins_where_they_end_ends_where_they_begin_and
     assert carried.findings["path"][REVERSED].kind == "backwards"
     assert carried.reasons["end"][REVERSED] == ("ends where its task's demos begin: done backwards (a reset "
                                                 "recorded as a demo?)")
+    # The arm tells: it begins where its task's demos' arms end, and ends where theirs begin
+    assert _top(carried, "backwards_state") == REVERSED
+    found = carried.findings["backwards_state"][REVERSED]
+    assert found.kind == "done backwards" and found.params["began"] > 0.9 and found.params["ended"] < 0.1
 
 
 def test_a_knocked_over_object_is_an_end_unlike_its_tasks_and_says_where(carried):
@@ -91,6 +96,7 @@ def test_a_knocked_over_object_is_an_end_unlike_its_tasks_and_says_where(carried
     # its start is its task's, and it went forwards
     assert carried.findings["start"][KNOCKED].kind == "like"
     assert carried.findings["backwards"][KNOCKED].kind == "forwards"
+    assert carried.findings["backwards_state"][KNOCKED].kind == "forwards"
 
 
 def test_a_detour_strays_in_the_joint_it_took_half_way(carried):
@@ -104,7 +110,7 @@ def test_a_detour_strays_in_the_joint_it_took_half_way(carried):
 
 def test_clean_demos_stay_within_a_few_robust_sd():
     ev = _evidence([_carry(i, np.random.default_rng(100 + i)) for i in range(N)])
-    for check in ("start", "end", "path", "backwards"):
+    for check in ("start", "end", "path", "backwards", "backwards_state"):
         assert np.nanmax(ev.scores[check]) < 5, (check, np.sort(ev.scores[check])[-3:])
 
 
@@ -142,6 +148,23 @@ def test_a_reset_is_found_by_what_lies_beside_what_wherever_the_objects_lie():
     for check, kind in (("start", "where they end"), ("end", "where they begin"), ("backwards", "done backwards")):
         assert _top(ev, check) == REVERSED, (check, np.round(ev.scores[check], 1))
         assert ev.findings[check][REVERSED].kind == kind
+    # The arm goes out and comes home: its ends do not tell a start from an end, and the state says so
+    assert np.isnan(ev.scores["backwards_state"]).all() and {f.kind for f in ev.findings["backwards_state"]} == {
+        "no way"}
+
+
+def test_a_task_whose_way_each_layout_draws_anew_has_no_way_to_run_backwards():
+    """The arm pushes toward a goal each demo draws anew: its task's demos share no direction from start to end, so
+    no demo's ends are read as crossed over, whichever way it went."""
+    rng = np.random.default_rng(5)
+    demos = []
+    for i in range(N):
+        goal = rng.uniform(-1, 1, 2)
+        state = np.linspace(0, 1, T)[:, None] * np.r_[goal, 0.0] + rng.normal(0, 0.01, (T, 3))
+        demos.append(Demo(i, "push", np.zeros((T, 0, 0, 3), np.uint8), state.astype(np.float32),
+                          np.gradient(state, axis=0).astype(np.float32)))
+    ev = _evidence(demos)
+    assert {f.kind for f in ev.findings["backwards_state"]} == {"no way"}
 
 
 def test_a_dataset_without_a_camera_is_judged_by_its_path_alone():
@@ -150,12 +173,17 @@ def test_a_dataset_without_a_camera_is_judged_by_its_path_alone():
     assert ev.findings["path"][DETOUR].kind == "state"
     assert np.isnan(ev.scores["end"]).all() and {f.kind for f in ev.findings["end"]} == {"no frames"}
     assert np.isnan(ev.scores["backwards"]).all() and {f.kind for f in ev.findings["backwards"]} == {"no frames"}
+    # the arm's ends still tell a reset
+    assert _top(ev, "backwards_state") == REVERSED
+    assert ev.findings["backwards_state"][REVERSED].kind == "done backwards"
 
 
 def test_a_group_too_small_to_compare_gives_no_score():
     ev = _evidence(_carries()[:3])
     assert np.isnan(ev.scores["end"]).all() and {f.kind for f in ev.findings["end"]} == {"like"}
     assert np.isnan(ev.scores["backwards"]).all() and {f.kind for f in ev.findings["backwards"]} == {"too few demos"}
+    assert np.isnan(ev.scores["backwards_state"]).all()
+    assert {f.kind for f in ev.findings["backwards_state"]} == {"too few demos"}
 
 
 @pytest.fixture(scope="module")

@@ -45,6 +45,7 @@ from democheck.audit.neighbours import ORDINARY, grouped, in_units, nearest, nea
 from democheck.audit.scores import calibrated
 from democheck.audit.view import VIEW_FLOOR, VIEW_K, VIEW_MIN_SCALE, place
 from democheck.data.demo import Demo
+from democheck.data.reorder import velocities
 
 END_FRAMES = 3  # frames at each end whose median picture stands for it (one frame may be a codec's glitch)
 END_THUMB = 24  # pixels: the side of the thumbnail of a demo's first and last picture
@@ -59,6 +60,8 @@ ARRANGE_ALIKE = 0.1  # robust SD: two pictures' colour pairs nearer than this ar
 UNLIKE = VIEW_K  # units: a pixel this far from each of its nearest task-mates' differs
 STATE_FLOOR = 0.05  # a state dimension's least robust SD: this share of its whole range over the demos' paths
 STATE_MIN_SCALE = 0.25  # log units: the least robust SD of the state's and path's log distance within a group
+WAY_MIN_SCALE = 0.05  # shares of a task's way from its start state to its end: the least robust SD of how far a
+# demo's ends went along it toward the other end (clean demos' ends sit at their own end: a spread near zero)
 # How far a path lies from its mates' is read two ways, and the larger robust z counts: the RMS over the whole path
 # (a path unlike throughout) and the RMS at its furthest point (a few points far off: a detour, a drop and regrasp).
 PATH_DISTANCES = ("whole", "furthest")
@@ -175,6 +178,20 @@ BACKWARDS = Vocabulary("backwards", {
     "forwards": "goes the way its task's demos go",
     "too few demos": "no task of enough demos to compare with",
     "no frames": "no camera to compare",
+})
+
+
+BACKWARDS_STATE = Vocabulary("backwards_state", {
+    # its first state past the middle of its task's way from start to end, and its last state short of the middle
+    "done backwards": lambda began, ended, **_: (
+        f"its arm begins where its task's demos end and ends where they begin (its first state {began:.0%} of their "
+        f"way from start to end, its last {ended:.0%}): done backwards (a reset recorded as a demo?)"),
+    "toward the other end": lambda began, ended, **_: (
+        f"its arm begins further along its task's way, and ends less far, than its task's demos do (its first state "
+        f"{began:.0%} of their way from start to end, its last {ended:.0%}): partly done backwards?"),
+    "forwards": "its arm goes the way its task's demos go",
+    "no way": "its task's demos end in the state they begin in: no way to run backwards",
+    "too few demos": "no task of enough demos to compare with",
 })
 
 
@@ -367,6 +384,60 @@ def backwards(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding
         params = {"z": float(toward[i])}
         found.append(BACKWARDS("done backwards" if crossed[i] else "toward the other end", **params))
     return toward, found
+
+
+def way_shares(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per demo, where its first and its last state lie on its task's way (the line from the median first state of
+    its task's demos to their median last, over the dimensions that move along it by ``ORDINARY`` robust SD or
+    more, each in its robust SD over the task's ends, at least ``STATE_FLOOR`` of its range over every demo's
+    ends): 0 at the task's start, 1 at its end; and [N] bool, whether its task has such a way (a push whose goal
+    each layout draws anew may have none).  Velocities are left out: how fast the arm went at either end is not
+    where it was.  NaN for a task of too few demos."""
+    n = len(t.state_path)
+    began, ended, has_way = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, bool)
+    if not n:
+        return began, ended, has_way
+    first, last = _stack_state(t.state_path, 0), _stack_state(t.state_path, -1)
+    keep = ~velocities(next((x for x in t.names if x), None), first.shape[1])
+    first, last = first[:, keep], last[:, keep]
+    floor = _state_floor([first, last])
+    with np.errstate(all="ignore"):
+        for rows in grouped(groups):
+            s, e = first[rows], last[rows]
+            start_, end_ = np.nanmedian(s, axis=0), np.nanmedian(e, axis=0)
+            spread = np.fmax(1.4826 * np.nanmedian(np.abs(np.concatenate([s - start_, e - end_])), axis=0), floor)
+            way = (end_ - start_) / spread
+            way = np.where(np.abs(way) >= ORDINARY, way, 0.0)
+            if not way.any():
+                began[rows] = ended[rows] = 0.0
+                continue
+            has_way[rows] = True
+            along = lambda x: np.nan_to_num((x - start_) / spread) @ way / (way @ way)  # noqa: E731
+            began[rows], ended[rows] = along(s), along(e)
+    return began, ended, has_way
+
+
+def backwards_state(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
+    """How far a demo's first state lies along its task's way toward their last state, and its last state back
+    toward their first (``way_shares``; the lesser of the two, each within [0, 1]), robust z within its task (a
+    robust SD at least ``WAY_MIN_SCALE`` of the way): a reset recorded as a demo, read from the arm where the
+    camera's colours cannot tell a task's start from its end.  One look with ``backwards``: two readings of one
+    question."""
+    began, ended, has_way = way_shares(t, groups)
+    crossed = np.minimum(np.clip(began, 0, 1), 1 - np.clip(ended, 0, 1))
+    score = np.where(has_way, calibrated(np.where(has_way, crossed, np.nan), groups, min_scale=WAY_MIN_SCALE), np.nan)
+    found = []
+    for i in range(len(score)):
+        if np.isnan(began[i]):
+            found.append(BACKWARDS_STATE("too few demos"))
+        elif not has_way[i]:
+            found.append(BACKWARDS_STATE("no way"))
+        elif not score[i] > ORDINARY:
+            found.append(BACKWARDS_STATE("forwards"))
+        else:
+            kind = "done backwards" if began[i] > 0.5 and ended[i] < 0.5 else "toward the other end"
+            found.append(BACKWARDS_STATE(kind, began=float(began[i]), ended=float(ended[i]), z=float(score[i])))
+    return score, found
 
 
 def start(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
