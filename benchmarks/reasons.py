@@ -33,8 +33,8 @@ CAUSE = {
     "frozen-camera": ("frozen_video",), "frozen-state": ("frozen_state",), "dead-dim": ("frozen_state",),
     "scaled": FLAIL + ("lag:scale",), "sensor-nan": ("broken",), "lagged": ("lag:delay",),
     "dropped": ("frame_jump",), "nan": ("broken",),
-    "reversed": ("backwards:done backwards", "start:where they end", "end:where they begin", "path:backwards",
-                 "outcome:undone"),
+    "reversed": ("backwards:done backwards", "backwards_state:done backwards", "start:where they end",
+                 "end:where they begin", "path:backwards", "outcome:undone"),
     "hesitates": ("pause", "idle"),
     # on the way: a path unlike its task's (a detour; a drop, the arm back down and up again), an end unlike
     # its task's, the world left otherwise or the gripper ending open where its task's demos hold (an object

@@ -5,7 +5,10 @@ live sensor's reading, or a simulator's, changes in its last digits whenever the
 change, as a share of the demo's steps.  Only the dimensions live in the demo's task count: those whose share's
 ``FROZEN_STATE_QUANTILE`` over the task's demos (over every demo where the task has fewer than
 ``FROZEN_STATE_MIN_DEMOS``) is at most ``FROZEN_STATE_LIVE`` -- still in hardly any of them.  A goal, an object at
-rest until the arm reaches it, or one a simulator sometimes lets settle bit for bit, is left out.  The score is
+rest until the arm reaches it, or one a simulator sometimes lets settle bit for bit, is left out; so is a stretch
+held at a joint's stop -- at the edge of its range in the demo while its own command stays there (``at_limit``), or,
+for a dimension with no command of its own, at the edge of its range over every demo (``at_stops``: a gripper open
+as far as it goes).  The score is
 the largest share over the live dimensions: one joint whose encoder died for the whole demo reads 1, the whole
 state stream frozen from a step on reads the rest of the demo.  The reason names the dimension and the frames.
 A recording fault: in the ranking beside the other scores (``alone`` in the ranking recipe).  A consumer of the
@@ -17,6 +20,8 @@ percentile".)
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from democheck.audit.findings import Finding, Vocabulary
@@ -27,6 +32,7 @@ FROZEN_STATE_MIN_DEMOS = 4  # a task with fewer demos is compared with every dem
 FROZEN_STATE_LIVE = 0.05  # a dimension is live in a task where its share's FROZEN_STATE_QUANTILE is at most this
 FROZEN_STATE_QUANTILE = 0.75  # over the task's demos: live means still in hardly any of them
 DRIVEN_SHARE = 0.01  # a step is driven when its action changes by this share of the demo's 90th-percentile change
+LIMIT_TOLERANCE = 0.01  # a share of a dimension's range: a value this near its edge is at the edge (a stop)
 
 
 def commands(state_names: list[str] | None, action_names: list[str] | None, s: int, a: int) -> np.ndarray:
@@ -47,7 +53,8 @@ class StateRepeats(PerDemo):
     of its large changes, and a stretch held at the edge of the demo's range while its command stays there or
     beyond is a joint at its limit, not a fault; another is driven where any action changes so."""
 
-    fields = ("shares", "starts", "lengths", "steps", "names", "rests")
+    fields = ("shares", "starts", "lengths", "steps", "names", "rests", "stirred", "held", "commanded", "lows",
+              "highs")
     shares: list[np.ndarray]  # [S]
     starts: list[np.ndarray]  # [S]
     lengths: list[np.ndarray]  # [S]
@@ -55,8 +62,13 @@ class StateRepeats(PerDemo):
     # after it or other dimensions hold with it (an object's position and orientation); an encoder that died holds
     # alone to the end, a stream that stopped holds every dimension
     rests: list[np.ndarray]
+    stirred: list[np.ndarray]  # [S] whether other dimensions changed during that stretch (the arm moved)
     steps: list[int]  # the demo's steps (frames - 1)
     names: list[list[str] | None]  # the dataset's names of the state dimensions, where it names them
+    held: list[np.ndarray]  # [S] the value held over that stretch (NaN where none)
+    commanded: list[np.ndarray]  # [S] whether the dimension has a command of its own (``commands``)
+    lows: list[np.ndarray]  # [S] the dimension's least value in the demo
+    highs: list[np.ndarray]  # [S] and its largest
 
     def add(self, demo: Demo) -> None:
         x, a = np.asarray(demo.state), np.asarray(demo.actions)
@@ -84,22 +96,43 @@ class StateRepeats(PerDemo):
         self.steps.append(n)
         self.names.append(demo.extra.get("state_names"))
         moves = changes.any(axis=0)  # a goal or a constant holds through every stretch: no part of an object
+        self.stirred.append(np.array([k > 0 and changes[s:s + k].any() for s, k in runs], bool))
         self.rests.append(np.array([k > 0 and changes[s:s + k].any() and (
             changes[s + k:, j].any() or (repeats[s:s + k].all(axis=0) & moves).sum() > 1)
             for j, (s, k) in enumerate(runs)], bool))
+        self.held.append(np.array([float(x[s + 1, j]) if k else np.nan for j, (s, k) in enumerate(runs)]))
+        self.commanded.append(own >= 0)
+        self.lows.append(x.min(axis=0) if len(x) else np.full(x.shape[1], np.nan))
+        self.highs.append(x.max(axis=0) if len(x) else np.full(x.shape[1], np.nan))
 
 
 def at_limit(state: np.ndarray, command: np.ndarray, start: int, length: int) -> bool:
     """Whether a joint held over steps ``start`` .. ``start + length`` sits at the edge of its range in the demo
     while its own command stays there or beyond (fingers open as far as they go, told to open): held by its stop,
-    not by a dead sensor.  Within 1% of the joint's range of the edge."""
+    not by a dead sensor.  Within ``LIMIT_TOLERANCE`` of the joint's range of the edge."""
     if not length:
         return False
     held = float(state[start + 1])
     lo, hi = float(np.min(state)), float(np.max(state))
-    tol = 0.01 * max(hi - lo, 1e-9)
+    tol = LIMIT_TOLERANCE * max(hi - lo, 1e-9)
     asked = command[start + 1:start + length + 1]
     return bool((held >= hi - tol and (asked >= held - tol).all()) or (held <= lo + tol and (asked <= held + tol).all()))
+
+
+def at_stops(stats: StateRepeats) -> np.ndarray:
+    """[N, S] bool: the dimension, with no command of its own to ask (``commands``), held its longest stretch at the
+    edge of its range over every demo (within ``LIMIT_TOLERANCE`` of it): a gripper open as far as it goes, a joint
+    against its stop -- where the dataset's demos find its end, not a sensor that died at some value."""
+    width = max((len(h) for h in stats.held), default=0)
+    pad = lambda rows: np.stack([np.pad(np.asarray(r, np.float64), (0, width - len(r)), constant_values=np.nan)  # noqa: E731
+                                 for r in rows])
+    held, lows, highs = pad(stats.held), pad(stats.lows), pad(stats.highs)
+    commanded = pad(stats.commanded) == 1
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a dimension no demo records: NaN throughout
+        lo, hi = np.nanmin(lows, axis=0), np.nanmax(highs, axis=0)
+        tol = LIMIT_TOLERANCE * np.maximum(hi - lo, 1e-9)
+        return ~commanded & ((held >= hi - tol) | (held <= lo + tol))
 
 
 def _holds(what: str, start: int, stop: int, length: int) -> str:
@@ -111,8 +144,9 @@ FROZEN_STATE = Vocabulary("frozen_state", {
     # held while the arm was driven for longer than the arm ever stood still: a sensor that stopped updating
     "stopped": _holds,
     "held": _holds,  # held no longer than the arm stood still at some point: it may have rested with the arm
-    # it moves again after the hold, or holds with other moving dimensions while the rest of the state changes:
-    # a part at rest (an object left alone), which says how the demo differs, not that a sensor failed
+    # it moves again after the hold, or holds with other moving dimensions (or with others its task's demos move)
+    # while the rest of the state changes: a part at rest (an object left alone), which says how the demo differs,
+    # not that a sensor failed
     "at rest": _holds,
     "moves": "every state dimension that moves in its task's demos moves",
     "no state": "no state",
@@ -141,18 +175,29 @@ def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = No
             continue
         start, length = int(stats.starts[i][j]), int(stats.lengths[i][j])
         names = stats.names[i] if i < len(stats.names) else None
-        kind = ("at rest" if stats.rests[i][j] else "stopped" if still is not None and out[i] > still[i]
-                else "held")
+        kind = ("at rest" if stats.rests[i][j] or _left_alone(stats, seen, i, j) else
+                "stopped" if still is not None and out[i] > still[i] else "held")
         found.append(FROZEN_STATE(kind, what=names[j] if names and j < len(names) else f"state[{j}]", dim=j,
                                   start=start, stop=start + length, length=stats.steps[i] + 1))
     return out, found
+
+
+def _left_alone(stats: StateRepeats, seen: np.ndarray, i: int, j: int) -> bool:
+    """Whether demo ``i``'s dimension ``j`` held its stretch together with another dimension live in its task
+    (``seen`` [N, S], ``_live_shares``) while the arm moved: an object's coordinates the demo never touched, which
+    its task's demos move -- an encoder dies alone."""
+    start, stop = stats.starts[i][j], stats.starts[i][j] + stats.lengths[i][j]
+    starts, stops = np.asarray(stats.starts[i]), np.asarray(stats.starts[i]) + np.asarray(stats.lengths[i])
+    together = (seen[i] > 0) & (starts <= start) & (stops >= stop)
+    together[j] = False
+    return bool(stats.stirred[i][j] and together.any())
 
 
 def _live_shares(stats: StateRepeats, tasks: np.ndarray, live: float | None = None) -> np.ndarray:
     """[N, S] each demo's frozen share per state dimension, 0 where the dimension is not live in its task (those
     whose share's ``FROZEN_STATE_QUANTILE`` over the task's demos is more than ``live``)."""
     live = FROZEN_STATE_LIVE if live is None else live
-    shares = np.stack(stats.shares).astype(np.float64)
+    shares = np.where(at_stops(stats), 0.0, np.stack(stats.shares).astype(np.float64))
     tasks = np.asarray(tasks)
     usual = np.zeros_like(shares)  # per demo and dimension: its task's FROZEN_STATE_QUANTILE of the share
     for t in np.unique(tasks):
