@@ -434,38 +434,31 @@ def test_a_joint_is_judged_against_its_own_command_and_a_joint_at_its_limit_is_n
     assert found[14].params["what"] == "shoulder.pos" and found[12].kind == found[13].kind == "moves"
 
 
-def test_a_gripper_open_at_its_stop_and_an_object_left_alone_are_no_dead_sensor():
-    """A state wider than its actions pairs no dimension with a command: a gripper held open as far as any demo
-    opens it is at its stop, not frozen; an object whose coordinates the demo never touched (in its task's demos
-    they never hold bit for bit) holds them together while the arm moves -- a part at rest; an encoder that dies
-    alone is still one."""
-    from democheck.audit.sensors import StateRepeats, at_stops
-
+def test_an_object_left_alone_is_at_rest_and_a_dead_encoder_is_not():
+    """An object whose coordinates the demo never touched (in its task's demos they never hold bit for bit) holds
+    them together while the arm moves: a part at rest, which says how the demo differs; an encoder that dies holds
+    alone, and a stream that stops holds everything."""
     rng = np.random.default_rng(1)
     stats = StateRepeats()
-    kinds = ["clean"] * 12 + ["gripper open throughout", "object left alone", "dead encoder"]
+    kinds = ["clean"] * 12 + ["object left alone", "dead encoder", "stream stopped"]
     for kind in kinds:
         actions = np.cumsum(rng.normal(0, 1, (100, 2)), 0)
         arm = np.round(actions + rng.normal(0, 0.01, (100, 2)), 6)
-        gripper = np.clip(np.linspace(1.0, 0.3, 100) + rng.normal(0, 0.01, 100), 0.3, 1.0)
-        gripper[:rng.integers(5, 15)] = 1.0  # open as far as it goes until it closes
         # an object a simulator lets settle in its last digits, then carried
         obj = np.concatenate([np.zeros((50, 2)), np.cumsum(rng.normal(0, 0.1, (50, 2)), 0)]) + rng.normal(0, 1, 2)
         obj += rng.normal(0, 1e-5, obj.shape)
-        if kind == "gripper open throughout":
-            gripper[:] = 1.0
         if kind == "object left alone":
             obj[:] = obj[0]
         if kind == "dead encoder":
             arm[20:, 1] = arm[20, 1]
-        state = np.column_stack([arm, gripper, obj])
+        state = np.column_stack([arm, obj])
+        if kind == "stream stopped":
+            state[40:] = state[40]
         stats.add(Demo(0, "t", no_frames(100), state, actions))
-    stops = at_stops(stats)
-    assert stops[12, 2] and not stops[14, 1] and not stops[13, 3]
     scores, found = frozen_state(stats, np.zeros(len(kinds), int))
-    assert found[12].kind == "moves" and scores[12] == 0
-    assert found[13].kind == "at rest" and found[13].params["what"] in ("state[3]", "state[4]")
-    assert found[14].kind != "at rest" and found[14].params["what"] == "state[1]" and scores[14] > 0.7
+    assert found[12].kind == "at rest" and found[12].params["what"] in ("state[2]", "state[3]")
+    assert found[13].kind != "at rest" and found[13].params["what"] == "state[1]" and scores[13] > 0.7
+    assert found[14].kind != "at rest" and scores[14] > 0.5
 
 
 def test_a_camera_that_delivered_no_picture_is_named_first():

@@ -6,10 +6,8 @@ change, as a share of the demo's steps.  Only the dimensions live in the demo's 
 ``FROZEN_STATE_QUANTILE`` over the task's demos (over every demo where the task has fewer than
 ``FROZEN_STATE_MIN_DEMOS``) is at most ``FROZEN_STATE_LIVE`` -- still in hardly any of them.  A goal, an object at
 rest until the arm reaches it, or one a simulator sometimes lets settle bit for bit, is left out; so is a stretch
-held at a joint's stop -- at the edge of its range in the demo while its own command stays there (``at_limit``), or,
-for a dimension with no command of its own, at the edge of its range over every demo (``at_stops``: a gripper open
-as far as it goes).  The score is
-the largest share over the live dimensions: one joint whose encoder died for the whole demo reads 1, the whole
+held at a joint's stop, at the edge of its range in the demo while its own command stays there (``at_limit``).  The
+score is the largest share over the live dimensions: one joint whose encoder died for the whole demo reads 1, the whole
 state stream frozen from a step on reads the rest of the demo.  The reason names the dimension and the frames.
 A recording fault: in the ranking beside the other scores (``alone`` in the ranking recipe).  A consumer of the
 audit's decoding pass like the other model-free checks (``democheck.audit.modelfree``).
@@ -19,8 +17,6 @@ percentile".)
 """
 
 from __future__ import annotations
-
-import warnings
 
 import numpy as np
 
@@ -32,7 +28,6 @@ FROZEN_STATE_MIN_DEMOS = 4  # a task with fewer demos is compared with every dem
 FROZEN_STATE_LIVE = 0.05  # a dimension is live in a task where its share's FROZEN_STATE_QUANTILE is at most this
 FROZEN_STATE_QUANTILE = 0.75  # over the task's demos: live means still in hardly any of them
 DRIVEN_SHARE = 0.01  # a step is driven when its action changes by this share of the demo's 90th-percentile change
-LIMIT_TOLERANCE = 0.01  # a share of a dimension's range: a value this near its edge is at the edge (a stop)
 
 
 def commands(state_names: list[str] | None, action_names: list[str] | None, s: int, a: int) -> np.ndarray:
@@ -53,8 +48,7 @@ class StateRepeats(PerDemo):
     of its large changes, and a stretch held at the edge of the demo's range while its command stays there or
     beyond is a joint at its limit, not a fault; another is driven where any action changes so."""
 
-    fields = ("shares", "starts", "lengths", "steps", "names", "rests", "stirred", "held", "commanded", "lows",
-              "highs")
+    fields = ("shares", "starts", "lengths", "steps", "names", "rests", "stirred")
     shares: list[np.ndarray]  # [S]
     starts: list[np.ndarray]  # [S]
     lengths: list[np.ndarray]  # [S]
@@ -65,10 +59,6 @@ class StateRepeats(PerDemo):
     stirred: list[np.ndarray]  # [S] whether other dimensions changed during that stretch (the arm moved)
     steps: list[int]  # the demo's steps (frames - 1)
     names: list[list[str] | None]  # the dataset's names of the state dimensions, where it names them
-    held: list[np.ndarray]  # [S] the value held over that stretch (NaN where none)
-    commanded: list[np.ndarray]  # [S] whether the dimension has a command of its own (``commands``)
-    lows: list[np.ndarray]  # [S] the dimension's least value in the demo
-    highs: list[np.ndarray]  # [S] and its largest
 
     def add(self, demo: Demo) -> None:
         x, a = np.asarray(demo.state), np.asarray(demo.actions)
@@ -100,39 +90,19 @@ class StateRepeats(PerDemo):
         self.rests.append(np.array([k > 0 and changes[s:s + k].any() and (
             changes[s + k:, j].any() or (repeats[s:s + k].all(axis=0) & moves).sum() > 1)
             for j, (s, k) in enumerate(runs)], bool))
-        self.held.append(np.array([float(x[s + 1, j]) if k else np.nan for j, (s, k) in enumerate(runs)]))
-        self.commanded.append(own >= 0)
-        self.lows.append(x.min(axis=0) if len(x) else np.full(x.shape[1], np.nan))
-        self.highs.append(x.max(axis=0) if len(x) else np.full(x.shape[1], np.nan))
 
 
 def at_limit(state: np.ndarray, command: np.ndarray, start: int, length: int) -> bool:
     """Whether a joint held over steps ``start`` .. ``start + length`` sits at the edge of its range in the demo
     while its own command stays there or beyond (fingers open as far as they go, told to open): held by its stop,
-    not by a dead sensor.  Within ``LIMIT_TOLERANCE`` of the joint's range of the edge."""
+    not by a dead sensor.  Within 1% of the joint's range of the edge."""
     if not length:
         return False
     held = float(state[start + 1])
     lo, hi = float(np.min(state)), float(np.max(state))
-    tol = LIMIT_TOLERANCE * max(hi - lo, 1e-9)
+    tol = 0.01 * max(hi - lo, 1e-9)
     asked = command[start + 1:start + length + 1]
     return bool((held >= hi - tol and (asked >= held - tol).all()) or (held <= lo + tol and (asked <= held + tol).all()))
-
-
-def at_stops(stats: StateRepeats) -> np.ndarray:
-    """[N, S] bool: the dimension, with no command of its own to ask (``commands``), held its longest stretch at the
-    edge of its range over every demo (within ``LIMIT_TOLERANCE`` of it): a gripper open as far as it goes, a joint
-    against its stop -- where the dataset's demos find its end, not a sensor that died at some value."""
-    width = max((len(h) for h in stats.held), default=0)
-    pad = lambda rows: np.stack([np.pad(np.asarray(r, np.float64), (0, width - len(r)), constant_values=np.nan)  # noqa: E731
-                                 for r in rows])
-    held, lows, highs = pad(stats.held), pad(stats.lows), pad(stats.highs)
-    commanded = pad(stats.commanded) == 1
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a dimension no demo records: NaN throughout
-        lo, hi = np.nanmin(lows, axis=0), np.nanmax(highs, axis=0)
-        tol = LIMIT_TOLERANCE * np.maximum(hi - lo, 1e-9)
-        return ~commanded & ((held >= hi - tol) | (held <= lo + tol))
 
 
 def _holds(what: str, start: int, stop: int, length: int) -> str:
@@ -197,7 +167,7 @@ def _live_shares(stats: StateRepeats, tasks: np.ndarray, live: float | None = No
     """[N, S] each demo's frozen share per state dimension, 0 where the dimension is not live in its task (those
     whose share's ``FROZEN_STATE_QUANTILE`` over the task's demos is more than ``live``)."""
     live = FROZEN_STATE_LIVE if live is None else live
-    shares = np.where(at_stops(stats), 0.0, np.stack(stats.shares).astype(np.float64))
+    shares = np.stack(stats.shares).astype(np.float64)
     tasks = np.asarray(tasks)
     usual = np.zeros_like(shares)  # per demo and dimension: its task's FROZEN_STATE_QUANTILE of the share
     for t in np.unique(tasks):
