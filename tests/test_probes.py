@@ -320,7 +320,8 @@ def test_bench_cli_schema_and_auroc_against_sklearn(defect_dataset, probes, tiny
                                     "action_error", "motion", "idle", "pause", "grasps", "broken", "jerk", "saturation",
                                     "duplicate",
                                     "dynamics", "lag", "timing", "frozen_video", "frame_jump", "frozen_state", "view", "colours",
-                                    "outcome", "moved", "start", "end", "path", "backwards", "coupling",
+                                    "outcome", "moved", "start", "end", "path", "backwards", "backwards_state",
+                                    "coupling",
                                     "suspicion",
                                     "model_free",
                                     "ocsvm_flag", "tecnet_knn", "heuristic", "random"]

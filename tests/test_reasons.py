@@ -222,6 +222,8 @@ def test_every_template_of_every_check_renders_its_words():
                                      "(mostly the top left)")
     assert words["end:where they begin"] == ("ends where its task's demos begin: done backwards (a reset recorded as "
                                              "a demo?)")
+    assert words["end:toward the other end"] == ("ends nearer where its task's demos begin than they do, by which "
+                                                 "colours lie beside which")
     assert words["end:view"] == ("ends unlike its task's demos: 25% of its last picture differs from its nearest "
                                  "task-mates' (mostly the top left)")
     assert words["path:state"] == "its path strays from its task's, most in [0, 2], 50% of the way through"

@@ -48,7 +48,7 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "without-grasps": lambda c: c.without("grasps"),
     "without-faults": lambda c: c.without(*RECORDING_FAULTS),
     "without-time": lambda c: c.without(*TIME_ALIGNED),
-    "without-backwards": lambda c: c.without("backwards"),
+    "without-backwards": lambda c: c.without("backwards", "backwards_state"),
     "without-time-and-pause": lambda c: c.without(*TIME_ALIGNED, "pause"),
     "time-apart": lambda c: replace(c, specs=tuple(replace(s, alone=True) if s.name in TIME_ALIGNED + ("pause",)
                                                    else s for s in c.specs)),

@@ -154,6 +154,8 @@ def _view_words(which: str, share: float, place: str, **_) -> str:
 START = Vocabulary("start", {
     # its start nearer its task-mates' ends than their starts
     "where they end": "begins where its task's demos end: done backwards (a reset recorded as a demo?)",
+    # by its colour pairs nearer its task-mates' ends than they are, not as near as their own ends are
+    "toward the other end": "begins nearer where its task's demos end than they do, by which colours lie beside which",
     "view": lambda **p: "begins unlike its task's demos: " + _view_words("first", **p),
     "like": "begins like its task's demos",
     "no frames": "no camera to compare",
@@ -162,6 +164,7 @@ START = Vocabulary("start", {
 END = Vocabulary("end", {
     # its end nearer its task-mates' starts than their ends
     "where they begin": "ends where its task's demos begin: done backwards (a reset recorded as a demo?)",
+    "toward the other end": "ends nearer where its task's demos begin than they do, by which colours lie beside which",
     "view": lambda **p: "ends unlike its task's demos: " + _view_words("last", **p),
     "like": "ends like its task's demos",
     "no frames": "no camera to compare",
@@ -352,6 +355,8 @@ def _end(t: Timeline, groups: np.ndarray, which: str) -> tuple[np.ndarray, list[
             found.append(vocab("like"))
         elif by_colours and toward[i] > ORDINARY and mine["crossed"][i]:
             found.append(vocab(crossed, distance=float(own[i]), cross=float(arranged_cross[i])))
+        elif by_colours and toward[i] > 1.0:  # the colour pairs gave the score, a robust SD or more: say so
+            found.append(vocab("toward the other end", z=float(toward[i])))
         elif not share[i]:
             found.append(vocab("like"))
         elif cross[i] < share[i] and like_other[i]:
