@@ -355,6 +355,16 @@ def test_a_flagged_demo_left_in_the_core_is_no_clean_demo_the_words_count_agains
     assert "beyond every clean demo" not in " ".join(told.details[2:])
 
 
+def test_a_small_share_that_counted_does_not_read_as_none():
+    from democheck.audit.words import percent
+
+    shares = (0.0, 0.00012, 0.0017, 0.0085, 0.052, 0.35)
+    assert [percent(x) for x in shares] == ["0%", "0.012%", "0.17%", "0.85%", "5.2%", "35%"]
+    assert VOCABULARIES["end"]("view", share=0.0017, place="the centre").words == (
+        "ends unlike its task's demos: 0.17% of its last picture differs from its nearest task-mates' (mostly the "
+        "centre)")
+
+
 def test_odds_are_counts():
     assert odds(0, 130, False) == "beyond every clean demo"
     assert odds(0, 130, True) == "as unusual as 1 clean demo in 130"  # itself one of them: not beyond

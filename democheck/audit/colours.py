@@ -12,6 +12,7 @@ import warnings
 import cv2
 import numpy as np
 
+from democheck.audit import words
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
 from democheck.audit.view import VIEW_EVERY, VIEW_MIN_DEMOS, task_z
@@ -76,12 +77,6 @@ def colour_z(shares: np.ndarray, pixel: np.ndarray, tasks: np.ndarray) -> tuple[
     return np.where(shown, z, np.nan), np.where(typical < 0.5 * pixel[:, None], 0.0, typical)
 
 
-def _percent(share: float) -> str:
-    """A share of the view as a percentage: '35%', '0.85%', '0.012%', '0%'."""
-    p = 100 * float(share)
-    return "0%" if p == 0 else f"{p:.0f}%" if p >= 10 else f"{p:.2g}%"
-
-
 def colour_rgb(bin_index: int) -> tuple[int, int, int]:
     """The middle of a colour bin of ``ColourStats``, 0-255 each."""
     step = 256 // COLOUR_LEVELS
@@ -139,7 +134,7 @@ def bin_colour(b: int) -> str:
 COLOURS = Vocabulary("colours", {
     "changed": lambda more, colour, share, median, z: (
         f"the view's colours changed: {'more' if more else 'less'} {colour} than its task's other demos: "
-        f"{_percent(share)} of the view against their median {_percent(median)} ({z:.0f} robust SD)"),
+        f"{words.percent(share)} of the view against their median {words.percent(median)} ({z:.0f} robust SD)"),
     "like": "coloured like its task's other demos",
     "no frames": "no frames to compare",
 })

@@ -38,6 +38,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from democheck.audit import words
 from democheck.audit.colours import colour_bins
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
@@ -148,7 +149,7 @@ def _names(names: list[str] | None, dims: np.ndarray, source: str) -> str:
 
 
 def _view_words(which: str, share: float, place: str, **_) -> str:
-    return f"{100 * share:.0f}% of its {which} picture differs from its nearest task-mates' (mostly {place})"
+    return f"{words.percent(share)} of its {which} picture differs from its nearest task-mates' (mostly {place})"
 
 
 START = Vocabulary("start", {
