@@ -165,6 +165,28 @@ def test_a_task_whose_way_each_layout_draws_anew_has_no_way_to_run_backwards():
                           np.gradient(state, axis=0).astype(np.float32)))
     ev = _evidence(demos)
     assert {f.kind for f in ev.findings["backwards_state"]} == {"no way"}
+    assert np.isnan(ev.scores["backwards_state"]).all()
+
+
+def test_the_arm_half_way_back_is_partly_backwards_and_a_demo_without_state_says_so():
+    """A demo whose arm begins most of its task's way along and ends a little short of that went partly backwards;
+    a demo whose state is missing (NaN) has nothing to read, and its task-mates are read as before; a dataset with no
+    state (the timeline follows its actions, which may be steps rather than places) is not read at all."""
+    demos = _carries()
+    d = demos[REVERSED]
+    along = np.linspace(0.75, 0.6, T)[:, None] * np.array([1.0, -0.5, 0.3, 0.0])
+    demos[REVERSED] = Demo(REVERSED, d.task, d.frames, along.astype(np.float32), d.actions, extra=d.extra)
+    demos[KNOCKED] = Demo(KNOCKED, "carry", demos[KNOCKED].frames, np.full((T, S), np.nan, np.float32),
+                          demos[KNOCKED].actions, extra=demos[KNOCKED].extra)
+    ev = _evidence(demos)
+    found = ev.findings["backwards_state"]
+    assert found[REVERSED].kind == "toward the other end"
+    assert int(np.nanargmax(ev.scores["backwards_state"])) == REVERSED
+    assert found[KNOCKED].kind == "no state" and np.isnan(ev.scores["backwards_state"][KNOCKED])
+    assert found[DETOUR].kind == "forwards"
+    stateless = [Demo(x.episode_index, x.task, x.frames, np.zeros((T, 0), np.float32), x.actions) for x in _carries()]
+    ev = _evidence(stateless)
+    assert {f.kind for f in ev.findings["backwards_state"]} == {"no state"}
 
 
 def test_a_dataset_without_a_camera_is_judged_by_its_path_alone():

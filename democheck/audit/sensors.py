@@ -128,8 +128,9 @@ def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = No
                  still: np.ndarray | None = None) -> tuple[np.ndarray, list[Finding]]:
     """The longest frozen stretch's share (see the module docstring) of the state dimensions live in the demo's
     task (those whose share's ``FROZEN_STATE_QUANTILE`` over the task's demos is at most ``live``), the largest;
-    and which dimension held where (``at rest``: a part at rest, ``StateRepeats.rests``; ``stopped``: held longer
-    than the arm's longest still stretch, ``still`` [N] as a share of the steps, where given; else ``held``)."""
+    and which dimension held where (``at rest``: a part at rest, ``StateRepeats.rests`` or ``_left_alone``;
+    ``stopped``: held longer than the arm's longest still stretch, ``still`` [N] as a share of the steps, where
+    given; else ``held``)."""
     if not stats.shares:
         return np.zeros(0), []
     seen = _live_shares(stats, tasks, live)
@@ -153,9 +154,10 @@ def frozen_state(stats: StateRepeats, tasks: np.ndarray, live: float | None = No
 
 
 def _left_alone(stats: StateRepeats, seen: np.ndarray, i: int, j: int) -> bool:
-    """Whether demo ``i``'s dimension ``j`` held its stretch together with another dimension live in its task
-    (``seen`` [N, S], ``_live_shares``) while the arm moved: an object's coordinates the demo never touched, which
-    its task's demos move -- an encoder dies alone."""
+    """Whether demo ``i``'s dimension ``j`` held over the same stretch as another dimension live in its task
+    (``seen`` [N, S], ``_live_shares``; ``j`` holds the longest, so the other's stretch covers its own only where
+    the two are one) while the arm moved: an object's coordinates the demo never touched, which its task's demos
+    move -- an encoder dies alone."""
     start, stop = stats.starts[i][j], stats.starts[i][j] + stats.lengths[i][j]
     starts, stops = np.asarray(stats.starts[i]), np.asarray(stats.starts[i]) + np.asarray(stats.lengths[i])
     together = (seen[i] > 0) & (starts <= start) & (stops >= stop)

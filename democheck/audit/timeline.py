@@ -9,12 +9,18 @@ failed place or a knocked-over object shows in the last frames, a detour or a re
 - ``start``: the first ``END_FRAMES`` frames (their median, ``END_THUMB`` px);
 - ``end``: the last frames;
 - ``path``: ``PATH_POINTS`` evenly spaced points of the demo in normalised time, of its state and of a grey
-  ``PATH_THUMB`` px thumbnail.
+  ``PATH_THUMB`` px thumbnail;
+- ``backwards``: both ends' colour pairs nearer the task's other end (``toward_other_end``, below);
+- ``backwards_state``: the arm's first state along its task's way toward their last, its last state back toward
+  their first (``way_shares``).
 
 The start and end read the camera alone: where the state ends, and how far it moved, is the outcome check's
 (``democheck.audit.outcome``), which knows rotations, piles and a task's several outcomes; read twice, one end state
-would count twice.  A demo is compared with its ``neighbours.NEAR`` nearest task-mates, not with the task's median,
-so that a task done two ways (the object placed left or right) has two kinds of clean end.  Each feature is in units
+would count twice.  ``backwards_state`` reads the end states too, but only along the task's way, and stands beside
+the others' sum as a recording fault does: whether the recording should be a demo, not where it left the world.
+
+A demo is compared with its ``neighbours.NEAR`` nearest task-mates, not with the task's median, so that a task done
+two ways (the object placed left or right) has two kinds of clean end.  Each feature is in units
 of its robust SD over the group (at least ``VIEW_FLOOR`` grey levels, or ``STATE_FLOOR`` of the dimension's whole
 range over the dataset; a path's picture in one unit for all its pixels).  A start's or end's picture is unlike its
 mates' by the share of its pixels more than ``UNLIKE`` units from theirs (the median over the mates), as the view
@@ -35,6 +41,8 @@ A dataset with no camera has the path's state part alone; one with no state comp
 
 from __future__ import annotations
 
+import warnings
+
 import cv2
 import numpy as np
 
@@ -42,7 +50,8 @@ from democheck.audit import words
 from democheck.audit.colours import colour_bins
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
-from democheck.audit.neighbours import ORDINARY, grouped, in_units, nearest, nearest_whole, ordinary, rms
+from democheck.audit.neighbours import (MIN_GROUP, ORDINARY, grouped, in_units, nearest, nearest_whole, ordinary,
+                                       rms)
 from democheck.audit.scores import calibrated
 from democheck.audit.view import VIEW_FLOOR, VIEW_K, VIEW_MIN_SCALE, place
 from democheck.data.demo import Demo
@@ -73,7 +82,8 @@ class Timeline(PerDemo):
     frames) and its colour pairs (``arrangement``, at ``ARRANGE_SIZE`` px), its grey thumbnails and state at
     ``PATH_POINTS`` points, and the state's names (about 13 kB a demo)."""
 
-    fields = ("first_view", "last_view", "first_arranged", "last_arranged", "view_path", "state_path", "names")
+    fields = ("first_view", "last_view", "first_arranged", "last_arranged", "view_path", "state_path", "names",
+              "from_actions")
     first_view: list[np.ndarray | None]
     last_view: list[np.ndarray | None]
     first_arranged: list[np.ndarray | None]
@@ -81,6 +91,7 @@ class Timeline(PerDemo):
     view_path: list[np.ndarray | None]
     state_path: list[np.ndarray]
     names: list[list[str] | None]
+    from_actions: list[bool]  # no state recorded: the path is the actions'
 
     def add(self, demo: Demo) -> None:
         frames = demo.frames
@@ -92,6 +103,7 @@ class Timeline(PerDemo):
         self.state_path.append(state[at].astype(np.float32) if len(at) else np.full((PATH_POINTS, state.shape[1]),
                                                                                     np.nan, np.float32))
         self.names.append(demo.extra.get(named))
+        self.from_actions.append(named == "action_names")
         if frames.ndim != 4 or not frames.shape[1] or not len(frames):
             for kept in (self.first_view, self.last_view, self.first_arranged, self.last_arranged, self.view_path):
                 kept.append(None)
@@ -194,8 +206,9 @@ BACKWARDS_STATE = Vocabulary("backwards_state", {
         f"its arm begins further along its task's way, and ends less far, than its task's demos do (its first state "
         f"{began:.0%} of their way from start to end, its last {ended:.0%}): partly done backwards?"),
     "forwards": "its arm goes the way its task's demos go",
-    "no way": "its task's demos end in the state they begin in: no way to run backwards",
+    "no way": "its task's demos share no way from where they begin to where they end: none to run backwards",
     "too few demos": "no task of enough demos to compare with",
+    "no state": "no state recorded at its ends",
 })
 
 
@@ -396,31 +409,45 @@ def way_shares(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     """Per demo, where its first and its last state lie on its task's way (the line from the median first state of
     its task's demos to their median last, over the dimensions that move along it by ``ORDINARY`` robust SD or
     more, each in its robust SD over the task's ends, at least ``STATE_FLOOR`` of its range over every demo's
-    ends): 0 at the task's start, 1 at its end; and [N] bool, whether its task has such a way (a push whose goal
-    each layout draws anew may have none).  Velocities are left out: how fast the arm went at either end is not
-    where it was.  NaN for a task of too few demos."""
+    ends): 0 at the task's start, 1 at its end, over the dimensions the demo recorded at both ends; and why not,
+    where not (``""`` where measured): "no state" (none recorded, or only actions, which may be steps rather than
+    places), "too few demos", "no way" (its task's demos share none: a push toward a goal each layout draws anew,
+    an arm that goes out and comes home).  Velocities are left out: how fast the arm went at either end is not
+    where it was."""
     n = len(t.state_path)
-    began, ended, has_way = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, bool)
+    began, ended = np.full(n, np.nan), np.full(n, np.nan)
+    why = np.array(["too few demos"] * n, dtype=object)
     if not n:
-        return began, ended, has_way
+        return began, ended, why
     first, last = _stack_state(t.state_path, 0), _stack_state(t.state_path, -1)
-    keep = ~velocities(next((x for x in t.names if x), None), first.shape[1])
+    keep = ~velocities(next((x for x, a in zip(t.names, t.from_actions) if x and not a), None), first.shape[1])
     first, last = first[:, keep], last[:, keep]
-    floor = _state_floor([first, last])
-    with np.errstate(all="ignore"):
+    stated = ~np.asarray(t.from_actions, bool) & np.isfinite(first).any(axis=1) & np.isfinite(last).any(axis=1)
+    why[~stated] = "no state"
+    if not stated.any():
+        return began, ended, why
+    floor = _state_floor([first[stated], last[stated]])
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a dimension no demo of a task recorded: NaN throughout
         for rows in grouped(groups):
+            rows = rows[stated[rows]]
+            if len(rows) < MIN_GROUP:
+                continue
             s, e = first[rows], last[rows]
             start_, end_ = np.nanmedian(s, axis=0), np.nanmedian(e, axis=0)
             spread = np.fmax(1.4826 * np.nanmedian(np.abs(np.concatenate([s - start_, e - end_])), axis=0), floor)
-            way = (end_ - start_) / spread
+            way = np.nan_to_num((end_ - start_) / spread)
             way = np.where(np.abs(way) >= ORDINARY, way, 0.0)
             if not way.any():
-                began[rows] = ended[rows] = 0.0
+                why[rows] = "no way"
                 continue
-            has_way[rows] = True
-            along = lambda x: np.nan_to_num((x - start_) / spread) @ way / (way @ way)  # noqa: E731
-            began[rows], ended[rows] = along(s), along(e)
-    return began, ended, has_way
+            why[rows] = ""
+            for x, out in ((s, began), (e, ended)):
+                z = (x - start_) / spread
+                seen = np.isfinite(z) & (way != 0)
+                weight = (np.where(seen, way, 0.0) ** 2).sum(axis=1)
+                out[rows] = np.where(weight > 0, np.where(seen, z * way, 0.0).sum(axis=1) / weight, np.nan)
+    return began, ended, why
 
 
 def backwards_state(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
@@ -429,15 +456,16 @@ def backwards_state(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[F
     robust SD at least ``WAY_MIN_SCALE`` of the way): a reset recorded as a demo, read from the arm where the
     camera's colours cannot tell a task's start from its end.  One look with ``backwards``: two readings of one
     question."""
-    began, ended, has_way = way_shares(t, groups)
-    crossed = np.minimum(np.clip(began, 0, 1), 1 - np.clip(ended, 0, 1))
-    score = np.where(has_way, calibrated(np.where(has_way, crossed, np.nan), groups, min_scale=WAY_MIN_SCALE), np.nan)
+    began, ended, why = way_shares(t, groups)
+    began, ended = np.clip(began, 0, 1), np.clip(ended, 0, 1)
+    crossed = np.minimum(began, 1 - ended)
+    measured = np.isfinite(crossed)
+    score = np.where(measured, calibrated(np.where(measured, crossed, np.nan), groups, min_scale=WAY_MIN_SCALE),
+                     np.nan)
     found = []
     for i in range(len(score)):
-        if np.isnan(began[i]):
-            found.append(BACKWARDS_STATE("too few demos"))
-        elif not has_way[i]:
-            found.append(BACKWARDS_STATE("no way"))
+        if not measured[i]:
+            found.append(BACKWARDS_STATE(why[i] or "no state"))
         elif not score[i] > ORDINARY:
             found.append(BACKWARDS_STATE("forwards"))
         else:

@@ -18,9 +18,8 @@ def pair(value: float, reference: float, digits: int = 2) -> tuple[str, str]:
     return a, b
 
 
-
 def percent(share: float) -> str:
     """A share as a percentage, two significant figures under 10% so that a small share that counted does not
     read as none: '35%', '0.85%', '0.012%', '0%'."""
     p = 100 * float(share)
-    return "0%" if p == 0 else f"{p:.0f}%" if p >= 10 else f"{p:.2g}%"
+    return "0%" if p == 0 else "under 0.01%" if p < 0.01 else f"{p:.0f}%" if p >= 10 else f"{p:.2g}%"
