@@ -11,7 +11,8 @@ of the audit's decoding pass like the other model-free checks (``democheck.audit
 
 The ``lag`` check reads the same fit: how much better the demo's states follow its actions shifted in time --
 the log of its mean squared prediction error with the actions as recorded over the least error with them moved
-up to ``LAG_MAX`` steps earlier or later (0 for a demo whose recorded alignment explains it best), and the
+fewer than ``LAG_MAX`` steps earlier or later (0 for a demo whose recorded alignment explains it best; a least error
+at ``LAG_MAX`` itself is an error still falling as far as the check looks, a drift and not a delay), and the
 shift.  An action stream recorded late or early against the states and frames (a clock offset between two
 recorders) is what a policy trained on it learns to be late by; the mean error above barely sees it where
 actions change slowly, since a shifted action is still close to the right one.  Actions recorded at another
@@ -78,8 +79,8 @@ def _shifted(actions: np.ndarray, k: int) -> np.ndarray:
 
 def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | None
          ) -> tuple[float, int, float, float]:
-    """(log of the error as recorded over the least error with the actions moved up to ``LAG_MAX`` steps,
-    that shift, the one factor on the actions' part of the prediction that fits the demo best, the log of the
+    """(log of the error as recorded over the least error with the actions moved by fewer than ``LAG_MAX`` steps
+    (or the demo's steps - 2) -- a least error at that edge is no delay located --, that shift, the one factor on the actions' part of the prediction that fits the demo best, the log of the
     error as recorded over the error with it); NaN without a fit or under 3 steps.  The fit is linear, so each
     part of the prediction is computed once and moving the actions is moving rows of theirs: what
     ``_dynamics_errors`` gives the actions ``_shifted`` by each k, at the cost of one prediction."""
@@ -103,7 +104,10 @@ def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | No
         errors[k] = float(((pred - target) ** 2).mean())
         if k == 0:
             part = from_action[:-1] + before  # the actions' part of the prediction, as recorded
-    best = min(errors, key=lambda k: (errors[k], abs(k)))
+    # A least error at the window's edge is no minimum found: an error still falling as far as the check looks is
+    # a slow drift between the actions and the state (an arm that settles at its goal), not a recording delay.
+    inside = [k for k in errors if abs(k) < reach] or list(errors)
+    best = min(inside, key=lambda k: (errors[k], abs(k)))
     rest = target - from_state
     factor = float((part * rest).sum() / max(float((part ** 2).sum()), 1e-12))
     scaled = float(((rest - factor * part) ** 2).mean())
