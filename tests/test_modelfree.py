@@ -325,6 +325,17 @@ def test_lag_ranks_actions_recorded_late_first_and_says_by_how_much():
     np.testing.assert_allclose(gain, np.log(errors[0] / errors[10]), rtol=1e-9)
 
 
+def test_a_least_error_at_the_shift_windows_edge_is_no_delay_located():
+    """Actions recorded further out of step than the check looks (30 steps): the error falls all the way to the
+    window's edge, where no minimum is found -- the check names a shift inside the window, never the edge itself."""
+    demos, _ = _planted("none")
+    states, actions = [d.state for d in demos], [d.actions for d in demos]
+    fit = dynamics._dynamics_fit(states, actions)
+    for k in (0, 5, 30):
+        shift = dynamics._lag(states[3], dynamics._shifted(actions[3], k), fit)[1]
+        assert abs(shift) < dynamics.LAG_MAX, (k, shift)
+
+
 def _moving_square(t: int, size: int = 24) -> np.ndarray:
     """A camera that sees a bright square move one pixel a step (and back), over a dim textured floor."""
     rng = np.random.default_rng(t % 7)
