@@ -325,15 +325,17 @@ def test_lag_ranks_actions_recorded_late_first_and_says_by_how_much():
     np.testing.assert_allclose(gain, np.log(errors[0] / errors[10]), rtol=1e-9)
 
 
-def test_a_least_error_at_the_shift_windows_edge_is_no_delay_located():
-    """Actions recorded further out of step than the check looks (30 steps): the error falls all the way to the
-    window's edge, where no minimum is found -- the check names a shift inside the window, never the edge itself."""
+def test_an_error_still_falling_past_the_shift_window_is_no_delay_located():
+    """Actions recorded further out of step than the check looks (30 steps): the error still falls one step past
+    the window's edge, so no delay is located there (shift and gain 0); a delay of the window's own size is."""
     demos, _ = _planted("none")
     states, actions = [d.state for d in demos], [d.actions for d in demos]
     fit = dynamics._dynamics_fit(states, actions)
-    for k in (0, 5, 30):
-        shift = dynamics._lag(states[3], dynamics._shifted(actions[3], k), fit)[1]
-        assert abs(shift) < dynamics.LAG_MAX, (k, shift)
+    read = {k: dynamics._lag(states[3], dynamics._shifted(actions[3], k), fit)[:2]
+            for k in (0, 5, dynamics.LAG_MAX, 30)}
+    assert read[30] == (0.0, 0), read
+    assert abs(read[5][1]) in (4, 5, 6) and read[5][0] > 0.1, read
+    assert abs(read[dynamics.LAG_MAX][1]) >= dynamics.LAG_MAX - 1 and read[dynamics.LAG_MAX][0] > 0.1, read
 
 
 def _moving_square(t: int, size: int = 24) -> np.ndarray:

@@ -11,11 +11,10 @@ of the audit's decoding pass like the other model-free checks (``democheck.audit
 
 The ``lag`` check reads the same fit: how much better the demo's states follow its actions shifted in time --
 the log of its mean squared prediction error with the actions as recorded over the least error with them moved
-fewer than ``LAG_MAX`` steps earlier or later (0 for a demo whose recorded alignment explains it best; a least error
-at ``LAG_MAX`` itself is an error still falling as far as the check looks, a drift and not a delay), and the
-shift.  An action stream recorded late or early against the states and frames (a clock offset between two
-recorders) is what a policy trained on it learns to be late by; the mean error above barely sees it where
-actions change slowly, since a shifted action is still close to the right one.  Actions recorded at another
+up to ``LAG_MAX`` steps earlier or later (0 for a demo whose recorded alignment explains it best, and for one whose
+error still falls one step past ``LAG_MAX``: a drift between actions and state, no delay located), and the shift.
+An action stream recorded late or early against the states and frames (a clock offset between two recorders) is
+what a policy trained on it learns to be late by; the mean error above barely sees it where actions change slowly, since a shifted action is still close to the right one.  Actions recorded at another
 scale also follow the states better shifted (to where they are smaller or larger); where one factor on the
 actions explains the demo at least as well as the best shift (and ``LAG_NAMED`` better than as recorded), and that
 factor is positive and ``SCALE_NAMED`` or more off its task's demos' (a unit or a gain, not the fit's spread; a
@@ -79,9 +78,10 @@ def _shifted(actions: np.ndarray, k: int) -> np.ndarray:
 
 def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | None
          ) -> tuple[float, int, float, float]:
-    """(log of the error as recorded over the least error with the actions moved by fewer than ``LAG_MAX`` steps
-    (or the demo's steps - 2) -- a least error at that edge is no delay located --, that shift, the one factor on the actions' part of the prediction that fits the demo best, the log of the
-    error as recorded over the error with it); NaN without a fit or under 3 steps.  The fit is linear, so each
+    """(log of the error as recorded over the least error with the actions moved up to ``LAG_MAX`` steps -- none
+    where the error still falls one step past that edge: no delay located --, that shift, the one factor on the
+    actions' part of the prediction that fits the demo best, the log of the error as recorded over the error with
+    it); NaN without a fit or under 3 steps.  The fit is linear, so each
     part of the prediction is computed once and moving the actions is moving rows of theirs: what
     ``_dynamics_errors`` gives the actions ``_shifted`` by each k, at the cost of one prediction."""
     if fit is None or len(actions) < 3:
@@ -97,17 +97,19 @@ def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | No
     steps = np.arange(n - 1)
     reach = min(LAG_MAX, n - 2)
     errors = {}
-    for k in range(-reach, reach + 1):
+    for k in range(-min(reach + 1, n - 2), min(reach + 1, n - 2) + 1):  # one step past the window: still falling?
         before = from_before[np.clip(steps - 1 + k, 0, n - 1)]
         before[0] = 0.0  # the first step has no action before it
         pred = from_state + from_action[np.clip(steps + k, 0, n - 1)] + before
         errors[k] = float(((pred - target) ** 2).mean())
         if k == 0:
             part = from_action[:-1] + before  # the actions' part of the prediction, as recorded
-    # A least error at the window's edge is no minimum found: an error still falling as far as the check looks is
-    # a slow drift between the actions and the state (an arm that settles at its goal), not a recording delay.
-    inside = [k for k in errors if abs(k) < reach] or list(errors)
-    best = min(inside, key=lambda k: (errors[k], abs(k)))
+    best = min((k for k in errors if abs(k) <= reach), key=lambda k: (errors[k], abs(k)))
+    past = int(np.sign(best)) * (reach + 1)
+    if best and abs(best) == reach and errors.get(past, np.inf) < errors[best]:
+        # The error still falls past the window's edge: no delay located -- a slow drift between the actions and
+        # the state (an arm that settles at its goal), not a recording that is late by a number of steps.
+        best = 0
     rest = target - from_state
     factor = float((part * rest).sum() / max(float((part ** 2).sum()), 1e-12))
     scaled = float(((rest - factor * part) ** 2).mean())
