@@ -14,11 +14,12 @@ the log of its mean squared prediction error with the actions as recorded over t
 up to ``LAG_MAX`` steps earlier or later (0 for a demo whose recorded alignment explains it best, and for one whose
 error still falls one step past ``LAG_MAX``: a drift between actions and state, no delay located), and the shift.
 An action stream recorded late or early against the states and frames (a clock offset between two recorders) is
-what a policy trained on it learns to be late by; the mean error above barely sees it where actions change slowly, since a shifted action is still close to the right one.  Actions recorded at another
-scale also follow the states better shifted (to where they are smaller or larger); where one factor on the
-actions explains the demo at least as well as the best shift (and ``LAG_NAMED`` better than as recorded), and that
-factor is positive and ``SCALE_NAMED`` or more off its task's demos' (a unit or a gain, not the fit's spread; a
-negative one is no scale), the reason names the scale, not a delay.
+what a policy trained on it learns to be late by; the mean error above barely sees it where actions change slowly,
+since a shifted action is still close to the right one.  Actions recorded at another scale also follow the states
+better shifted (to where they are smaller or larger); where one factor on the actions explains the demo at least
+as well as the best shift (and ``LAG_NAMED`` better than as recorded), and that factor is positive and
+``SCALE_NAMED`` or more off its task's demos' (a unit or a gain, not the fit's spread; a negative one is no scale),
+the reason names the scale, not a delay.
 
 A demo's action gain, read off the same fit, was measured and not kept (docs/decisions.md, "A demo's action gain:
 measured, not kept").
