@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("data", nargs="+", type=Path)
     for root in ap.parse_args(argv).data:
         state, labels, tasks = paths(root)
-        floor = timeline._state_floor(list(state))
+        floor = timeline.state_floor(list(state))
         every = state.reshape(-1, state.shape[2])
         unit = np.fmax(1.4826 * np.median(np.abs(every - np.median(every, 0)), 0), floor)
         steps = np.linspace(0, 1, state.shape[1])[None, :, None]

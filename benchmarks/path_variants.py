@@ -49,8 +49,8 @@ def dtw_scores(t: timeline.Timeline, groups: np.ndarray, points: int, band: floa
     from democheck.audit.scores import calibrated
 
     at = np.rint(np.linspace(0, DECODED - 1, points)).astype(int)
-    x_all = timeline._stack_state([p[at] if len(p) else p for p in t.state_path], slice(None))[:, :points]
-    floor = timeline._state_floor(t.state_path)
+    x_all = timeline.stacked_states([p[at] if len(p) else p for p in t.state_path], slice(None))[:, :points]
+    floor = timeline.state_floor(t.state_path)
     dist = np.full(len(x_all), np.nan)
     for rows in neighbours.grouped(groups):
         x = np.nan_to_num(x_all[rows])
@@ -81,11 +81,11 @@ def state_only_scores(t: timeline.Timeline, groups: np.ndarray, points: int) -> 
     """The path's state part alone in normalised time, as the audit scores it (both distances): the baseline
     ``dtw_scores`` is set against (the audit's path also reads the camera's)."""
     at = np.rint(np.linspace(0, DECODED - 1, points)).astype(int)
-    x = timeline._stack_state([p[at] if len(p) else p for p in t.state_path], slice(None))[:, :points]
+    x = timeline.stacked_states([p[at] if len(p) else p for p in t.state_path], slice(None))[:, :points]
     saved = timeline.PATH_POINTS
     timeline.PATH_POINTS = points
     try:
-        return timeline._state_part(x, groups, np.tile(timeline._state_floor(t.state_path), points))[1]
+        return timeline._state_part(x, groups, np.tile(timeline.state_floor(t.state_path), points))[1]
     finally:
         timeline.PATH_POINTS = saved
 

@@ -27,7 +27,7 @@ import pandas as pd
 
 from democheck import resources
 from democheck.audit import (colours, coupling, dynamics, frames, grasps, model_scores, modelfree, moved, outcome,
-                             ranking, reasons, sensors, timeline, view)
+                             ranking, reasons, sensors, timeline, view, way)
 from democheck.audit.action_error import ACTION_STEPS
 from democheck.audit.baselines import MotionFeatures, score_heuristic, score_random, score_tecnet_knn
 from democheck.audit.evidence import Evidence, Scorer, Scores
@@ -140,7 +140,7 @@ def _backwards(ev: Evidence) -> Scores:
 
 
 def _backwards_state(ev: Evidence) -> Scores:
-    return timeline.backwards_state(ev.behaviour["timeline"], ev.groups)
+    return way.backwards_state(ev.behaviour["timeline"], ev.groups)
 
 
 def _timeline(ev: Evidence, rows: slice, device: Any) -> timeline.Timeline:

@@ -11,8 +11,8 @@ failed place or a knocked-over object shows in the last frames, a detour or a re
 - ``path``: ``PATH_POINTS`` evenly spaced points of the demo in normalised time, of its state and of a grey
   ``PATH_THUMB`` px thumbnail;
 - ``backwards``: both ends' colour pairs nearer the task's other end (``toward_other_end``, below);
-- ``backwards_state``: the arm's first state along its task's way toward their last, its last state back toward
-  their first (``way_shares``).
+- ``backwards_state`` (``democheck.audit.way``): the arm's first state along its task's way toward their last, its
+  last state back toward their first.
 
 The start and end read the camera alone: where the state ends, and how far it moved, is the outcome check's
 (``democheck.audit.outcome``), which knows rotations, piles and a task's several outcomes; read twice, one end state
@@ -41,8 +41,6 @@ A dataset with no camera has the path's state part alone; one with no state comp
 
 from __future__ import annotations
 
-import warnings
-
 import cv2
 import numpy as np
 
@@ -50,12 +48,10 @@ from democheck.audit import words
 from democheck.audit.colours import colour_bins
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import PerDemo
-from democheck.audit.neighbours import (MIN_GROUP, ORDINARY, grouped, in_units, nearest, nearest_whole, ordinary,
-                                       rms)
+from democheck.audit.neighbours import ORDINARY, grouped, in_units, nearest, nearest_whole, ordinary, rms
 from democheck.audit.scores import calibrated
 from democheck.audit.view import VIEW_FLOOR, VIEW_K, VIEW_MIN_SCALE, place
 from democheck.data.demo import Demo
-from democheck.data.reorder import velocities
 
 END_FRAMES = 3  # frames at each end whose median picture stands for it (one frame may be a codec's glitch)
 END_THUMB = 24  # pixels: the side of the thumbnail of a demo's first and last picture
@@ -70,8 +66,6 @@ ARRANGE_ALIKE = 0.1  # robust SD: two pictures' colour pairs nearer than this ar
 UNLIKE = VIEW_K  # units: a pixel this far from each of its nearest task-mates' differs
 STATE_FLOOR = 0.05  # a state dimension's least robust SD: this share of its whole range over the demos' paths
 STATE_MIN_SCALE = 0.25  # log units: the least robust SD of the state's and path's log distance within a group
-WAY_MIN_SCALE = 0.05  # shares of a task's way from its start state to its end: the least robust SD of how far a
-# demo's ends went along it toward the other end (clean demos' ends sit at their own end: a spread near zero)
 # How far a path lies from its mates' is read two ways, and the larger robust z counts: the RMS over the whole path
 # (a path unlike throughout) and the RMS at its furthest point (a few points far off: a detour, a drop and regrasp).
 PATH_DISTANCES = ("whole", "furthest")
@@ -145,7 +139,7 @@ def arrangement(pic: np.ndarray) -> np.ndarray:
     return counts[np.triu_indices(k, 1)].astype(np.uint16)
 
 
-def _state_floor(paths: list[np.ndarray]) -> np.ndarray:
+def state_floor(paths: list[np.ndarray]) -> np.ndarray:
     """Per state dimension, the least robust SD: ``STATE_FLOOR`` of its whole range over every demo's path.  Its
     whole range, not a central one: a dimension that moves in a few demos alone (a block that tumbles) is measured
     in units of how far it moves there, not in units of the stillness of the rest."""
@@ -194,21 +188,6 @@ BACKWARDS = Vocabulary("backwards", {
     "forwards": "goes the way its task's demos go",
     "too few demos": "no task of enough demos to compare with",
     "no frames": "no camera to compare",
-})
-
-
-BACKWARDS_STATE = Vocabulary("backwards_state", {
-    # its first state past the middle of its task's way from start to end, and its last state short of the middle
-    "done backwards": lambda began, ended, **_: (
-        f"its arm begins where its task's demos end and ends where they begin (its first state {began:.0%} of their "
-        f"way from start to end, its last {ended:.0%}): done backwards (a reset recorded as a demo?)"),
-    "toward the other end": lambda began, ended, **_: (
-        f"its arm begins further along its task's way, and ends less far, than its task's demos do (its first state "
-        f"{began:.0%} of their way from start to end, its last {ended:.0%}): partly done backwards?"),
-    "forwards": "its arm goes the way its task's demos go",
-    "no way": "its task's demos share no way from where they begin to where they end: none to run backwards",
-    "too few demos": "no task of enough demos to compare with",
-    "no state": "no state recorded at its ends",
 })
 
 
@@ -311,7 +290,7 @@ def _state_part(query: np.ndarray, groups: np.ndarray, floor: np.ndarray | float
     return dist["whole"], score, at_point, in_feature, cross_dist
 
 
-def _stack_state(paths: list[np.ndarray], at: int | slice) -> np.ndarray:
+def stacked_states(paths: list[np.ndarray], at: int | slice) -> np.ndarray:
     width = max((p.shape[1] for p in paths), default=0)
     out = np.full((len(paths), PATH_POINTS, width), np.nan)
     for i, p in enumerate(paths):
@@ -405,75 +384,6 @@ def backwards(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding
     return toward, found
 
 
-def way_shares(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per demo, where its first and its last state lie on its task's way (the line from the median first state of
-    its task's demos to their median last, over the dimensions that move along it by ``ORDINARY`` robust SD or
-    more, each in its robust SD over the task's ends, at least ``STATE_FLOOR`` of its range over every demo's
-    ends): 0 at the task's start, 1 at its end, over the dimensions the demo recorded at both ends; and why not,
-    where not (``""`` where measured): "no state" (none recorded, or only actions, which may be steps rather than
-    places), "too few demos", "no way" (its task's demos share none: a push toward a goal each layout draws anew,
-    an arm that goes out and comes home).  Velocities are left out: how fast the arm went at either end is not
-    where it was."""
-    n = len(t.state_path)
-    began, ended = np.full(n, np.nan), np.full(n, np.nan)
-    why = np.array(["too few demos"] * n, dtype=object)
-    if not n:
-        return began, ended, why
-    first, last = _stack_state(t.state_path, 0), _stack_state(t.state_path, -1)
-    keep = ~velocities(next((x for x, a in zip(t.names, t.from_actions) if x and not a), None), first.shape[1])
-    first, last = first[:, keep], last[:, keep]
-    stated = ~np.asarray(t.from_actions, bool) & np.isfinite(first).any(axis=1) & np.isfinite(last).any(axis=1)
-    why[~stated] = "no state"
-    if not stated.any():
-        return began, ended, why
-    floor = _state_floor([first[stated], last[stated]])
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a dimension no demo of a task recorded: NaN throughout
-        for rows in grouped(groups):
-            rows = rows[stated[rows]]
-            if len(rows) < MIN_GROUP:
-                continue
-            s, e = first[rows], last[rows]
-            start_, end_ = np.nanmedian(s, axis=0), np.nanmedian(e, axis=0)
-            spread = np.fmax(1.4826 * np.nanmedian(np.abs(np.concatenate([s - start_, e - end_])), axis=0), floor)
-            way = np.nan_to_num((end_ - start_) / spread)
-            way = np.where(np.abs(way) >= ORDINARY, way, 0.0)
-            if not way.any():
-                why[rows] = "no way"
-                continue
-            why[rows] = ""
-            for x, out in ((s, began), (e, ended)):
-                z = (x - start_) / spread
-                seen = np.isfinite(z) & (way != 0)
-                weight = (np.where(seen, way, 0.0) ** 2).sum(axis=1)
-                out[rows] = np.where(weight > 0, np.where(seen, z * way, 0.0).sum(axis=1) / weight, np.nan)
-    return began, ended, why
-
-
-def backwards_state(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
-    """How far a demo's first state lies along its task's way toward their last state, and its last state back
-    toward their first (``way_shares``; the lesser of the two, each within [0, 1]), robust z within its task (a
-    robust SD at least ``WAY_MIN_SCALE`` of the way): a reset recorded as a demo, read from the arm where the
-    camera's colours cannot tell a task's start from its end.  One look with ``backwards``: two readings of one
-    question."""
-    began, ended, why = way_shares(t, groups)
-    began, ended = np.clip(began, 0, 1), np.clip(ended, 0, 1)
-    crossed = np.minimum(began, 1 - ended)
-    measured = np.isfinite(crossed)
-    score = np.where(measured, calibrated(np.where(measured, crossed, np.nan), groups, min_scale=WAY_MIN_SCALE),
-                     np.nan)
-    found = []
-    for i in range(len(score)):
-        if not measured[i]:
-            found.append(BACKWARDS_STATE(why[i] or "no state"))
-        elif not score[i] > ORDINARY:
-            found.append(BACKWARDS_STATE("forwards"))
-        else:
-            kind = "done backwards" if began[i] > 0.5 and ended[i] < 0.5 else "toward the other end"
-            found.append(BACKWARDS_STATE(kind, began=float(began[i]), ended=float(ended[i]), z=float(score[i])))
-    return score, found
-
-
 def start(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """How unlike its task-mates' first picture and state a demo's are (robust z; see the module docstring)."""
     return _end(t, groups, "first")
@@ -488,7 +398,7 @@ def path(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
     """How far a demo's path in normalised time (its state's and its camera's) lies from its nearest task-mates'
     (robust z of the log RMS distance, the larger part's), and whether it runs backwards."""
     n = len(t.state_path)
-    parts = {"state": (_stack_state(t.state_path, slice(None)), np.tile(_state_floor(t.state_path), PATH_POINTS))}
+    parts = {"state": (stacked_states(t.state_path, slice(None)), np.tile(state_floor(t.state_path), PATH_POINTS))}
     if all(v is not None for v in t.view_path):
         parts["view"] = (np.stack(t.view_path), VIEW_FLOOR)  # as kept (uint8): a group at a time in float64
     z, own, reversed_, at_point, in_feature = {}, {}, {}, {}, {}
