@@ -32,7 +32,7 @@ CAUSE = {
     "wrong-object": WORLD, "both-objects": WORLD, "wrong-task": WORLD,
     "frozen-camera": ("frozen_video",), "frozen-state": ("frozen_state",), "dead-dim": ("frozen_state",),
     "scaled": FLAIL + ("lag:scale",), "sensor-nan": ("broken",), "lagged": ("lag:delay",),
-    "dropped": ("frame_jump",), "nan": ("broken",),
+    "dropped": ("frame_jump", "state_jump"), "nan": ("broken",),
     "reversed": ("backwards:done backwards", "backwards_state:done backwards", "start:where they end",
                  "end:where they begin", "path:backwards", "outcome:undone"),
     "hesitates": ("pause", "idle"),

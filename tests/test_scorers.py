@@ -41,14 +41,14 @@ MEANT_FOR = {
 }
 CONTROLS = {"random"}
 # Checked on demos made for them in tests/test_modelfree.py: nothing in the pushing suite freezes its camera,
-# copies a demo, records its actions against another demo's state or out of step, drops frames, records NaN,
+# copies a demo, records its actions against another demo's state or out of step, drops steps, records NaN,
 # freezes a sensor or lets go of the arm half-way (the coupling's kind; of an idle arm it says nothing); in
 # tests/test_timeline.py, demos played backwards, an object knocked over at the end and a detour; in
 # tests/test_modelfree.py, an arm that pauses mid-task and a grasp tried again (the pushing suite's arm has no
 # gripper); in tests/test_modelfree.py, another object moved (six demos a task, as here, are too few for a task's
 # usual colours of change: measured on the development sets, docs/results.md).
-ELSEWHERE = {"moved", "frozen_video", "frame_jump", "duplicate", "dynamics", "lag", "timing", "broken", "frozen_state",
-             "coupling", "start", "end", "path", "backwards", "backwards_state", "pause", "grasps"}
+ELSEWHERE = {"moved", "frozen_video", "frame_jump", "state_jump", "duplicate", "dynamics", "lag", "timing", "broken",
+             "frozen_state", "coupling", "start", "end", "path", "backwards", "backwards_state", "pause", "grasps"}
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ from democheck.audit.metrics import detection
 from democheck.audit.ranking import RankingConfig, rank
 from democheck.audit.evidence import comparison_groups
 
-RECORDING_FAULTS = ("jerk", "lag", "timing", "frozen_video", "frame_jump", "frozen_state")
+RECORDING_FAULTS = ("jerk", "lag", "timing", "frozen_video", "frame_jump", "state_jump", "frozen_state")
 TIME_ALIGNED = ("start", "end", "path")
 
 def _set(config: RankingConfig, names: tuple[str, ...], **changes) -> RankingConfig:

@@ -21,6 +21,13 @@ as well as the best shift (and ``LAG_NAMED`` better than as recorded), and that 
 ``SCALE_NAMED`` or more off its task's demos' (a unit or a gain, not the fit's spread; a negative one is no scale),
 the reason names the scale, not a delay.
 
+The ``state_jump`` check reads the same fit step by step: the largest ratio of one step's prediction error (the root
+of its mean square over the state's dimensions) to the median error of the steps around it
+(``modelfree.jump_ratios``), on a log scale.  A stretch of steps lost from the recording, and the steps re-indexed,
+leaves one step at which the state moves as far as it did over the whole stretch while the actions there ask for one
+step's move; a fast move the actions command is explained, and so is not a jump.  ``frames.frame_jump`` asks the
+same of the camera; the two are one look in the ranking.
+
 A demo's action gain, read off the same fit, was measured and not kept (docs/decisions.md, "A demo's action gain:
 measured, not kept").
 """
@@ -30,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 
 from democheck.audit.findings import Finding, Vocabulary
-from democheck.audit.modelfree import PerDemo, steps_text
+from democheck.audit.modelfree import PerDemo, jump_ratios, steps_text
 from democheck.data.demo import Demo
 
 DYNAMICS_RIDGE = 1e-3  # ridge penalty per step, on standardised features: a near-constant feature cannot blow up
@@ -40,6 +47,7 @@ DYNAMICS_WINDOW = 10  # the reason names the stretch of this many steps the stat
 LAG_MAX = 16  # steps either way the ``lag`` check moves a demo's actions (0.2 s at 80 fps, 0.5 s at 30 fps)
 LAG_NAMED = 1.2  # the reason says the actions were recorded late or early where the shift cuts the error this much
 SCALE_NAMED = 2.0  # ... at another scale where a factor this far off its task's demos' explains the demo as well
+STATE_JUMP_FLOOR = 0.1  # SDs of a state's change: the least usual error a step's error is measured against
 
 
 def _dynamics_features(state: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -140,10 +148,11 @@ class DynamicsFit(PerDemo):
     ``DYNAMICS_MIN_BLOCK`` demos is scored by the fit of the block before it (on its own steps alone a few
     demos would explain themselves)."""
 
-    fields = ("errors", "worst", "lags", "states", "actions")
+    fields = ("errors", "worst", "lags", "jumps", "states", "actions")
     errors: list[float]  # per scored demo: mean squared error (NaN: not scored)
     worst: list[tuple[int, int, int]]  # per scored demo: start, width of its worst stretch, its steps
     lags: list[tuple[float, int, float, float]]  # per scored demo: ``_lag``
+    jumps: list[tuple[float, int]]  # per scored demo: its largest ``jump_ratios`` of a step's error, and that step
     states: list[np.ndarray]  # the block not scored yet
     actions: list[np.ndarray]
 
@@ -171,8 +180,12 @@ class DynamicsFit(PerDemo):
                     self.errors.append(np.nan)
                     self.worst.append((0, 0, 0))
                     self.lags.append((np.nan, 0, 1.0, 0.0))
+                    self.jumps.append((np.nan, 0))
                     continue
                 self.lags.append(_lag(state, a, fit))
+                ratio, _ = jump_ratios(np.sqrt(e), STATE_JUMP_FLOOR)
+                at = int(np.argmax(ratio))
+                self.jumps.append((float(ratio[at]), at))
                 width = min(DYNAMICS_WINDOW, len(e))
                 start = int(np.argmax(np.convolve(e, np.ones(width) / width, mode="valid")))
                 self.errors.append(float(e.mean()))
@@ -192,6 +205,7 @@ class DynamicsFit(PerDemo):
             out.errors += part.errors
             out.worst += part.worst
             out.lags += part.lags
+            out.jumps += part.jumps
             out.states += part.states
             out.actions += part.actions
             if part.last_fit is not None:
@@ -223,6 +237,22 @@ def dynamics(fit: DynamicsFit) -> tuple[np.ndarray, list[Finding]]:
     out = np.where(ok, np.log(np.maximum(errors, 1e-12) / typical), np.nan)
     reasons = [DYNAMICS("worse", ratio=float(e / typical), start=start, stop=start + width, length=n + 1) if good
                else DYNAMICS("too short") for e, good, (start, width, n) in zip(errors, ok, fit.worst)]
+    return out, reasons
+
+
+STATE_JUMP = Vocabulary("state_jump", {
+    "jump": "between frames {frame} and {next} its state changes as its actions do not explain: {ratio:.2g} x the "
+            "usual error at the steps around it (steps lost from the recording?)",
+    "too short": "too short, or a state that never changes",
+})
+
+
+def state_jump(fit: DynamicsFit) -> tuple[np.ndarray, list[Finding]]:
+    """log of the largest ratio of one step's error of the dynamics fit to the usual error around it (see the
+    module docstring), and the step where it is."""
+    out = np.array([np.log(max(ratio, 1.0)) if np.isfinite(ratio) else np.nan for ratio, _ in fit.jumps])
+    reasons = [STATE_JUMP("jump", frame=at, next=at + 1, ratio=float(ratio)) if np.isfinite(ratio)
+               else STATE_JUMP("too short") for ratio, at in fit.jumps]
     return out, reasons
 
 

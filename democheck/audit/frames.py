@@ -5,9 +5,10 @@ change under ``FROZEN_LEVEL``) while the actions change, as a share of the demo'
 delivering while the arm moved.
 
 ``frame_jump``: how much more the camera frame changes at one step than at the steps around it -- the largest
-ratio of a step's mean absolute grey-level change to the median change of the ``JUMP_NEIGHBOURS`` steps either
-side (at least ``JUMP_FLOOR`` grey levels), on a log scale: a stretch of frames dropped from the recording (and
-the steps re-indexed, so that no timestamp shows it), or two recordings spliced.
+ratio of a step's mean absolute grey-level change to the median change of the ``modelfree.JUMP_NEIGHBOURS`` steps
+either side (at least ``JUMP_FLOOR`` grey levels), on a log scale: a stretch of frames dropped from the recording
+(and the steps re-indexed, so that no timestamp shows it), or two recordings spliced.  ``dynamics.state_jump``
+asks the same of the state, one look with it in the ranking.
 
 Both read one consumer of the audit's decoding pass (``FrameChanges``) and, with ``dynamics.lag`` and
 ``modelfree.timing``, are recording faults: in the ranking apart from the other scores (``alone`` in the ranking recipe).
@@ -26,14 +27,13 @@ import cv2
 import numpy as np
 
 from democheck.audit.findings import Finding, Vocabulary
-from democheck.audit.modelfree import STILL, PerDemo, change_scale, longest_run, steps_text
+from democheck.audit.modelfree import STILL, PerDemo, change_scale, jump_ratios, longest_run, steps_text
 from democheck.audit.view import VIEW_EVERY, VIEW_FLOOR, VIEW_K, VIEW_MIN_SCALE, task_z
 from democheck.audit.scores import calibrated
 from democheck.data.demo import Demo
 
 FROZEN_LEVEL = 0.1  # grey levels (0-255): a frame this close to the previous one repeats it
 FRAME_CHECK_SIZE = 64  # pixels: the frame checks read frames shrunk to this (``FrameChanges``)
-JUMP_NEIGHBOURS = 5  # steps either side of a frame change that say what the change there usually is
 JUMP_FLOOR = 0.5  # grey levels: the least usual change a jump is measured against (a still scene's sensor noise)
 STEP_THUMB = 8  # pixels: the grey thumbnails of every ``VIEW_EVERY``-th frame ``delivered_unlike`` compares
 STOPPED_SHARE = 0.5  # a frozen stretch this share of the demo or more is most of the picture the view checks average
@@ -178,16 +178,11 @@ def frame_jump(frames: FrameChanges) -> tuple[np.ndarray, list[Finding]]:
     """log of the largest ratio of a step's frame change to the median change around it (see the module
     docstring), and the step where it is."""
     out, reasons = np.full(len(frames.deltas), np.nan), []
-    k = JUMP_NEIGHBOURS
     for i, d in enumerate(frames.deltas):
         if len(d) < 2:
             reasons.append(FRAME_JUMP("too short"))
             continue
-        padded = np.concatenate([np.full(k, np.nan), np.asarray(d, np.float64), np.full(k, np.nan)])
-        window = np.lib.stride_tricks.sliding_window_view(padded, 2 * k + 1)
-        around = np.delete(window, k, axis=1)  # the step's neighbours, not the step itself
-        usual = np.maximum(np.nanmedian(around, axis=1), JUMP_FLOOR)
-        ratio = d / usual
+        ratio, usual = jump_ratios(d, JUMP_FLOOR)
         at = int(np.argmax(ratio))
         out[i] = float(np.log(max(ratio[at], 1.0)))  # no step changes more than around it: 0 (a still camera)
         reasons.append(FRAME_JUMP("jump", frame=at, next=at + 1, ratio=float(ratio[at]), change=float(d[at]),

@@ -16,10 +16,10 @@ busiest dimension's, so that a gripper held shut cannot make a tiny twitch look 
 - ``view`` (``democheck.audit.view``): how much of the demo's average picture is unlike its task's other demos'
   there (a covered, moved or blinded camera, another scene); ``colours`` (``democheck.audit.colours``): its
   colours, wherever they are.
-- ``frozen_video``, ``frame_jump`` (``democheck.audit.frames``) and ``timing``: recording faults -- a camera that
-  stopped, frames dropped or spliced, and the worst time step of the ``timestamp`` column against the frame
-  period, log(1 + |step - period| / period) over the steps off by more than ``TIMING_TOLERANCE`` of it (NaN
-  without timestamps).
+- ``frozen_video``, ``frame_jump`` (``democheck.audit.frames``), ``state_jump`` (``democheck.audit.dynamics``) and
+  ``timing``: recording faults -- a camera that stopped, steps dropped or recordings spliced, and the worst time
+  step of the ``timestamp`` column against the frame period, log(1 + |step - period| / period) over the steps off
+  by more than ``TIMING_TOLERANCE`` of it (NaN without timestamps).
 - ``saturation``: the share of steps at which some action sits at its smallest or largest value (clipped).
 - ``dynamics`` (``democheck.audit.dynamics``): how badly the state follows the actions; ``outcome``
   (``democheck.audit.outcome``): how differently from its task's other demos the demo left the world.
@@ -44,6 +44,7 @@ from democheck.data.demo import Demo
 STILL = 0.05  # a step is still when its change of action is under 5% of the median change
 DUPLICATE_STEPS = 32
 TIMING_TOLERANCE = 0.5  # a time step off the usual one by more than half of it is irregular
+JUMP_NEIGHBOURS = 5  # steps either side of a step that say how much a step usually changes there
 
 
 def steps_text(start: int, stop: int, length: int) -> str:
@@ -59,6 +60,18 @@ def longest_run(mask: np.ndarray) -> tuple[int, int]:
     starts, stops = edges[::2], edges[1::2]
     i = int(np.argmax(stops - starts))
     return int(starts[i]), int(stops[i] - starts[i])
+
+
+def jump_ratios(change: np.ndarray, floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per step, its ``change`` [T] over the median change of the ``JUMP_NEIGHBOURS`` steps either side (the step
+    itself left out; at least ``floor``) -- how much more happened at that step than around it -- and that usual
+    change.  A stretch cut out of a recording is one step that changes as much as the whole stretch did."""
+    k = JUMP_NEIGHBOURS
+    change = np.asarray(change, np.float64)
+    padded = np.concatenate([np.full(k, np.nan), change, np.full(k, np.nan)])
+    window = np.lib.stride_tricks.sliding_window_view(padded, 2 * k + 1)
+    usual = np.maximum(np.nanmedian(np.delete(window, k, axis=1), axis=1), floor)
+    return change / usual, usual
 
 
 def change_scale(changes: list[np.ndarray]) -> np.ndarray:

@@ -106,6 +106,10 @@ def _lag(ev: Evidence) -> Scores:
     return dynamics.lag(ev.behaviour["dynamics"], ev.groups)
 
 
+def _state_jump(ev: Evidence) -> Scores:
+    return dynamics.state_jump(ev.behaviour["dynamics"])
+
+
 def _frozen_state(ev: Evidence) -> Scores:
     # The arm's longest still stretch (the idle check's finding) tells a sensor that stopped from a state held
     # while the arm rested.
@@ -214,9 +218,13 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "actions change, as a share of the demo's steps (a camera that stopped delivering)", ("demos", "frames"),
            _frozen_video, decode=lambda ev, rows, device: frames.FrameChanges(), short="frozen", per_camera=True),
     Scorer("frame_jump", "model-free: how much more the camera frame changes at one step than at the "
-           f"{frames.JUMP_NEIGHBOURS} steps either side (log of the largest ratio): frames dropped from the "
+           f"{modelfree.JUMP_NEIGHBOURS} steps either side (log of the largest ratio): frames dropped from the "
            "recording, or recordings spliced", ("demos", "frames"), _frame_jump, behaviour="frozen_video",
            decode=lambda ev, rows, device: frames.FrameChanges(), short="jump", per_camera=True),
+    Scorer("state_jump", "model-free: how much worse the dynamics check's fit explains the demo's change of state "
+           f"at one step than at the {modelfree.JUMP_NEIGHBOURS} steps either side (log of the largest ratio of the "
+           "step's error): steps dropped from the recording, or recordings spliced", ("demos",), _state_jump,
+           behaviour="dynamics", decode=lambda ev, rows, device: dynamics.DynamicsFit(), short="st.jump"),
     Scorer("frozen_state", "model-free: the longest stretch of steps at which a state dimension repeats its "
            "value exactly while the actions change, as a share of the demo (the largest over the dimensions still "
            "in hardly any of its task's demos): a sensor that stopped updating", ("demos",), _frozen_state,
@@ -271,7 +279,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "one look) and whether the actions are explained (the action error (log) and the coupling, one look: "
            "the Sidak minimum of the two) (one task: without the task uncertainty), each in robust standard "
            "deviations within its task, the tails fitted on the robust core; beside that, the smallest of the "
-           "recording faults' and single looks' (timing, frozen video, frame jump, frozen state, lag, jerk, grasps) "
+           "recording faults' and single looks' (timing, frozen video, a jump of the frame or the state (one look), "
+           "frozen state, lag, jerk, grasps) "
            "(2 = as unusual as 1 clean demo in 100)", ("scores",),
            _suspicion, short="susp."),
     Scorer("model_free", "the same combination of the model-free scores of the ranking alone (motion, idle, pause, "
