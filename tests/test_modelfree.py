@@ -369,11 +369,13 @@ def test_frame_jump_ranks_a_dropped_stretch_first_and_says_where():
 def test_state_jump_ranks_steps_lost_from_the_recording_first_and_a_commanded_fast_move_is_none():
     """Steps 40-59 lost from one demo's record (state and actions; the steps re-indexed): its state moves at step 39
     as far as over the 20 steps lost while the action there asks for one step's move.  Another demo's arm moves
-    four times as fast for three steps because its actions say so: explained, no jump."""
+    four times as fast for three steps because its actions say so: explained, no jump; a third's first states lie
+    off its path, as an arm settling after its reset: no jump either."""
     demos, _ = _planted("none")
     demos[5].actions[50:53] *= 4
     for d in demos:  # each step's action moves the arm to the next step's state
         d.state[:, :A] = 0.05 * np.vstack([np.zeros((1, A)), np.cumsum(d.actions, 0)[:-1]])
+    demos[9].state[:2, :A] += 0.5  # an arm that settles after its reset: a start's own jolt, no steps lost
     keep = np.r_[0:40, 60:T]
     d = demos[17]
     demos[17] = Demo(episode_index=17, task="push", frames=d.frames[keep], state=d.state[keep], actions=d.actions[keep])
@@ -381,7 +383,7 @@ def test_state_jump_ranks_steps_lost_from_the_recording_first_and_a_commanded_fa
     values = ev.scores["state_jump"]
     others = np.delete(values, 17)
     assert values[17] > others.max() + 1.0, (values[17], np.sort(others)[-3:])
-    assert values[5] < np.quantile(others, 0.9), (values[5], np.sort(others))
+    assert max(values[5], values[9]) < np.quantile(others, 0.9), (values[5], values[9], np.sort(others))
     finding = ev.findings["state_jump"][17]
     assert finding.kind == "jump" and finding.params["frame"] == 39, finding
     assert "between frames 39 and 40" in ev.reasons["state_jump"][17], ev.reasons["state_jump"][17]

@@ -218,6 +218,9 @@ def test_every_template_of_every_check_renders_its_words():
     assert words["lag:delay"] == ("its states follow its actions best with the actions 3 steps earlier (1.6 x less "
                                   "error): the actions were recorded 3 steps late")
     assert words["lag:scale"].startswith("the actions are 3.5 x the size its states follow")
+    # a factor reads as a person says it: "190 x", never "1.9e+02 x"
+    assert VOCABULARIES["motion"]("more", feature="mean |action|", ratio=190.4).words.endswith(
+        "mean |action| 190 x its task's median")
     assert words["state_jump:jump"] == ("between frames 7 and 8 its state changes as its actions do not explain: 0.5 x "
                                         "the usual error at the steps around it (steps lost from the recording?)")
     assert words["view:changed"] == ("the view is covered or changed: 25% of it unlike its task's other demos' "

@@ -22,8 +22,10 @@ as well as the best shift (and ``LAG_NAMED`` better than as recorded), and that 
 the reason names the scale, not a delay.
 
 The ``state_jump`` check reads the same fit step by step: the largest ratio of one step's prediction error (the root
-of its mean square over the state's dimensions) to the median error of the steps around it
-(``modelfree.jump_ratios``), on a log scale.  A stretch of steps lost from the recording, and the steps re-indexed,
+of its mean square over the state's dimensions, each weighted by the share of its change the fit explains: the
+arm's, not an object's it pushes) to the median error of the steps around it
+(``modelfree.jump_ratios``), on a log scale, over the steps with ``JUMP_NEIGHBOURS`` steps either side (an arm
+settling after its reset is a start's own jolt).  A stretch of steps lost from the recording, and the steps re-indexed,
 leaves one step at which the state moves as far as it did over the whole stretch while the actions there ask for one
 step's move; a fast move the actions command is explained, and so is not a jump.  ``frames.frame_jump`` asks the
 same of the camera; the two are one look in the ranking.
@@ -37,7 +39,8 @@ from __future__ import annotations
 import numpy as np
 
 from democheck.audit.findings import Finding, Vocabulary
-from democheck.audit.modelfree import PerDemo, jump_ratios, steps_text
+from democheck.audit.modelfree import JUMP_NEIGHBOURS, PerDemo, jump_ratios, steps_text
+from democheck.audit.words import factor
 from democheck.data.demo import Demo
 
 DYNAMICS_RIDGE = 1e-3  # ridge penalty per step, on standardised features: a near-constant feature cannot blow up
@@ -59,8 +62,9 @@ def _dynamics_features(state: np.ndarray, actions: np.ndarray) -> np.ndarray:
 
 def _dynamics_fit(states: list[np.ndarray], actions: list[np.ndarray]) -> dict[str, np.ndarray] | None:
     """One ridge regression of the change of state on ``_dynamics_features`` over these demos' steps, with its
-    standardisation (state dimensions that never move and constant features left out); None when no demo
-    has 3 steps or the state never changes."""
+    standardisation (state dimensions that never move and constant features left out) and the share of each
+    state dimension's change it explains (``explained``: an arm's joints follow its actions, an object they push
+    or a switch they flip far less); None when no demo has 3 steps or the state never changes."""
     usable = [i for i, a in enumerate(actions) if len(a) >= 3]
     if not usable:
         return None
@@ -74,7 +78,9 @@ def _dynamics_fit(states: list[np.ndarray], actions: list[np.ndarray]) -> dict[s
     yn = y[:, ys] / y_sd[ys]
     y_mean = yn.mean(0)
     w = np.linalg.solve(xn.T @ xn + DYNAMICS_RIDGE * len(xn) * np.eye(xn.shape[1]), xn.T @ (yn - y_mean))
-    return {"x_mean": x_mean[xs], "x_sd": x_sd[xs], "xs": xs, "y_sd": y_sd[ys], "ys": ys, "y_mean": y_mean, "w": w}
+    unexplained = ((yn - y_mean - xn @ w) ** 2).mean(0) / np.maximum(((yn - y_mean) ** 2).mean(0), 1e-12)
+    return {"x_mean": x_mean[xs], "x_sd": x_sd[xs], "xs": xs, "y_sd": y_sd[ys], "ys": ys, "y_mean": y_mean, "w": w,
+            "explained": np.clip(1.0 - unexplained, 0.0, 1.0)}
 
 
 def _shifted(actions: np.ndarray, k: int) -> np.ndarray:
@@ -128,8 +134,8 @@ def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | No
 
 def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray], fit: dict[str, np.ndarray] | None
                      ) -> list[np.ndarray | None]:
-    """Per demo, the squared error of each step's predicted change of state under ``fit`` (mean over the state
-    dimensions that move, each in its standard deviation); None for a demo under 3 steps, or without a fit."""
+    """Per demo, the squared error of each step's predicted change of state under ``fit`` in each state dimension
+    that moves ([T - 1, d], each in its standard deviation); None for a demo under 3 steps, or without a fit."""
     out: list[np.ndarray | None] = [None] * len(actions)
     if fit is None:
         return out
@@ -138,8 +144,20 @@ def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray], fit: d
             continue
         xn = (_dynamics_features(s, a)[:, fit["xs"]] - fit["x_mean"]) / fit["x_sd"]
         yn = np.diff(s.astype(np.float64), axis=0)[:, fit["ys"]] / fit["y_sd"]
-        out[i] = ((xn @ fit["w"] + fit["y_mean"] - yn) ** 2).mean(1)
+        out[i] = (xn @ fit["w"] + fit["y_mean"] - yn) ** 2
     return out
+
+
+def _state_jump(errors: np.ndarray) -> tuple[float, int]:
+    """The largest ``jump_ratios`` of a demo's per-step errors (their roots: the error in the state's change's SDs,
+    each dimension weighted by the share of its change the actions explain) and the step it is at, of the steps with ``JUMP_NEIGHBOURS`` steps on either side: the first step's prediction
+    has no action before it, and an arm settling after its reset is a start's own jolt.  NaN: too short."""
+    k = JUMP_NEIGHBOURS
+    if len(errors) < 2 * k + 2:
+        return float("nan"), 0
+    ratio, _ = jump_ratios(np.sqrt(errors[1:]), STATE_JUMP_FLOOR)
+    at = k + int(np.argmax(ratio[k:len(ratio) - k]))
+    return float(ratio[at]), at + 1
 
 
 class DynamicsFit(PerDemo):
@@ -175,17 +193,17 @@ class DynamicsFit(PerDemo):
                     self.last_fit = fit
             else:
                 fit = self.last_fit
-            for e, state, a in zip(_dynamics_errors(states, actions, fit), states, actions):
-                if e is None:
+            for squared, state, a in zip(_dynamics_errors(states, actions, fit), states, actions):
+                if squared is None:
                     self.errors.append(np.nan)
                     self.worst.append((0, 0, 0))
                     self.lags.append((np.nan, 0, 1.0, 0.0))
                     self.jumps.append((np.nan, 0))
                     continue
                 self.lags.append(_lag(state, a, fit))
-                ratio, _ = jump_ratios(np.sqrt(e), STATE_JUMP_FLOOR)
-                at = int(np.argmax(ratio))
-                self.jumps.append((float(ratio[at]), at))
+                weight = fit["explained"]  # the dimensions its actions drive
+                self.jumps.append(_state_jump(squared @ weight / weight.sum()) if weight.sum() > 0 else (np.nan, 0))
+                e = squared.mean(1)
                 width = min(DYNAMICS_WINDOW, len(e))
                 start = int(np.argmax(np.convolve(e, np.ones(width) / width, mode="valid")))
                 self.errors.append(float(e.mean()))
@@ -219,7 +237,7 @@ class DynamicsFit(PerDemo):
 
 
 DYNAMICS = Vocabulary("dynamics", {
-    "worse": lambda ratio, start, stop, length: f"the state follows the actions {ratio:.2g} x worse than usual; "
+    "worse": lambda ratio, start, stop, length: f"the state follows the actions {factor(ratio)} x worse than usual; "
                                                 f"worst over {steps_text(start, stop, length)}",
     "too short": "too short, or a state that never changes",
     "no state change": "the state never changes, or too short",
@@ -241,8 +259,9 @@ def dynamics(fit: DynamicsFit) -> tuple[np.ndarray, list[Finding]]:
 
 
 STATE_JUMP = Vocabulary("state_jump", {
-    "jump": "between frames {frame} and {next} its state changes as its actions do not explain: {ratio:.2g} x the "
-            "usual error at the steps around it (steps lost from the recording?)",
+    "jump": lambda frame, next, ratio: (f"between frames {frame} and {next} its state changes as its actions do not "
+                                        f"explain: {factor(ratio)} x the usual error at the steps around it (steps "
+                                        "lost from the recording?)"),
     "too short": "too short, or a state that never changes",
 })
 
@@ -259,7 +278,7 @@ def state_jump(fit: DynamicsFit) -> tuple[np.ndarray, list[Finding]]:
 def _shift(steps: int, gain: float, named: bool) -> str:
     text = f"{abs(steps)} step{'s' if abs(steps) > 1 else ''}"
     return (f"its states follow its actions best with the actions {text} {'earlier' if steps > 0 else 'later'} "
-            f"({gain:.2g} x less error)" + (f": the actions were recorded {text} {'late' if steps > 0 else 'early'}"
+            f"({factor(gain)} x less error)" + (f": the actions were recorded {text} {'late' if steps > 0 else 'early'}"
                                            if named else ""))
 
 
@@ -268,8 +287,8 @@ LAG = Vocabulary("lag", {
     # explains ``LAG_NAMED`` times more
     "delay": _shift,
     # one factor on the actions explains them as well, ``SCALE_NAMED`` or more off its group's
-    "scale": "the actions are {size:.2g} x the size its states follow, against its task's demos ({gain:.2g} x less "
-             "error taken so): recorded at another scale",
+    "scale": lambda size, gain: (f"the actions are {factor(size)} x the size its states follow, against its task's "
+                                 f"demos ({factor(gain)} x less error taken so): recorded at another scale"),
     "as recorded": "its actions go with its states as recorded",
     "too short": "too short, or a state that never changes",
 })

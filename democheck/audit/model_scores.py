@@ -14,6 +14,7 @@ from democheck.audit import scores
 from democheck.audit.action_error import ActionErrors
 from democheck.audit.evidence import Evidence, Scores
 from democheck.audit.findings import Vocabulary
+from democheck.audit.words import factor
 
 
 def _against_task(vocabulary: Vocabulary, values: np.ndarray, groups: np.ndarray) -> list:
@@ -24,12 +25,13 @@ def _against_task(vocabulary: Vocabulary, values: np.ndarray, groups: np.ndarray
 
 
 TASK_UNCERTAINTY = Vocabulary("task_uncertainty", {
-    "against its task": "the model cannot tell the task from its first and last frames ({ratio:.2g} x its task's "
-                        "median)",
+    "against its task": lambda ratio: ("the model cannot tell the task from its first and last frames "
+                                       f"({factor(ratio)} x its task's median)"),
     "read": "the model cannot tell the task from its first and last frames",
 })
 NOVELTY = Vocabulary("novelty", {
-    "against its task": "its end looks unlike the ends the model learnt from ({ratio:.2g} x its task's median)",
+    "against its task": lambda ratio: (f"its end looks unlike the ends the model learnt from ({factor(ratio)} x its "
+                                       "task's median)"),
     "read": "its end looks unlike the ends the model learnt from",
 })
 CONSISTENCY = Vocabulary("consistency", {

@@ -39,6 +39,7 @@ import pandas as pd
 
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.scores import calibrated
+from democheck.audit.words import factor
 from democheck.data.demo import Demo
 
 STILL = 0.05  # a step is still when its change of action is under 5% of the median change
@@ -278,7 +279,7 @@ def saturation(traces: ActionTraces) -> tuple[np.ndarray, list[Finding]]:
 
 DUPLICATE = Vocabulary("duplicate", {
     "exact copy": "an exact copy of episode {episode} (actions, state and frames)",
-    "nearest": "nearest episode {episode}, {ratio:.2g} x the usual distance",
+    "nearest": lambda episode, ratio: f"nearest episode {episode}, {factor(ratio)} x the usual distance",
     "alone": "",
 })
 
@@ -410,11 +411,14 @@ HARDLY_MOVES = 0.2  # under this share of its task's median motion, a reason say
 
 
 MOTION = Vocabulary("motion", {
-    "hardly": "the arm hardly moves: {feature} {ratio:.2g} x its task's median",
+    "hardly": lambda feature, ratio: f"the arm hardly moves: {feature} {factor(ratio)} x its task's median",
     # within a factor 1 / HARDLY_MOVES of its task's median: another task, or a careful or hurried operator
-    "less": "the arm moves less than its task's demos: {feature} {ratio:.2g} x its task's median",
-    "more": "the actions move more than its task's demos: {feature} {ratio:.2g} x its task's median",
-    "flails": "the actions move more than its task's demos: {feature} {ratio:.2g} x its task's median",
+    "less": lambda feature, ratio: f"the arm moves less than its task's demos: {feature} {factor(ratio)} x its task's "
+                                   "median",
+    "more": lambda feature, ratio: (f"the actions move more than its task's demos: {feature} {factor(ratio)} x its "
+                                    "task's median"),
+    "flails": lambda feature, ratio: (f"the actions move more than its task's demos: {feature} {factor(ratio)} x its "
+                                      "task's median"),
 })
 
 

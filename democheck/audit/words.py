@@ -23,3 +23,9 @@ def percent(share: float) -> str:
     read as none: '35%', '0.85%', '0.012%', '0%'."""
     p = 100 * float(share)
     return "0%" if p == 0 else "under 0.01%" if p < 0.01 else f"{p:.0f}%" if p >= 10 else f"{p:.2g}%"
+
+
+def factor(times: float) -> str:
+    """How many times, as a person reads it: two significant figures under 10 ('0.5', '7.4'), whole from there
+    ('56', '190', not '1.9e+02')."""
+    return f"{times:.2g}" if abs(times) < 10 else f"{times:.0f}"
