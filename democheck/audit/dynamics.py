@@ -23,12 +23,12 @@ the reason names the scale, not a delay.
 
 The ``state_jump`` check reads the same fit step by step: the largest ratio of one step's prediction error (the root
 of its mean square over the state's dimensions, each weighted by the share of its change the fit explains: the
-arm's, not an object's it pushes) to the median error of the steps around it
-(``modelfree.jump_ratios``), on a log scale, over the steps with ``JUMP_NEIGHBOURS`` steps either side (an arm
-settling after its reset is a start's own jolt).  A stretch of steps lost from the recording, and the steps re-indexed,
-leaves one step at which the state moves as far as it did over the whole stretch while the actions there ask for one
-step's move; a fast move the actions command is explained, and so is not a jump.  ``frames.frame_jump`` asks the
-same of the camera; the two are one look in the ranking.
+arm's, not an object's it pushes) to the median error of the steps around it (``modelfree.jump_ratios``), on a log
+scale, over the steps with ``JUMP_NEIGHBOURS`` steps either side (an arm settling after its reset is a start's own
+jolt).  A stretch of steps lost from the recording, and the steps re-indexed, leaves one step at which the state
+moves as far as it did over the whole stretch while the actions there ask for one step's move; a fast move the
+actions command is explained, and so is not a jump.  ``frames.frame_jump`` asks the same of the camera; the two are
+one look in the ranking.
 
 A demo's action gain, read off the same fit, was measured and not kept (docs/decisions.md, "A demo's action gain:
 measured, not kept").
@@ -150,8 +150,9 @@ def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray], fit: d
 
 def _state_jump(errors: np.ndarray) -> tuple[float, int]:
     """The largest ``jump_ratios`` of a demo's per-step errors (their roots: the error in the state's change's SDs,
-    each dimension weighted by the share of its change the actions explain) and the step it is at, of the steps with ``JUMP_NEIGHBOURS`` steps on either side: the first step's prediction
-    has no action before it, and an arm settling after its reset is a start's own jolt.  NaN: too short."""
+    each dimension weighted by the share of its change the actions explain) and the step it is at, of the steps
+    with ``JUMP_NEIGHBOURS`` steps on either side: the first step's prediction has no action before it, and an arm
+    settling after its reset is a start's own jolt.  NaN: too short."""
     k = JUMP_NEIGHBOURS
     if len(errors) < 2 * k + 2:
         return float("nan"), 0
