@@ -86,8 +86,9 @@ class StateRepeats(PerDemo):
         self.steps.append(n)
         self.names.append(demo.extra.get("state_names"))
         moves = changes.any(axis=0)  # a goal or a constant holds through every stretch: no part of an object
-        self.stirred.append(np.array([k > 0 and changes[s:s + k].any() for s, k in runs], bool))
-        self.rests.append(np.array([k > 0 and changes[s:s + k].any() and (
+        stirred = np.array([k > 0 and changes[s:s + k].any() for s, k in runs], bool)
+        self.stirred.append(stirred)
+        self.rests.append(np.array([stirred[j] and (
             changes[s + k:, j].any() or (repeats[s:s + k].all(axis=0) & moves).sum() > 1)
             for j, (s, k) in enumerate(runs)], bool))
 

@@ -89,9 +89,8 @@ def backwards_state(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[F
     began, ended, why = way_shares(t, groups)
     began, ended = np.clip(began, 0, 1), np.clip(ended, 0, 1)
     crossed = np.minimum(began, 1 - ended)
-    measured = np.isfinite(crossed)
-    score = np.where(measured, calibrated(np.where(measured, crossed, np.nan), groups, min_scale=WAY_MIN_SCALE),
-                     np.nan)
+    measured = np.isfinite(crossed)  # clipping and the lesser of two keep a NaN end NaN
+    score = calibrated(crossed, groups, min_scale=WAY_MIN_SCALE)
     found = []
     for i in range(len(score)):
         if not measured[i]:
