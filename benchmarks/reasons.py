@@ -33,6 +33,7 @@ CAUSE = {
     "frozen-camera": ("frozen_video",), "frozen-state": ("frozen_state",), "dead-dim": ("frozen_state",),
     "scaled": FLAIL + ("lag:scale",), "sensor-nan": ("broken",), "lagged": ("lag:delay",),
     "dropped": ("frame_jump", "state_jump"), "nan": ("broken",),
+    # done backwards, or the task undone forwards (a reset recorded as a demo): it begins where its task's demos end
     "reversed": ("backwards:done backwards", "backwards_state:done backwards", "start:where they end",
                  "end:where they begin", "path:backwards", "outcome:undone"),
     "hesitates": ("pause", "idle"),
@@ -43,6 +44,7 @@ CAUSE = {
     "drop-regrasp": ("grasps", "path:state", "path:view", "pause"), "regrasp": ("grasps", "path:state", "path:view"),
     "failed-place": ("end:view", "grasps:ends otherwise") + WORLD,
 }
+CAUSE["reset"] = CAUSE["reversed"]
 TINY = re.compile(r"e-(1[2-9]|[2-9]\d|\d{3,})\b")  # a probability under 1e-12, printed
 LATENT = re.compile(r"(?<!state )dimension \d|widest on|furthest from its task on")  # not a recorded one
 

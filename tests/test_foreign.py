@@ -42,10 +42,16 @@ def test_a_planted_kind_is_kept_only_where_its_rollout_did_what_it_says():
                 "env_state": np.zeros((3, 1)), "actions": np.zeros((3, 1)), "success": ok,
                 "first_success": 1 if ok else None}
 
-    for kind, succeeds in (("detour", True), ("drop-regrasp", True), ("failed-place", False), ("clean", True)):
+    for kind, succeeds in (("detour", True), ("drop-regrasp", True), ("failed-place", False), ("clean", True),
+                           ("reset", True)):
         for index in range(6):
             ep = record.episode((index, "a", kind, "b", 9), rollout, {"a": "do a", "b": "do b"})
             assert ep["label"] == kind and (int(ep["state"][0, 0]) % 2 == 0) == succeeds
+    # a reset whose object lay where it should go (done at its first step) undoes nothing: drawn again, as a clean
+    # demo done before the arm moved is
+    for kind in ("reset", "clean"):
+        with pytest.raises(RuntimeError, match="no usable rollout"):
+            record.episode((0, "a", kind, "b", 9), rollout, {"a": "do a", "b": "do b"}, min_first=2)
 
 
 def test_the_card_covers_35_to_55_percent_of_every_frame_alike():

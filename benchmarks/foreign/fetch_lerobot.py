@@ -29,6 +29,11 @@ On request (``--kinds``), what operators do on the way, each in an episode as lo
 - ``failed-place``: the block carried to a point 8-15 cm off the goal, let go there and the gripper lifted away:
   the block lies off its goal (pick-place).
 
+And one a person records between demos (``--kinds reset``): the task undone, as an operator puts the scene back --
+the block starts on its goal (on the table) and the task's oracle carries it to where the layout put it (push,
+pick-place).  Unlike a demo played backwards (``reversed``), it runs forwards: the arm starts at home, reaches,
+pushes or grasps as in any demo.
+
 With ``--cameras head,side,gripper`` (of ``CAMERAS``) the dataset records several cameras, as hub datasets do, and
 ``--kinds frozen-camera`` plants a clean demo whose ``--freeze-camera`` (default: the second) stops delivering at
 20-50% of the episode, its last picture repeated.
@@ -128,7 +133,8 @@ def _goal(task: str, env, obs: dict, rng: np.random.Generator) -> np.ndarray:
     return obs["desired_goal"].copy()
 
 
-PLANTS = {"detour": tuple(TASKS), "drop-regrasp": ("pick-place", "lift"), "failed-place": ("pick-place",)}
+PLANTS = {"detour": tuple(TASKS), "drop-regrasp": ("pick-place", "lift"), "failed-place": ("pick-place",),
+          "reset": ("push", "pick-place")}
 
 
 def head_for(grip: np.ndarray, target: np.ndarray, gain: float = 10.0) -> np.ndarray:
@@ -230,12 +236,22 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
              ) -> dict:
     """One episode in ``scene``'s environment: ``task``'s oracle (or ``kind``'s behaviour) toward ``scene``'s
     goal, the arm still from ``stop`` on."""
+    import mujoco
+
     env = _env(scene)
     obs, _ = env.reset(seed=seed)
     goal = _goal(scene, env, obs, np.random.default_rng(seed))
     other_goal = _goal(task, env, obs, np.random.default_rng(seed + 1)) if task != scene else goal
+    aim = goal  # where the demo's block (the reach's gripper) should end
+    if kind == "reset":  # the block on its goal, on the table; the oracle sent where the layout put it
+        aim = other_goal = obs["observation"][3:6].copy()
+        q = env._utils.get_joint_qpos(env.model, env.data, "object0:joint").copy()
+        q[:2] = goal[:2]
+        env._utils.set_joint_qpos(env.model, env.data, "object0:joint", q)
+        mujoco.mj_forward(env.model, env.data)
+        obs = env._get_obs()
     steps = int(round(TASKS[scene][2] * _W.get("scale", 1.0)))
-    plan = way(kind, steps, rng) if kind in PLANTS else None
+    plan = way(kind, steps, rng) if kind in record.WAY_KINDS else None
     noise = rng.uniform(0.3, 0.5) if kind == "jerky" else 0.0
     memory: dict = {}
     views: dict[str, list] = {name: [] for name in _W["cameras"]}
@@ -253,12 +269,12 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
             a = planted_action(kind, t, stop, rng, noise, 4, lambda: oracle(task, o, other_goal, memory))
         actions.append(np.asarray(a, np.float32))
         obs, *_ = env.step(np.asarray(a, np.float32))
-        if first is None and _success(scene, obs, goal):
+        if first is None and _success(scene, obs, aim):
             first = t + 1
     first_camera, *others = _W["cameras"]
     return {"frames": np.stack(views[first_camera]), "views": {k: np.stack(views[k]) for k in others},
             "state": np.stack(state), "env_state": np.stack(env_state), "actions": np.stack(actions),
-            "first_success": first, "success": _success(scene, obs, goal)}
+            "first_success": first, "success": _success(scene, obs, aim)}
 
 
 def _episode(job: tuple) -> dict:

@@ -41,6 +41,12 @@ every other (``--steps``):
 - ``failed-place``: the puck carried to a point 10-15 cm off the goal and let go there (the gripper wide open for 6
   steps, then at rest), the hand lifted away: it never reaches its goal (pick-place-v3).
 
+And one a person records between demos, planted only when ``--kinds`` names it:
+
+- ``reset``: the task undone, as an operator puts the scene back -- the puck starts on its goal (on the table) and
+  the task's policy carries it to where the layout put it (push-v3, pick-place-v3).  Unlike a demo played
+  backwards, it runs forwards: the arm starts at home, reaches, grasps or pushes, and lets go as in any demo.
+
 Clean demos are the scripted policy on a variation of the task (Meta-World's goal and object positions) that
 no other episode of the task's scene uses while the 50 last, kept only when the policy succeeds.  (Before,
 variations were drawn with replacement: a reset of the same variation replays the same episode, so the datasets
@@ -75,9 +81,11 @@ TASKS = {  # Meta-World env -> (the task as a LeRobot dataset names it, the scri
     "coffee-button-v3": ("press the coffee machine's button", "SawyerCoffeeButtonV3Policy"),
 }
 KINDS = ("idle", "random", "wrong-task", "gave-up", "occluded")
-MORE_KINDS = ("jittery", "frozen-camera", "lagged", "dropped", "detour", "drop-regrasp", "failed-place")
+MORE_KINDS = ("jittery", "frozen-camera", "lagged", "dropped", "detour", "drop-regrasp", "failed-place", "reset")
 WAY = ("detour", "drop-regrasp", "failed-place")  # the policy, but for what ``_way`` has it do on the way
-PLANTS = {"drop-regrasp": ("pick-place-v3",), "failed-place": ("pick-place-v3",)}  # the tasks a kind fits
+PLANTS = {"drop-regrasp": ("pick-place-v3",), "failed-place": ("pick-place-v3",),  # the tasks a kind fits
+          "reset": ("push-v3", "pick-place-v3")}
+RESET_NEAR = 0.07  # m: a reset is done where the puck ends this near where the layout put it
 FAULTS = ("frozen-camera", "lagged", "dropped")  # a clean episode, recorded wrongly (``_fault``)
 CAMERA = "corner"
 FPS = 80
@@ -175,6 +183,12 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout:
     way = _way(kind, steps, rng) if kind in WAY else None
     if kind == "detour":
         way["at"] = int(way["at"] * (when or steps))
+    back = None
+    if kind == "reset":  # the puck on its goal, at the table's height; the policy sent where the layout put it
+        back = obs[4:7].copy()
+        env._set_obj_xyz(np.r_[obs[-3:][:2], back[2]])
+        for _ in range(2):  # the observation's previous frame too
+            obs, *_ = env.step(np.zeros(4, np.float32))
     frames, state, actions, success, first = [], [], [], False, None
     for t in range(steps):
         frames.append(env.render()[::-1].copy())  # MuJoCo renders bottom-up
@@ -187,14 +201,18 @@ def _rollout(name: str, kind: str, steps: int, rng: np.random.Generator, layout:
             a = np.clip(policy.get_action(obs) + rng.normal(0, jitter, 4), -1, 1).astype(np.float32)
         elif way is not None:
             a = np.clip(_way_action(kind, way, t, obs, policy), -1, 1).astype(np.float32)
+        elif back is not None:
+            a = np.clip(policy.get_action(np.r_[obs[:-3], back]), -1, 1).astype(np.float32)
         else:
             a = np.clip(policy.get_action(obs), -1, 1).astype(np.float32)
         actions.append(a)
         obs, _, _, _, info = env.step(a)
+        if back is not None:
+            info["success"] = bool(np.linalg.norm(obs[4:7] - back) < RESET_NEAR)
         if info["success"] and first is None:
             first = t + 1
         success = success or bool(info["success"])
-    if kind in ("clean", "wrong-task", "occluded", "detour", "drop-regrasp", *FAULTS) and not success:
+    if kind in ("clean", "wrong-task", "occluded", "detour", "drop-regrasp", "reset", *FAULTS) and not success:
         return None  # a failed expert demo is not a clean one, nor a detour or a regrasp: draw again
     if kind == "drop-regrasp" and not (way.get("dropped") is not None and first is not None and first > way["dropped"]):
         return None  # the puck never dropped, or reached its goal before it did: draw again

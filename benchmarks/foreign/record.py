@@ -30,6 +30,8 @@ WAY_KINDS = ("detour", "drop-regrasp", "failed-place")
 # On request: a clean demo one of whose cameras stops delivering at 20-50% of the episode, its last picture repeated
 # (``--freeze-camera`` names the camera; default the second where there are several).
 CAMERA_KINDS = ("frozen-camera",)
+# A generator may also plant a ``reset`` (its ``plants``): the task undone, as an operator puts the scene back between
+# demos -- done forwards, and done (a reset that fails is drawn again).
 
 
 def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
@@ -106,8 +108,8 @@ def cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min_first: int = 0) -> dict:
     """One planned episode (a ``plan`` job): ``rollout(task, scene, kind, rng, layout, stop=None)`` on layouts the
-    job's seed draws until one fits its kind -- a clean or occluded demo succeeds (its goal met no sooner than
-    ``min_first`` steps in), another task's oracle does not do this one by chance, a demo that gave up stops at
+    job's seed draws until one fits its kind -- a clean, occluded or reset demo succeeds (its goal met no sooner
+    than ``min_first`` steps in), another task's oracle does not do this one by chance, a demo that gave up stops at
     30-60% of the steps the oracle needs and fails.  ``words``: each task as the dataset names it."""
     index, task, kind, other, seed = job
     rng = np.random.default_rng([seed, index])
@@ -125,9 +127,9 @@ def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min
             led = "clean" if kind in TIME_KINDS + CAMERA_KINDS else kind
             rec = rollout(other if kind == "wrong-task" else task, task, led, rng, layout)
             fails = led in ("wrong-task", "failed-place")  # a detour and a regrasp still do the task
-            if led in ("clean", "occluded", *WAY_KINDS, "wrong-task") and rec["success"] == fails:
+            if led in ("clean", "occluded", "reset", *WAY_KINDS, "wrong-task") and rec["success"] == fails:
                 continue
-            if led in ("clean", "occluded") and (rec["first_success"] or 0) < min_first:
+            if led in ("clean", "occluded", "reset") and (rec["first_success"] or 0) < min_first:
                 continue
         break
     else:
