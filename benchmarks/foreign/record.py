@@ -40,8 +40,9 @@ def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
     ap.add_argument("--demos", type=int, default=demos, help="clean demos per task")
     ap.add_argument("--plant", type=int, default=6, help="bad demos of each kind, in all")
     ap.add_argument("--kinds", default=",".join(KINDS),
-                    help=f"comma-separated, of {', '.join(KINDS + TIME_KINDS + WAY_KINDS + CAMERA_KINDS)} (default: "
-                         f"{', '.join(KINDS)}; of {', '.join(WAY_KINDS)}, those the simulator can plant)")
+                    help=f"comma-separated, of {', '.join(KINDS + TIME_KINDS + WAY_KINDS + CAMERA_KINDS)}, reset "
+                         f"(default: {', '.join(KINDS)}; of {', '.join(WAY_KINDS)} and reset, those the simulator can "
+                         "plant)")
     ap.add_argument("--size", default=size, help="camera image size in pixels: N (square) or HxW, e.g. 480x640")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
