@@ -241,9 +241,12 @@ def test_every_template_of_every_check_renders_its_words():
                                         "noisy or random command?")
     assert words["backwards:done backwards"] == ("begins where its task's demos end and ends where they begin: done "
                                                  "backwards (a reset recorded as a demo?)")
-    assert words["backwards_state:done backwards"] == (
+    assert VOCABULARIES["backwards_state"]("done backwards", began=0.9, ended=0.05).words == (
         "its arm begins where its task's demos end and ends where they begin (its first state 90% of their way from "
         "start to end, its last 5%): done backwards (a reset recorded as a demo?)")
+    assert words["backwards_state:done backwards"] == (
+        "its target.x begins where its task's demos end and ends where they begin (its first value 90% of their way "
+        "from start to end, its last 5%): done backwards (a reset recorded as a demo?)")
     assert words["outcome:undone"] == ("undid its task's job: began where its task's demos leave target.x, and "
                                        "target.x at the end is 0.25 where theirs is 0.7 (done backwards: a reset "
                                        "recorded as a demo?)")

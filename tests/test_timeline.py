@@ -168,6 +168,33 @@ def test_a_task_whose_way_each_layout_draws_anew_has_no_way_to_run_backwards():
     assert np.isnan(ev.scores["backwards_state"]).all()
 
 
+def test_an_object_carried_back_by_an_arm_that_starts_at_home_is_read_from_the_objects_place():
+    """A reset an operator records runs forwards: the arm starts at home and goes out as in every demo, and only the
+    object goes from where its task's demos leave it to where they find it.  Read in the dimension that ran
+    backwards, by name; an arm that swings to the side its task's demos do not (its last value beyond their start)
+    came back to no start and went forwards."""
+    rng = np.random.default_rng(3)
+    names = ["arm.x", "arm.y", "object.y", "arm.side"]
+    carried, swung = 4, 9
+
+    def demo(i: int, begin: float, end: float, side: float) -> Demo:
+        arm = np.linspace(0, 1, T)[:, None] * np.array([0.2, 0.5]) + rng.normal(0, 0.01, (T, 2))
+        obj = np.r_[np.full(T // 2, begin), np.linspace(begin, end, T - T // 2)] + rng.normal(0, 0.005, T)
+        state = np.column_stack([arm, obj, np.linspace(0, side, T) + rng.normal(0, 0.01, T)]).astype(np.float32)
+        return Demo(i, "place", np.zeros((T, 0, 0, 3), np.uint8), state, np.gradient(state, axis=0),
+                    extra={"state_names": names})
+
+    demos = [demo(i, rng.normal(0.6, 0.02), rng.normal(0.85, 0.02), rng.normal(1.0, 0.05)) for i in range(N)]
+    demos[carried] = demo(carried, 0.85, 0.6, 1.0)
+    demos[swung] = demo(swung, 0.6, 0.85, -1.3)
+    ev = _evidence(demos)
+    found = ev.findings["backwards_state"]
+    assert _top(ev, "backwards_state") == carried
+    assert found[carried].kind == "done backwards" and found[carried].params["name"] == "object.y"
+    assert found[carried].words.startswith("its object.y begins where its task's demos end and ends where they begin")
+    assert found[swung].kind == "forwards"
+
+
 def test_the_arm_half_way_back_is_partly_backwards_and_a_demo_without_state_says_so():
     """A demo whose arm begins most of its task's way along and ends a little short of that went partly backwards;
     a demo whose state is missing (NaN) has nothing to read, and its task-mates are read as before; a dataset with no

@@ -265,9 +265,9 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            "demo's first picture lies, and its last nearer their first, by which colours lie beside which (the lesser "
            "of its two ends, robust z within its task): a reset recorded as a demo",
            ("demos",), _backwards, behaviour="timeline", decode=_timeline, short="backw."),
-    Scorer("backwards_state", "model-free: how far along its task's way (the line from its task's demos' median "
-           "first state to their median last) the demo's first state lies, and its last state back toward their "
-           "first (the lesser of the two, robust z within its task): a reset recorded as a demo, read from the arm",
+    Scorer("backwards_state", "model-free: how near its task's demos' last value the demo's first lies, and its last "
+           "near their first, in the state dimension that ran most backwards along its task's way (the lesser of "
+           "the two, robust z within its task): a reset recorded as a demo, read from the state",
            ("demos",), _backwards_state, behaviour="timeline", decode=_timeline, short="bkw.st"),
     Scorer("coupling", "model-free: how little the demo's actions go with its state (minus their mutual "
            "information over its steps, KSG estimate, nats); one look with the action error in the ranking",

@@ -11,8 +11,8 @@ failed place or a knocked-over object shows in the last frames, a detour or a re
 - ``path``: ``PATH_POINTS`` evenly spaced points of the demo in normalised time, of its state and of a grey
   ``PATH_THUMB`` px thumbnail;
 - ``backwards``: both ends' colour pairs nearer the task's other end (``toward_other_end``, below);
-- ``backwards_state`` (``democheck.audit.way``): the arm's first state along its task's way toward their last, its
-  last state back toward their first.
+- ``backwards_state`` (``democheck.audit.way``): the state's first value near its task's last, and its last near
+  their first, one dimension at a time.
 
 The start and end read the camera alone: where the state ends, and how far it moved, is the outcome check's
 (``democheck.audit.outcome``), which knows rotations, piles and a task's several outcomes; read twice, one end state
@@ -149,7 +149,8 @@ def state_floor(paths: list[np.ndarray]) -> np.ndarray:
     return np.maximum(STATE_FLOOR * (np.nanmax(every, axis=0) - np.nanmin(every, axis=0)), 1e-9)
 
 
-def _names(names: list[str] | None, dims: np.ndarray, source: str) -> str:
+def dimension_names(names: list[str] | None, dims: np.ndarray, source: str) -> str:
+    """The dimensions ``dims`` by the names the dataset records, else as "<source>[i]", joined by commas."""
     said = [names[d] if names and d < len(names) else f"{source}[{d}]" for d in dims]
     return ", ".join(said)
 
@@ -425,6 +426,7 @@ def path(t: Timeline, groups: np.ndarray) -> tuple[np.ndarray, list[Finding]]:
             found.append(PATH("view", at=at, distance=float(own[name][i])))
         else:
             dims = np.argsort(-np.nan_to_num(in_feature[name][i]))[:2]
-            found.append(PATH("state", dims=_names(t.names[i], dims, "state"), at=at, distance=float(own[name][i])))
+            found.append(PATH("state", dims=dimension_names(t.names[i], dims, "state"), at=at,
+                              distance=float(own[name][i])))
     return score, found
 
