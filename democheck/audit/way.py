@@ -63,8 +63,8 @@ def way_shares(t: Timeline, groups: np.ndarray) -> Way:
     demos", "no way" (its task's demos share none: a push toward a goal each layout draws anew, an arm that goes out
     and comes home).  Velocities are left out: how fast the arm went at either end is not where it was."""
     n = len(t.state_path)
-    way = Way(*(np.full(n, np.nan) for _ in range(2)), np.full(n, -1), *(np.full(n, np.nan) for _ in range(2)),
-              np.array(["too few demos"] * n, dtype=object))
+    way = Way(began=np.full(n, np.nan), ended=np.full(n, np.nan), dim=np.full(n, -1), dim_began=np.full(n, np.nan),
+              dim_ended=np.full(n, np.nan), why=np.array(["too few demos"] * n, dtype=object))
     if not n:
         return way
     first, last = stacked_states(t.state_path, 0), stacked_states(t.state_path, -1)
