@@ -22,3 +22,27 @@ def test_every_benchmark_imports_and_explains_itself(path):
                          cwd=ROOT, env=env)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "usage" in res.stdout.lower() and len(res.stdout) > 100, res.stdout
+
+
+def test_reference_purity_says_when_bad_demos_in_the_reference_set_the_flag_level():
+    """A reference of 100 clean demos and 10 weakly seen bad ones above all of them: the level at --fpr 0.05 is a
+    bad demo's, above every clean demo, and no clean demo is flagged where the rate expects 5."""
+    import importlib.util
+
+    import numpy as np
+    import pandas as pd
+
+    spec = importlib.util.spec_from_file_location("reference_purity", ROOT / "benchmarks" / "reference_purity.py")
+    purity = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(purity)
+    clean = np.linspace(0.0, 2.0, 100)
+    table = pd.DataFrame({"suspicion": np.r_[clean, np.linspace(3.0, 3.9, 10), [9.0, 9.5]],
+                          "reference": [True] * 110 + [False] * 2,
+                          "is_anomaly": [False] * 100 + [False] * 5 + [True] * 7,
+                          "label": ["clean"] * 100 + ["weak"] * 10 + ["strong"] * 2})
+    out = purity.purity(table, fpr=0.05, top=5)
+    assert out["bad_in_reference"] == 10 and out["reference"] == 110
+    assert out["reference_level"] > out["clean_largest"] == 2.0
+    assert out["clean_flagged"] == 0 and out["clean_expected"] == 5.0 and out["clean_interval"][0] > 0
+    assert out["reference_most_suspect"] == ["weak"] * 5
+    assert out["per_label"]["strong"] == {"demos": 2, "in_reference": 0, "flagged": 2}
