@@ -46,3 +46,33 @@ def test_reference_purity_says_when_bad_demos_in_the_reference_set_the_flag_leve
     assert out["clean_flagged"] == 0 and out["clean_expected"] == 5.0 and out["clean_interval"][0] > 0
     assert out["reference_most_suspect"] == ["weak"] * 5
     assert out["per_label"]["strong"] == {"demos": 2, "in_reference": 0, "flagged": 2}
+
+
+def test_a_copy_with_the_robots_state_alone_reads_back_with_only_those_dimensions(tiny_dataset, tmp_path):
+    """``without_env_state.py --state``: the copy's state holds only the dimensions asked for, by name or index, in
+    its data, metadata and statistics, and the rest of each demo (frames, actions) is the source's."""
+    import importlib.util
+    import json
+
+    import numpy as np
+
+    from democheck.data import open_dataset
+
+    spec = importlib.util.spec_from_file_location("without_env_state", ROOT / "benchmarks" / "without_env_state.py")
+    strip = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(strip)
+    src, _ = tiny_dataset
+    out = tmp_path / "robot"
+    strip.main([str(src), str(out), "--state", "0-1,tip.z"])
+    before, after = open_dataset(src), open_dataset(out)
+    assert after.state_dim == 3 and after.episodes.equals(before.episodes)
+    e = before.episode_indices[0]
+    a, b = after[e], before[e]
+    assert a.extra["state_names"] == ["shoulder_pan.pos", "shoulder_lift.pos", "tip.z"]
+    np.testing.assert_array_equal(a.state, b.state[:, [0, 1, 16]])
+    np.testing.assert_array_equal(a.actions, b.actions)
+    np.testing.assert_array_equal(np.asarray(a.frames), np.asarray(b.frames))
+    stats = json.loads((out / "meta/stats.json").read_text())["observation.state"]
+    assert len(stats["mean"]) == 3
+    with pytest.raises(SystemExit):
+        strip.main([str(src), str(tmp_path / "bad"), "--state", "elbow"])

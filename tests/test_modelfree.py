@@ -320,9 +320,29 @@ def test_lag_ranks_actions_recorded_late_first_and_says_by_how_much():
     fit = dynamics._dynamics_fit(states, actions)
     errors = {k: dynamics._dynamics_errors([states[bad]], [dynamics._shifted(actions[bad], k)], fit)[0].mean()
               for k in range(-dynamics.LAG_MAX, dynamics.LAG_MAX + 1)}
-    gain, shift, _, _ = dynamics._lag(states[bad], actions[bad], fit)
+    gain, shift, _, _, curve = dynamics._lag(states[bad], actions[bad], fit)
     assert shift == min(errors, key=errors.get) == 10
     np.testing.assert_allclose(gain, np.log(errors[0] / errors[10]), rtol=1e-9)
+    np.testing.assert_allclose(curve, [errors[k] for k in range(-dynamics.LAG_MAX, dynamics.LAG_MAX + 1)], rtol=1e-9)
+
+
+def test_a_lag_is_read_against_the_shift_its_tasks_demos_share():
+    """A recorder that pairs every action with the state five steps on shifts every demo alike: no demo is late
+    against its task, and the words say the task's demos go so.  One demo recorded 10 steps late on top of that
+    is read as 10 steps off its task's, ranked first and named."""
+    demos, bad = _planted("lag")
+    for d in demos:  # every demo: the actions five steps early; the planted one 10 late on top of it
+        d.actions[:] = np.concatenate([d.actions[5:], np.repeat(d.actions[-1:], 5, 0)])
+    ev = _evidence(demos, ["lag"])
+    values = ev.scores["lag"]
+    assert values[bad] > np.nanmax(np.delete(values, bad)) and np.median(values) < 0.05
+    found = ev.findings["lag"]
+    assert found[bad].kind == "delay" and 9 <= found[bad].params["steps"] <= 11, found[bad]
+    assert "earlier than its task's demos' do" in found[bad].words and "recorded" in found[bad].words
+    usual = [f for i, f in enumerate(found) if i != bad and f.kind == "as recorded"]
+    assert len(usual) > len(demos) // 2
+    assert usual[0].params["task_shift"] < 0 and usual[0].words.startswith(
+        "its actions go with its states as its task's demos' do (best with the actions ")
 
 
 def test_an_error_still_falling_past_the_shift_window_is_no_delay_located():

@@ -217,6 +217,9 @@ def test_every_template_of_every_check_renders_its_words():
     assert words["frozen_state:stopped"].startswith("state[1] holds one value while the arm is driven over frames")
     assert words["lag:delay"] == ("its states follow its actions best with the actions 3 steps earlier (1.6 x less "
                                   "error): the actions were recorded 3 steps late")
+    assert VOCABULARIES["lag"]("delay", steps=3, gain=1.6, named=True, task_shift=-2).words == (
+        "its states follow its actions best with the actions 3 steps earlier than its task's demos' do (1.6 x less "
+        "error): the actions were recorded 3 steps late")
     assert words["lag:scale"].startswith("the actions are 3.5 x the size its states follow")
     # a factor reads as a person says it: "190 x", never "1.9e+02 x"
     assert VOCABULARIES["motion"]("more", feature="mean |action|", ratio=190.4).words.endswith(

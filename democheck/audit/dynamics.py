@@ -9,10 +9,13 @@ log of the demo's mean squared prediction error over the median demo's, and the 
 did not answer its commands, or actions recorded against another demo's state or shifted in time.  A consumer
 of the audit's decoding pass like the other model-free checks (``democheck.audit.modelfree``).
 
-The ``lag`` check reads the same fit: how much better the demo's states follow its actions shifted in time --
-the log of its mean squared prediction error with the actions as recorded over the least error with them moved
-up to ``LAG_MAX`` steps earlier or later (0 for a demo whose recorded alignment explains it best, and for one whose
-error still falls one step past ``LAG_MAX``: a drift between actions and state, no delay located), and the shift.
+The ``lag`` check reads the same fit: how much better the demo's states follow its actions shifted in time than
+its task's demos' do -- the log of its mean squared prediction error with the actions moved by its task's usual
+shift (the median of its task's demos' best shifts; none for most recordings) over the least error with them moved
+up to ``LAG_MAX`` steps earlier or later (0 for a demo whose best shift is its task's, and for one whose error
+still falls one step past ``LAG_MAX``: a drift between actions and state, no delay located), and the shift.  A
+recorder that pairs each action with the next state, or a task whose every demo drags the arm behind its commands
+(a door on its hinge, with no door in the state), shifts all of its demos alike; a delay is one demo's.
 An action stream recorded late or early against the states and frames (a clock offset between two recorders) is
 what a policy trained on it learns to be late by; the mean error above barely sees it where actions change slowly,
 since a shifted action is still close to the right one.  Actions recorded at another scale also follow the states
@@ -92,15 +95,16 @@ def _shifted(actions: np.ndarray, k: int) -> np.ndarray:
 
 
 def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | None
-         ) -> tuple[float, int, float, float]:
+         ) -> tuple[float, int, float, float, np.ndarray | None]:
     """(log of the error as recorded over the least error with the actions moved up to ``LAG_MAX`` steps -- none
     where the error still falls one step past that edge: no delay located --, that shift, the one factor on the
     actions' part of the prediction that fits the demo best, the log of the error as recorded over the error with
-    it); NaN without a fit or under 3 steps.  The fit is linear, so each
+    it, the error at each shift from ``-LAG_MAX`` to ``LAG_MAX``, NaN past the demo's reach); NaN without a fit or
+    under 3 steps.  The fit is linear, so each
     part of the prediction is computed once and moving the actions is moving rows of theirs: what
     ``_dynamics_errors`` gives the actions ``_shifted`` by each k, at the cost of one prediction."""
     if fit is None or len(actions) < 3:
-        return float("nan"), 0, 1.0, 0.0
+        return float("nan"), 0, 1.0, 0.0, None
     s, a = state.astype(np.float64), actions.astype(np.float64)
     n, ds, da = len(a), s.shape[1], a.shape[1]
     w = np.zeros((ds + 2 * da, fit["w"].shape[1]))
@@ -128,8 +132,9 @@ def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | No
     rest = target - from_state
     factor = float((part * rest).sum() / max(float((part ** 2).sum()), 1e-12))
     scaled = float(((rest - factor * part) ** 2).mean())
+    curve = np.array([errors[k] if abs(k) <= reach else np.nan for k in range(-LAG_MAX, LAG_MAX + 1)])
     return (float(np.log(max(errors[0], 1e-12) / max(errors[best], 1e-12))), best, factor,
-            float(np.log(max(errors[0], 1e-12) / max(scaled, 1e-12))))
+            float(np.log(max(errors[0], 1e-12) / max(scaled, 1e-12))), curve)
 
 
 def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray], fit: dict[str, np.ndarray] | None
@@ -170,7 +175,7 @@ class DynamicsFit(PerDemo):
     fields = ("errors", "worst", "lags", "jumps", "states", "actions")
     errors: list[float]  # per scored demo: mean squared error (NaN: not scored)
     worst: list[tuple[int, int, int]]  # per scored demo: start, width of its worst stretch, its steps
-    lags: list[tuple[float, int, float, float]]  # per scored demo: ``_lag``
+    lags: list[tuple[float, int, float, float, np.ndarray | None]]  # per scored demo: ``_lag``
     jumps: list[tuple[float, int]]  # per scored demo: its largest ``jump_ratios`` of a step's error, and that step
     states: list[np.ndarray]  # the block not scored yet
     actions: list[np.ndarray]
@@ -198,7 +203,7 @@ class DynamicsFit(PerDemo):
                 if squared is None:
                     self.errors.append(np.nan)
                     self.worst.append((0, 0, 0))
-                    self.lags.append((np.nan, 0, 1.0, 0.0))
+                    self.lags.append((np.nan, 0, 1.0, 0.0, None))
                     self.jumps.append((np.nan, 0))
                     continue
                 self.lags.append(_lag(state, a, fit))
@@ -276,11 +281,22 @@ def state_jump(fit: DynamicsFit) -> tuple[np.ndarray, list[Finding]]:
     return out, reasons
 
 
-def _shift(steps: int, gain: float, named: bool) -> str:
-    text = f"{abs(steps)} step{'s' if abs(steps) > 1 else ''}"
-    return (f"its states follow its actions best with the actions {text} {'earlier' if steps > 0 else 'later'} "
+def _steps(k: int) -> str:
+    return f"{abs(k)} step{'s' if abs(k) > 1 else ''}"
+
+
+def _shift(steps: int, gain: float, named: bool, task_shift: int = 0) -> str:
+    text, than = _steps(steps), "" if not task_shift else " than its task's demos' do"
+    return (f"its states follow its actions best with the actions {text} {'earlier' if steps > 0 else 'later'}{than} "
             f"({factor(gain)} x less error)" + (f": the actions were recorded {text} {'late' if steps > 0 else 'early'}"
                                            if named else ""))
+
+
+def _as_recorded(task_shift: int = 0) -> str:
+    if not task_shift:
+        return "its actions go with its states as recorded"
+    return (f"its actions go with its states as its task's demos' do (best with the actions {_steps(task_shift)} "
+            f"{'earlier' if task_shift > 0 else 'later'})")
 
 
 LAG = Vocabulary("lag", {
@@ -290,33 +306,51 @@ LAG = Vocabulary("lag", {
     # one factor on the actions explains them as well, ``SCALE_NAMED`` or more off its group's
     "scale": lambda size, gain: (f"the actions are {factor(size)} x the size its states follow, against its task's "
                                  f"demos ({factor(gain)} x less error taken so): recorded at another scale"),
-    "as recorded": "its actions go with its states as recorded",
+    "as recorded": _as_recorded,
     "too short": "too short, or a state that never changes",
 })
 
 
 def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray, list[Finding]]:
-    """How much better each demo's states follow its actions moved in time (``_lag``; see the module docstring),
-    and by how many steps -- or, where one factor on the actions explains it as well and lies ``SCALE_NAMED`` or
-    more off the median of its group's (``Evidence.groups``; default one group) demos', at what size."""
-    out = np.array([lag[0] for lag in fit.lags], np.float64)
+    """How much better each demo's states follow its actions moved in time than at its group's usual shift (the
+    median of its group's demos' best shifts; ``Evidence.groups``, default one group): the log of ``_lag``'s error
+    there over the least, 0 where its best is the usual one -- and by how many steps from it; or, where one factor on
+    the actions explains the demo as well and lies ``SCALE_NAMED`` or more off the median of its group's demos', at
+    what size.  A recorder that pairs every action with the state a step on, or a task whose every demo meets
+    something that drags the arm behind its command, shifts each of its demos alike: a delay is one demo's."""
+    gains = np.array([lag[0] for lag in fit.lags], np.float64)
+    best = np.array([lag[1] for lag in fit.lags], int)
     factors = np.array([lag[2] for lag in fit.lags], np.float64)
-    groups = np.zeros(len(out), int) if groups is None else np.asarray(groups)
-    typical = np.ones(len(out))
+    groups = np.zeros(len(gains), int) if groups is None else np.asarray(groups)
+    typical, usual = np.ones(len(gains)), np.zeros(len(gains), int)
     for group in np.unique(groups):
-        mine = (groups == group) & np.isfinite(out)
+        mine = (groups == group) & np.isfinite(gains)
         if mine.any():
             typical[groups == group] = float(np.median(factors[mine]))
+            usual[groups == group] = int(np.round(np.median(best[mine])))
+    out = np.array([_off_usual(lag, u) for lag, u in zip(fit.lags, usual)], np.float64)
     reasons = []
     with np.errstate(divide="ignore", invalid="ignore"):
         sizes = np.where(typical > 0, factors / typical, np.nan)  # a group whose actions fit backwards has no size
-    for (gain, k, _, scaled), size in zip(fit.lags, sizes):
+    for (gain, k, _, scaled, _), size, off, u in zip(fit.lags, sizes, out, usual):
         if not np.isfinite(gain):
             reasons.append(LAG("too short"))
-        elif k == 0:
-            reasons.append(LAG("as recorded"))
+        elif k == u or not off > 0:
+            reasons.append(LAG("as recorded", task_shift=int(u)))
         elif scaled >= max(gain, np.log(LAG_NAMED)) and size > 0 and not 1 / SCALE_NAMED < size < SCALE_NAMED:
             reasons.append(LAG("scale", size=float(1 / size), gain=float(np.exp(scaled))))
         else:
-            reasons.append(LAG("delay", steps=int(k), gain=float(np.exp(gain)), named=bool(gain >= np.log(LAG_NAMED))))
+            reasons.append(LAG("delay", steps=int(k - u), gain=float(np.exp(off)), named=bool(off >= np.log(LAG_NAMED)),
+                               task_shift=int(u)))
     return out, reasons
+
+
+def _off_usual(lag: tuple, usual: int) -> float:
+    """The log of a demo's error at its group's usual shift over its error at its own best (``_lag``), at least 0;
+    the usual shift taken within the demo's reach.  NaN where the demo has no lag."""
+    gain, best, _, _, curve = lag
+    if curve is None or not np.isfinite(gain):
+        return float(gain)
+    reach = int(np.isfinite(curve).sum() // 2)
+    at_usual = curve[LAG_MAX + int(np.clip(usual, -reach, reach))]
+    return max(float(np.log(max(at_usual, 1e-12) / max(curve[LAG_MAX + best], 1e-12))), 0.0)
