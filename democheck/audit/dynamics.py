@@ -12,10 +12,11 @@ of the audit's decoding pass like the other model-free checks (``democheck.audit
 The ``lag`` check reads the same fit: how much better the demo's states follow its actions shifted in time than
 its task's demos' do -- the log of its mean squared prediction error with the actions moved by its task's usual
 shift (the median of its task's demos' best shifts; none for most recordings) over the least error with them moved
-up to ``LAG_MAX`` steps earlier or later (0 for a demo whose best shift is its task's, and for one whose error
-still falls one step past ``LAG_MAX``: a drift between actions and state, no delay located), and the shift.  A
-recorder that pairs each action with the next state, or a task whose every demo drags the arm behind its commands
-(a door on its hinge, with no door in the state), shifts all of its demos alike; a delay is one demo's.
+up to ``LAG_MAX`` steps earlier or later (0 for a demo whose best shift lies within ``LAG_SCATTER`` robust SD of
+its task's demos' best shifts, and for one whose error still falls one step past
+``LAG_MAX``: a drift between actions and state, no delay located), and the shift.  A recorder that pairs each
+action with the next state shifts all of a task's demos alike, and a task whose demos something drags behind their
+commands (a door on its hinge, with no door in the state) scatters them a few steps; a delay is one demo's.
 An action stream recorded late or early against the states and frames (a clock offset between two recorders) is
 what a policy trained on it learns to be late by; the mean error above barely sees it where actions change slowly,
 since a shifted action is still close to the right one.  Actions recorded at another scale also follow the states
@@ -52,6 +53,9 @@ DYNAMICS_MIN_BLOCK = 32  # a last block of fewer demos is judged by the fit of t
 DYNAMICS_WINDOW = 10  # the reason names the stretch of this many steps the state follows the actions worst
 LAG_MAX = 16  # steps either way the ``lag`` check moves a demo's actions (0.2 s at 80 fps, 0.5 s at 30 fps)
 LAG_NAMED = 1.2  # the reason says the actions were recorded late or early where the shift cuts the error this much
+# A delay lies further from its task's usual shift than this many robust SD of its task's demos' best shifts: a task
+# whose demos something drags behind their commands scatters their best shifts; where they agree, any other is apart.
+LAG_SCATTER = 3.0
 SCALE_NAMED = 2.0  # ... at another scale where a factor this far off its task's demos' explains the demo as well
 STATE_JUMP_FLOOR = 0.1  # SDs of a state's change: the least usual error a step's error is measured against
 
@@ -314,34 +318,40 @@ LAG = Vocabulary("lag", {
 def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray, list[Finding]]:
     """How much better each demo's states follow its actions moved in time than at its group's usual shift (the
     median of its group's demos' best shifts; ``Evidence.groups``, default one group): the log of ``_lag``'s error
-    there over the least, 0 where its best is the usual one -- and by how many steps from it; or, where one factor on
-    the actions explains the demo as well and lies ``SCALE_NAMED`` or more off the median of its group's demos', at
-    what size.  A recorder that pairs every action with the state a step on, or a task whose every demo meets
-    something that drags the arm behind its command, shifts each of its demos alike: a delay is one demo's."""
+    there over the least, 0 where its best lies within ``LAG_SCATTER`` of its group's scatter of best shifts -- and
+    by how many steps from it; or, where one factor on the actions explains the demo as well as its best shift and
+    lies ``SCALE_NAMED`` or more off the median of its group's demos', the log of its error as recorded over the
+    error with that factor, and at what size."""
     gains = np.array([lag[0] for lag in fit.lags], np.float64)
     best = np.array([lag[1] for lag in fit.lags], int)
     factors = np.array([lag[2] for lag in fit.lags], np.float64)
     groups = np.zeros(len(gains), int) if groups is None else np.asarray(groups)
-    typical, usual = np.ones(len(gains)), np.zeros(len(gains), int)
+    typical, usual, scatter = np.ones(len(gains)), np.zeros(len(gains), int), np.zeros(len(gains))
     for group in np.unique(groups):
         mine = (groups == group) & np.isfinite(gains)
         if mine.any():
             typical[groups == group] = float(np.median(factors[mine]))
             usual[groups == group] = int(np.round(np.median(best[mine])))
-    out = np.array([_off_usual(lag, u) for lag, u in zip(fit.lags, usual)], np.float64)
-    reasons = []
+            scatter[groups == group] = 1.4826 * float(np.median(np.abs(best[mine] - np.median(best[mine]))))
+    apart = np.abs(best - usual) > LAG_SCATTER * scatter
     with np.errstate(divide="ignore", invalid="ignore"):
         sizes = np.where(typical > 0, factors / typical, np.nan)  # a group whose actions fit backwards has no size
-    for (gain, k, _, scaled, _), size, off, u in zip(fit.lags, sizes, out, usual):
+    out, reasons = np.full(len(gains), np.nan), []
+    for i, ((gain, k, _, scaled, _), size, u) in enumerate(zip(fit.lags, sizes, usual)):
         if not np.isfinite(gain):
             reasons.append(LAG("too short"))
-        elif k == u or not off > 0:
-            reasons.append(LAG("as recorded", task_shift=int(u)))
-        elif scaled >= max(gain, np.log(LAG_NAMED)) and size > 0 and not 1 / SCALE_NAMED < size < SCALE_NAMED:
+            continue
+        off = _off_usual(fit.lags[i], u) if apart[i] else 0.0
+        if scaled >= max(gain, np.log(LAG_NAMED)) and size > 0 and not 1 / SCALE_NAMED < size < SCALE_NAMED:
+            out[i] = scaled
             reasons.append(LAG("scale", size=float(1 / size), gain=float(np.exp(scaled))))
-        else:
+        elif off > 0:
+            out[i] = off
             reasons.append(LAG("delay", steps=int(k - u), gain=float(np.exp(off)), named=bool(off >= np.log(LAG_NAMED)),
                                task_shift=int(u)))
+        else:
+            out[i] = 0.0
+            reasons.append(LAG("as recorded", task_shift=int(u)))
     return out, reasons
 
 
