@@ -103,8 +103,8 @@ def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | No
     """(log of the error as recorded over the least error with the actions moved up to ``LAG_MAX`` steps -- none
     where the error still falls one step past that edge: no delay located --, that shift, the one factor on the
     actions' part of the prediction that fits the demo best, the log of the error as recorded over the error with
-    it, the error at each shift from ``-LAG_MAX`` to ``LAG_MAX``, NaN past the demo's reach); NaN without a fit or
-    under 3 steps.  The fit is linear, so each
+    it, the error at each shift from ``-LAG_MAX`` to ``LAG_MAX``, NaN past the demo's reach, None where no delay
+    is located); NaN without a fit or under 3 steps.  The fit is linear, so each
     part of the prediction is computed once and moving the actions is moving rows of theirs: what
     ``_dynamics_errors`` gives the actions ``_shifted`` by each k, at the cost of one prediction."""
     if fit is None or len(actions) < 3:
@@ -129,14 +129,16 @@ def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | No
             part = from_action[:-1] + before  # the actions' part of the prediction, as recorded
     best = min((k for k in errors if abs(k) <= reach), key=lambda k: (errors[k], abs(k)))
     past = int(np.sign(best)) * (reach + 1)
-    if best and abs(best) == reach and errors.get(past, np.inf) < errors[best]:
+    located = not (best and abs(best) == reach and errors.get(past, np.inf) < errors[best])
+    if not located:
         # The error still falls past the window's edge: no delay located -- a slow drift between the actions and
         # the state (an arm that settles at its goal), not a recording that is late by a number of steps.
         best = 0
     rest = target - from_state
     factor = float((part * rest).sum() / max(float((part ** 2).sum()), 1e-12))
     scaled = float(((rest - factor * part) ** 2).mean())
-    curve = np.array([errors[k] if abs(k) <= reach else np.nan for k in range(-LAG_MAX, LAG_MAX + 1)])
+    curve = np.array([errors[k] if abs(k) <= reach else np.nan for k in range(-LAG_MAX, LAG_MAX + 1)]
+                     ) if located else None
     return (float(np.log(max(errors[0], 1e-12) / max(errors[best], 1e-12))), best, factor,
             float(np.log(max(errors[0], 1e-12) / max(scaled, 1e-12))), curve)
 
@@ -357,7 +359,7 @@ def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray,
 
 def _off_usual(lag: tuple, usual: int) -> float:
     """The log of a demo's error at its group's usual shift over its error at its own best (``_lag``), at least 0;
-    the usual shift taken within the demo's reach.  NaN where the demo has no lag."""
+    the usual shift taken within the demo's reach.  0 where no delay is located, NaN where the demo has no lag."""
     gain, best, _, _, curve = lag
     if curve is None or not np.isfinite(gain):
         return float(gain)
