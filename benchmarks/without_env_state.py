@@ -10,8 +10,8 @@ kept, so an audit of the copy is scored against the same labels.
 
 A simulator may put the objects in ``observation.state`` too (Fetch's block and goal, Meta-World's puck).
 ``--state`` keeps only the state dimensions it lists -- names the dataset gives them (``grip.x,finger.left``) or
-indices and ranges (``0-3``) -- in the data, ``info.json``, ``stats.json`` and the per-episode statistics: the
-robot's own state alone, as a teleoperated recording has it.
+indices and ranges (``0-3``) -- in the data, ``info.json``, ``stats.json`` and the per-episode statistics (v3.0's
+and v2.1's): the robot's own state alone, as a teleoperated recording has it.
 """
 
 from __future__ import annotations
@@ -67,6 +67,11 @@ def _cut_table(table: pa.Table, keep: list[int]) -> pa.Table:
     return table
 
 
+def _cut_stats(stats: dict, keep: list[int]) -> dict:
+    """A feature's statistics (min, max, mean, ... one value a dimension; count one for all) cut to ``keep``."""
+    return {k: (v if k == "count" else [v[j] for j in keep]) for k, v in stats.items()}
+
+
 def strip(src: Path, out: Path, state: list[int] | None = None) -> list[str]:
     """Write ``out``: ``src`` without its environment-state features (and with only the ``state`` dimensions of
     its state, where given); returns the features dropped."""
@@ -87,18 +92,24 @@ def strip(src: Path, out: Path, state: list[int] | None = None) -> list[str]:
             pq.write_table(_cut_table(table, state) if state else table, target)
         elif rel.startswith("meta/episodes/") and path.suffix == ".parquet" and state:
             pq.write_table(_cut_table(pq.read_table(path), state), target)
+        elif rel == "meta/episodes_stats.jsonl" and state:  # LeRobot v2.1's per-episode statistics
+            rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+            for row in rows:
+                if STATE in row.get("stats", {}):
+                    row["stats"][STATE] = _cut_stats(row["stats"][STATE], state)
+            target.write_text("".join(json.dumps(row) + "\n" for row in rows))
         elif rel == "meta/info.json":
             info["features"] = {k: v for k, v in info["features"].items() if k not in drop}
             if state:
                 feature = info["features"][STATE]
                 feature["shape"] = [len(state)]
-                if isinstance(feature.get("names"), list):
-                    feature["names"] = [feature["names"][j] for j in state]
+                names = feature.get("names")  # a flat list is cut; another form cannot be, and goes
+                feature["names"] = [names[j] for j in state] if isinstance(names, list) else None
             target.write_text(json.dumps(info, indent=4))
         elif rel == "meta/stats.json":
             stats = {k: v for k, v in json.loads(path.read_text()).items() if k not in drop}
             if state and STATE in stats:
-                stats[STATE] = {k: (v if k == "count" else [v[j] for j in state]) for k, v in stats[STATE].items()}
+                stats[STATE] = _cut_stats(stats[STATE], state)
             target.write_text(json.dumps(stats, indent=4))
         else:
             try:
