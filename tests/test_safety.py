@@ -145,3 +145,16 @@ def test_atomic_output_leaves_nothing_on_failure_and_clears_what_killed_runs_lef
         (tmp / "done.txt").write_text("done")
     assert (out / "done.txt").read_text() == "done" and not dead.exists()
     assert [p.name for p in tmp_path.iterdir()] == ["report"]
+
+
+def test_a_frame_rate_no_recorder_runs_at_is_refused_in_one_line(pristine, tmp_path):
+    """An fps of 1e300 is finite and positive, yet no frame number it gives fits a frame index: refused when the
+    dataset is opened, not as an overflow when its video is decoded."""
+    import json
+
+    src, _ = pristine
+    info = json.loads((src / "meta/info.json").read_text())
+    info["fps"] = 1e300
+    root = _mutated_copy(src, tmp_path, "meta/info.json", json.dumps(info).encode())
+    with pytest.raises(DemocheckError, match="fps must be a positive number up to"):
+        open_dataset(root)

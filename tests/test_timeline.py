@@ -277,12 +277,31 @@ def test_velocities_are_told_by_their_names():
     assert not velocities(None, 3).any() and not velocities(["a"], 2).any()
 
 
+def test_a_pause_is_put_in_on_the_demos_way_not_in_its_rest():
+    """A demo that does its task in its first fifth and rests after is paused within that fifth, where a share of
+    its motion is done; the pause lasts as long as by its steps; one whose state never moves is paused by its
+    steps, and one with no state by its actions' motion (here commanded positions)."""
+    from democheck.data.reorder import motion_done, pause, replant
+
+    t = np.arange(100)
+    state = np.column_stack([np.minimum(t, 20) / 20.0, np.full(100, 0.3)])
+    actions = state + 0.01  # commanded positions, one step ahead of the state
+    for seed in range(20):
+        at, n = pause(100, seed, motion_done(state))
+        assert 5 <= at <= 15 and (at, n)[1] == pause(100, seed)[1]
+        planted, where = replant("hesitates", {"state": state, "actions": actions}, {}, seed)
+        assert where == {"at": at, "steps": n} and len(planted["state"]) == 100 + n
+        assert (planted["state"][at:at + n + 1] == state[at]).all()
+        assert replant("hesitates", {"state": None, "actions": actions}, {}, seed)[1]["at"] == at
+    assert motion_done(np.ones((100, 2))) is None and pause(100, 0, None) == pause(100, 0)
+
+
 def test_hesitates_probe_holds_one_frame_and_state_then_goes_on(time_probes):
-    from democheck.data.reorder import pause
+    from democheck.data.reorder import motion_done, pause
 
     for d, s in _probes_of(time_probes, "hesitates"):
         at, n = d.sim["probe"]["pause"]["at"], d.sim["probe"]["pause"]["steps"]
-        assert (at, n) == pause(len(s), d.sim["probe"]["seed"])
+        assert (at, n) == pause(len(s), d.sim["probe"]["seed"], motion_done(s.state, s.extra.get("state_names")))
         assert len(d) == len(s) + n
         assert (d.frames[at:at + n + 1] == s.frames[at]).all()
         np.testing.assert_array_equal(d.frames[at + n:], s.frames[at:])

@@ -36,6 +36,8 @@ from democheck.data.demo import (NO_CAMERA, NO_CAMERA_KEY, OTHER_CAMERA, Damage,
                                  readable_frames, repair_non_finite)
 from democheck.errors import DatasetError
 
+MAX_FPS = 100_000.0  # frames a second: no recorder runs faster; a larger number is not a frame rate
+
 CODEBASE_VERSION = "v3.0"
 CHUNKS_SIZE = 1000
 IMAGE_KEY = "observation.images.main"
@@ -178,8 +180,9 @@ class LeRobotBase:
             self.features: dict[str, Any] = dict(info["features"])
         except (KeyError, TypeError, ValueError):
             raise DatasetError(f"{root / 'meta/info.json'}: needs 'fps' and 'features'") from None
-        if not (np.isfinite(self.fps) and self.fps > 0):
-            raise DatasetError(f"{root / 'meta/info.json'}: fps must be a positive number, not {info['fps']!r}")
+        if not (np.isfinite(self.fps) and 0 < self.fps <= MAX_FPS):
+            raise DatasetError(f"{root / 'meta/info.json'}: fps must be a positive number up to {MAX_FPS:g}, not "
+                               f"{info['fps']!r}")
         self.cameras = [k for k, f in self.features.items()
                         if isinstance(f, dict) and f.get("dtype") in ("video", "image")]
         self.camera = self._pick_camera(camera)

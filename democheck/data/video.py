@@ -138,8 +138,8 @@ def read_frames(path: str | Path, indices: list[int] | np.ndarray, fps: float, a
     got = np.zeros(len(want), bool)
     try:
         with av.open(str(path)) as container:
-            if not container.streams.video:
-                raise DatasetError(f"{path}: unreadable video (no video stream in it)")
+            if not container.streams.video or container.streams.video[0].codec_context is None:
+                raise DatasetError(f"{path}: unreadable video (no video stream in it that a codec reads)")
             stream = container.streams.video[0]
             # Frame threading restarts its threads at every seek: 8x slower for sparse reads of small frames.
             stream.thread_type = "NONE"
