@@ -44,6 +44,7 @@ import numpy as np
 
 from democheck.audit.findings import Finding, Vocabulary
 from democheck.audit.modelfree import JUMP_NEIGHBOURS, PerDemo, jump_ratios, steps_text
+from democheck.audit.neighbours import units
 from democheck.audit.words import factor
 from democheck.data.demo import Demo
 
@@ -333,8 +334,8 @@ def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray,
         mine = (groups == group) & np.isfinite(gains)
         if mine.any():
             typical[groups == group] = float(np.median(factors[mine]))
-            usual[groups == group] = int(np.round(np.median(best[mine])))
-            scatter[groups == group] = 1.4826 * float(np.median(np.abs(best[mine] - np.median(best[mine]))))
+            centre, spread = units(best[mine].astype(np.float64), 0.0)
+            usual[groups == group], scatter[groups == group] = int(np.round(centre)), float(spread)
     apart = np.abs(best - usual) > LAG_SCATTER * scatter
     with np.errstate(divide="ignore", invalid="ignore"):
         sizes = np.where(typical > 0, factors / typical, np.nan)  # a group whose actions fit backwards has no size
