@@ -320,10 +320,10 @@ def test_lag_ranks_actions_recorded_late_first_and_says_by_how_much():
     fit = dynamics._dynamics_fit(states, actions)
     errors = {k: dynamics._dynamics_errors([states[bad]], [dynamics._shifted(actions[bad], k)], fit)[0].mean()
               for k in range(-dynamics.LAG_MAX, dynamics.LAG_MAX + 1)}
-    gain, shift, _, _, curve = dynamics._lag(states[bad], actions[bad], fit)
-    assert shift == min(errors, key=errors.get) == 10
-    np.testing.assert_allclose(gain, np.log(errors[0] / errors[10]), rtol=1e-9)
-    np.testing.assert_allclose(curve, [errors[k] for k in range(-dynamics.LAG_MAX, dynamics.LAG_MAX + 1)], rtol=1e-9)
+    read = dynamics._lag(states[bad], actions[bad], fit)
+    assert read.best == min(errors, key=errors.get) == 10
+    np.testing.assert_allclose(read.gain, np.log(errors[0] / errors[10]), rtol=1e-9)
+    np.testing.assert_allclose(read.curve, [errors[k] for k in range(-dynamics.LAG_MAX, dynamics.LAG_MAX + 1)], rtol=1e-9)
 
 
 def test_a_lag_is_read_against_the_shift_its_tasks_demos_share():
@@ -353,7 +353,7 @@ def test_an_error_still_falling_past_the_shift_window_is_no_delay_located():
     fit = dynamics._dynamics_fit(states, actions)
     read = {k: dynamics._lag(states[3], dynamics._shifted(actions[3], k), fit)
             for k in (0, 5, dynamics.LAG_MAX, 30)}
-    assert read[30][:2] == (0.0, 0) and read[30][4] is None, read[30][:2]  # nor read against its task's shift
+    assert (read[30].gain, read[30].best) == (0.0, 0) and read[30].curve is None, read[30][:2]  # nor read against its task's shift
     read = {k: r[:2] for k, r in read.items()}
     assert abs(read[5][1]) in (4, 5, 6) and read[5][0] > 0.1, read
     assert abs(read[dynamics.LAG_MAX][1]) >= dynamics.LAG_MAX - 1 and read[dynamics.LAG_MAX][0] > 0.1, read
@@ -1280,6 +1280,28 @@ def test_actions_recorded_at_another_scale_are_named_a_scale_not_a_delay():
     scaled, late = ev.findings["lag"][3], ev.findings["lag"][17]
     assert scaled.kind == "scale" and scaled.params["size"] > 2, scaled
     assert late.kind == "delay" and 9 <= late.params["steps"] <= 11 and late.params["named"], late
+
+
+def test_an_arm_held_against_something_is_no_scale():
+    """Arms whose position integrates their commands; one arm held still from a third of its demo on while its
+    commands go on (a button pressed, a table met), and one demo's actions recorded x3.  Over the whole demo one
+    factor of about a third explains the held arm best, but a unit or a gain holds throughout the recording: the
+    held arm's first third follows its actions as its task's do, so it reads no scale; the x3 demo does."""
+    rng = np.random.default_rng(5)
+    demos = []
+    for i in range(40):
+        actions = rng.normal(0, 1, (T, A)) * 0.5 + np.sin(np.arange(T) / 8.0 + rng.uniform(0, 6))[:, None]
+        state = np.concatenate([np.cumsum(actions, 0) * 0.05, rng.normal(0, 0.01, (T, S - A))], 1)
+        demos.append(Demo(episode_index=i, task="press", frames=np.zeros((T, 8, 8, 3), np.uint8),
+                          state=state.astype(np.float32), actions=actions.astype(np.float32)))
+    held = T // 3
+    demos[7].state[held:, :A] = demos[7].state[held, :A] + rng.normal(0, 1e-3, (T - held, A))
+    demos[21].actions[:] *= 3.0
+    ev = _evidence(demos, ["lag"])
+    whole = ev.behaviour["dynamics"].lags[7]
+    assert whole.factor < np.median([lag.factor for lag in ev.behaviour["dynamics"].lags]) / dynamics.SCALE_NAMED
+    assert ev.findings["lag"][7].kind != "scale" and ev.scores["lag"][7] < 0.1, ev.findings["lag"][7]
+    assert ev.findings["lag"][21].kind == "scale" and ev.findings["lag"][21].params["size"] > 2, ev.findings["lag"][21]
 
 
 def test_a_camera_that_stopped_delivers_frames_like_its_tasks_and_a_card_does_not():

@@ -40,6 +40,8 @@ measured, not kept").
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from democheck.audit.findings import Finding, Vocabulary
@@ -58,6 +60,12 @@ LAG_NAMED = 1.2  # the reason says the actions were recorded late or early where
 # whose demos something drags behind their commands scatters their best shifts; where they agree, any other is apart.
 LAG_SCATTER = 3.0
 SCALE_NAMED = 2.0  # ... at another scale where a factor this far off its task's demos' explains the demo as well
+# A unit or a gain holds throughout a recording: the factor is read in each of this many parts of the demo's steps
+# too, and a scale is named only where every part that drives the arm (holds ``SCALE_BUSY`` of the actions' part of
+# the prediction or more) is off the same way.  An arm held against something (a button pressed, a table met) follows
+# its actions at a fraction of their size over that stretch alone.
+SCALE_PARTS = 3
+SCALE_BUSY = 0.1
 STATE_JUMP_FLOOR = 0.1  # SDs of a state's change: the least usual error a step's error is measured against
 
 
@@ -99,17 +107,27 @@ def _shifted(actions: np.ndarray, k: int) -> np.ndarray:
     return actions[idx]
 
 
-def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | None
-         ) -> tuple[float, int, float, float, np.ndarray | None]:
-    """(log of the error as recorded over the least error with the actions moved up to ``LAG_MAX`` steps -- none
-    where the error still falls one step past that edge: no delay located --, that shift, the one factor on the
-    actions' part of the prediction that fits the demo best, the log of the error as recorded over the error with
-    it, the error at each shift from ``-LAG_MAX`` to ``LAG_MAX``, NaN past the demo's reach, None where no delay
-    is located); NaN without a fit or under 3 steps.  The fit is linear, so each
-    part of the prediction is computed once and moving the actions is moving rows of theirs: what
-    ``_dynamics_errors`` gives the actions ``_shifted`` by each k, at the cost of one prediction."""
+class Lag(NamedTuple):
+    """What ``_lag`` reads of one demo."""
+
+    gain: float  # log of the error as recorded over the least with the actions moved up to ``LAG_MAX`` steps
+    best: int  # that shift (0 where the error still falls one step past the window: no delay located)
+    factor: float  # the one factor on the actions' part of the prediction that fits the demo best
+    scaled: float  # log of the error as recorded over the error with that factor
+    curve: np.ndarray | None  # the error at each shift -LAG_MAX..LAG_MAX, NaN past reach; None: no delay located
+    parts: np.ndarray  # the factor in each of ``SCALE_PARTS`` parts of the steps, NaN where the actions drive little
+
+
+NO_LAG = Lag(float("nan"), 0, 1.0, 0.0, None, np.full(SCALE_PARTS, np.nan))
+
+
+def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | None) -> Lag:
+    """How the demo's states follow its actions moved in time and scaled (``Lag``); ``NO_LAG`` without a fit or
+    under 3 steps.  The fit is linear, so each part of the prediction is computed once and moving the actions is
+    moving rows of theirs: what ``_dynamics_errors`` gives the actions ``_shifted`` by each k, at the cost of one
+    prediction."""
     if fit is None or len(actions) < 3:
-        return float("nan"), 0, 1.0, 0.0, None
+        return NO_LAG
     s, a = state.astype(np.float64), actions.astype(np.float64)
     n, ds, da = len(a), s.shape[1], a.shape[1]
     w = np.zeros((ds + 2 * da, fit["w"].shape[1]))
@@ -140,8 +158,13 @@ def _lag(state: np.ndarray, actions: np.ndarray, fit: dict[str, np.ndarray] | No
     scaled = float(((rest - factor * part) ** 2).mean())
     curve = np.array([errors[k] if abs(k) <= reach else np.nan for k in range(-LAG_MAX, LAG_MAX + 1)]
                      ) if located else None
-    return (float(np.log(max(errors[0], 1e-12) / max(errors[best], 1e-12))), best, factor,
-            float(np.log(max(errors[0], 1e-12) / max(scaled, 1e-12))), curve)
+    energy = (part ** 2).sum(axis=1)
+    parts = np.full(SCALE_PARTS, np.nan)
+    for j, idx in enumerate(np.array_split(np.arange(len(part)), SCALE_PARTS)):
+        if len(idx) and energy[idx].sum() >= SCALE_BUSY * max(float(energy.sum()), 1e-12):
+            parts[j] = float((part[idx] * rest[idx]).sum() / float(energy[idx].sum()))
+    return Lag(float(np.log(max(errors[0], 1e-12) / max(errors[best], 1e-12))), best, factor,
+               float(np.log(max(errors[0], 1e-12) / max(scaled, 1e-12))), curve, parts)
 
 
 def _dynamics_errors(states: list[np.ndarray], actions: list[np.ndarray], fit: dict[str, np.ndarray] | None
@@ -182,7 +205,7 @@ class DynamicsFit(PerDemo):
     fields = ("errors", "worst", "lags", "jumps", "states", "actions")
     errors: list[float]  # per scored demo: mean squared error (NaN: not scored)
     worst: list[tuple[int, int, int]]  # per scored demo: start, width of its worst stretch, its steps
-    lags: list[tuple[float, int, float, float, np.ndarray | None]]  # per scored demo: ``_lag``
+    lags: list[Lag]  # per scored demo: ``_lag``
     jumps: list[tuple[float, int]]  # per scored demo: its largest ``jump_ratios`` of a step's error, and that step
     states: list[np.ndarray]  # the block not scored yet
     actions: list[np.ndarray]
@@ -210,7 +233,7 @@ class DynamicsFit(PerDemo):
                 if squared is None:
                     self.errors.append(np.nan)
                     self.worst.append((0, 0, 0))
-                    self.lags.append((np.nan, 0, 1.0, 0.0, None))
+                    self.lags.append(NO_LAG)
                     self.jumps.append((np.nan, 0))
                     continue
                 self.lags.append(_lag(state, a, fit))
@@ -323,11 +346,11 @@ def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray,
     median of its group's demos' best shifts; ``Evidence.groups``, default one group): the log of ``_lag``'s error
     there over the least, 0 where its best lies within ``LAG_SCATTER`` of its group's scatter of best shifts -- and
     by how many steps from it; or, where one factor on the actions explains the demo as well as its best shift and
-    lies ``SCALE_NAMED`` or more off the median of its group's demos', the log of its error as recorded over the
-    error with that factor, and at what size."""
-    gains = np.array([lag[0] for lag in fit.lags], np.float64)
-    best = np.array([lag[1] for lag in fit.lags], int)
-    factors = np.array([lag[2] for lag in fit.lags], np.float64)
+    lies ``SCALE_NAMED`` or more off the median of its group's demos', in every part of the demo that drives the arm
+    (``SCALE_PARTS``), the log of its error as recorded over the error with that factor, and at what size."""
+    gains = np.array([lag.gain for lag in fit.lags], np.float64)
+    best = np.array([lag.best for lag in fit.lags], int)
+    factors = np.array([lag.factor for lag in fit.lags], np.float64)
     groups = np.zeros(len(gains), int) if groups is None else np.asarray(groups)
     typical, usual, scatter = np.ones(len(gains)), np.zeros(len(gains), int), np.zeros(len(gains))
     for group in np.unique(groups):
@@ -337,33 +360,40 @@ def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray,
             centre, spread = units(best[mine].astype(np.float64), 0.0)
             usual[groups == group], scatter[groups == group] = int(np.round(centre)), float(spread)
     apart = np.abs(best - usual) > LAG_SCATTER * scatter
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sizes = np.where(typical > 0, factors / typical, np.nan)  # a group whose actions fit backwards has no size
     out, reasons = np.full(len(gains), np.nan), []
-    for i, ((gain, k, _, scaled, _), size, u) in enumerate(zip(fit.lags, sizes, usual)):
-        if not np.isfinite(gain):
+    for i, (read, base, u) in enumerate(zip(fit.lags, typical, usual)):
+        if not np.isfinite(read.gain):
             reasons.append(LAG("too short"))
             continue
-        off = _off_usual(fit.lags[i], u) if apart[i] else 0.0
-        if scaled >= max(gain, np.log(LAG_NAMED)) and size > 0 and not 1 / SCALE_NAMED < size < SCALE_NAMED:
-            out[i] = scaled
-            reasons.append(LAG("scale", size=float(1 / size), gain=float(np.exp(scaled))))
+        off = _off_usual(read, u) if apart[i] else 0.0
+        if read.scaled >= max(read.gain, np.log(LAG_NAMED)) and _scale_throughout(read, base):
+            out[i] = read.scaled
+            reasons.append(LAG("scale", size=float(base / read.factor), gain=float(np.exp(read.scaled))))
         elif off > 0:
             out[i] = off
-            reasons.append(LAG("delay", steps=int(k - u), gain=float(np.exp(off)), named=bool(off >= np.log(LAG_NAMED)),
-                               task_shift=int(u)))
+            reasons.append(LAG("delay", steps=int(read.best - u), gain=float(np.exp(off)),
+                               named=bool(off >= np.log(LAG_NAMED)), task_shift=int(u)))
         else:
             out[i] = 0.0
             reasons.append(LAG("as recorded", task_shift=int(u)))
     return out, reasons
 
 
-def _off_usual(lag: tuple, usual: int) -> float:
+def _scale_throughout(read: Lag, typical: float) -> bool:
+    """Whether the demo's actions are at another scale than its group's (whose median factor is ``typical``): its
+    factor, and its factor in every part that drives the arm, ``SCALE_NAMED`` or more off the same way (a group whose
+    actions fit backwards, or a negative factor, has no size)."""
+    if not typical > 0:
+        return False
+    sizes = np.append(read.parts[np.isfinite(read.parts)], read.factor) / typical
+    return bool((sizes >= SCALE_NAMED).all() or ((sizes > 0) & (sizes <= 1 / SCALE_NAMED)).all())
+
+
+def _off_usual(lag: Lag, usual: int) -> float:
     """The log of a demo's error at its group's usual shift over its error at its own best (``_lag``), at least 0;
     the usual shift taken within the demo's reach.  0 where no delay is located, NaN where the demo has no lag."""
-    gain, best, _, _, curve = lag
-    if curve is None or not np.isfinite(gain):
-        return float(gain)
-    reach = int(np.isfinite(curve).sum() // 2)
-    at_usual = curve[LAG_MAX + int(np.clip(usual, -reach, reach))]
-    return max(float(np.log(max(at_usual, 1e-12) / max(curve[LAG_MAX + best], 1e-12))), 0.0)
+    if lag.curve is None or not np.isfinite(lag.gain):
+        return float(lag.gain)
+    reach = int(np.isfinite(lag.curve).sum() // 2)
+    at_usual = lag.curve[LAG_MAX + int(np.clip(usual, -reach, reach))]
+    return max(float(np.log(max(at_usual, 1e-12) / max(lag.curve[LAG_MAX + lag.best], 1e-12))), 0.0)
