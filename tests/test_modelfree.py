@@ -345,6 +345,29 @@ def test_a_lag_is_read_against_the_shift_its_tasks_demos_share():
         "its actions go with its states as its task's demos' do (best with the actions ")
 
 
+def test_a_pairing_one_step_off_is_no_delay():
+    """Arms whose position integrates their commands, every demo's states following its actions best at one shift;
+    one demo paired a step off (an action sampled just after its state's tick), one four steps off.  A step is the
+    pairing's own resolution: no demo reads a delay but the one four steps off."""
+    rng = np.random.default_rng(6)
+    demos = []
+    for i in range(30):
+        actions = rng.normal(0, 1, (T, A)) * 0.5 + np.sin(np.arange(T) / 8.0 + rng.uniform(0, 6))[:, None]
+        state = np.concatenate([np.cumsum(actions, 0) * 0.05, rng.normal(0, 0.01, (T, S - A))], 1)
+        demos.append(Demo(episode_index=i, task="reach", frames=np.zeros((T, 8, 8, 3), np.uint8),
+                          state=state.astype(np.float32), actions=actions.astype(np.float32)))
+    one, four = 4, 11
+    demos[one].actions[:] = dynamics._shifted(demos[one].actions, -1)
+    demos[four].actions[:] = dynamics._shifted(demos[four].actions, -4)
+    ev = _evidence(demos, ["lag"])
+    found, values = ev.findings["lag"], ev.scores["lag"]
+    shifts = [lag.best for i, lag in enumerate(ev.behaviour["dynamics"].lags) if i not in (one, four)]
+    assert len(set(shifts)) == 1, shifts  # the clean demos agree: no scatter to read a step against
+    assert found[four].kind == "delay" and abs(found[four].params["steps"]) == 4 and values[four] > 0.1, found[four]
+    assert [i for i, f in enumerate(found) if f.kind == "delay"] == [four], found
+    assert found[one].kind == "as recorded" and values[one] == 0.0, found[one]
+
+
 def test_an_error_still_falling_past_the_shift_window_is_no_delay_located():
     """Actions recorded further out of step than the check looks (30 steps): the error still falls one step past
     the window's edge, so no delay is located there (shift and gain 0); a delay of the window's own size is."""
@@ -353,7 +376,8 @@ def test_an_error_still_falling_past_the_shift_window_is_no_delay_located():
     fit = dynamics._dynamics_fit(states, actions)
     read = {k: dynamics._lag(states[3], dynamics._shifted(actions[3], k), fit)
             for k in (0, 5, dynamics.LAG_MAX, 30)}
-    assert (read[30].gain, read[30].best) == (0.0, 0) and read[30].curve is None, read[30][:2]  # nor read against its task's shift
+    # ... nor read against its task's shift
+    assert (read[30].gain, read[30].best) == (0.0, 0) and read[30].curve is None, read[30][:2]
     read = {k: r[:2] for k, r in read.items()}
     assert abs(read[5][1]) in (4, 5, 6) and read[5][0] > 0.1, read
     assert abs(read[dynamics.LAG_MAX][1]) >= dynamics.LAG_MAX - 1 and read[dynamics.LAG_MAX][0] > 0.1, read
@@ -1073,6 +1097,28 @@ def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos():
     # Without the floor (a variant of the config, as a sweep makes one) the near-identical demos' spread calls the
     # first one far out.
     assert np.exp(rank({"coupling": values}, tasks, config.with_spec("coupling", floor=0.0)).log_p[5, 0]) < 1e-8
+
+
+def test_a_clock_that_drops_a_frame_in_most_demos_makes_two_dropped_no_fault():
+    """A recorder that drops a frame in most demos (the worst step two periods long) and two or three in a few: its
+    timing's floor in the ranking recipe, the half period at which the check calls a step irregular, keeps those in
+    the robust core; a recording that stopped for two seconds is far out.  The floor is the check's own tolerance."""
+    from democheck.audit.modelfree import TIMING_TOLERANCE
+    from democheck.audit.ranking import rank
+    from democheck.audit.scorers import ranking_config
+
+    rng = np.random.default_rng(1)
+    values = np.log1p(1.0 + rng.normal(0, 0.02, 60))  # a frame dropped: the worst step two periods long
+    values[:8] = 0.0  # no frame dropped
+    values[[20, 21, 22]] = np.log1p([2.0, 2.5, 3.0])  # two, two and a half, three
+    values[40] = np.log1p(20.0)  # the recording stopped for 2 s at 10 fps
+    config, tasks = ranking_config(["timing"]), np.array(["pick"] * 60)
+    assert config.specs[0].floor == pytest.approx(np.log1p(TIMING_TOLERANCE), abs=1e-3)
+    p = np.exp(rank({"timing": values}, tasks, config).log_p[:, 0])
+    assert (p[[20, 21, 22]] > 1e-3).all() and p[40] < 1e-4, p[[20, 21, 22, 40]]
+    # With the floor of a clock that never slips (a variant, as a sweep makes one) the pile's own jitter calls
+    # two dropped frames far out.
+    assert np.exp(rank({"timing": values}, tasks, config.with_spec("timing", floor=0.02)).log_p[20, 0]) < 1e-6
 
 
 def test_outcome_compares_an_end_with_the_demos_that_started_on_its_side():

@@ -13,7 +13,8 @@ The ``lag`` check reads the same fit: how much better the demo's states follow i
 its task's demos' do -- the log of its mean squared prediction error with the actions moved by its task's usual
 shift (the median of its task's demos' best shifts; none for most recordings) over the least error with them moved
 up to ``LAG_MAX`` steps earlier or later (0 for a demo whose best shift lies within ``LAG_SCATTER`` robust SD of
-its task's demos' best shifts, and for one whose error still falls one step past
+its task's demos' best shifts or within ``LAG_RESOLUTION`` steps of their usual one, and for one whose error still
+falls one step past
 ``LAG_MAX``: a drift between actions and state, no delay located), and the shift.  A recorder that pairs each
 action with the next state shifts all of a task's demos alike, and a task whose demos something drags behind their
 commands (a door on its hinge, with no door in the state) scatters them a few steps; a delay is one demo's.
@@ -57,8 +58,11 @@ DYNAMICS_WINDOW = 10  # the reason names the stretch of this many steps the stat
 LAG_MAX = 16  # steps either way the ``lag`` check moves a demo's actions (0.2 s at 80 fps, 0.5 s at 30 fps)
 LAG_NAMED = 1.2  # the reason says the actions were recorded late or early where the shift cuts the error this much
 # A delay lies further from its task's usual shift than this many robust SD of its task's demos' best shifts: a task
-# whose demos something drags behind their commands scatters their best shifts; where they agree, any other is apart.
+# whose demos something drags behind their commands scatters their best shifts.
 LAG_SCATTER = 3.0
+# ... and further than this many steps: a pairing's own resolution.  An action sampled just before or just after its
+# state's tick, or a velocity that stands to the positions as a central difference does, reads a step either way.
+LAG_RESOLUTION = 1
 SCALE_NAMED = 2.0  # ... at another scale where a factor this far off its task's demos' explains the demo as well
 # A unit or a gain holds throughout a recording: the factor is read in each of this many parts of the demo's steps
 # too, and a scale is named only where every part that drives the arm (holds ``SCALE_BUSY`` of the actions' part of
@@ -344,7 +348,8 @@ LAG = Vocabulary("lag", {
 def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray, list[Finding]]:
     """How much better each demo's states follow its actions moved in time than at its group's usual shift (the
     median of its group's demos' best shifts; ``Evidence.groups``, default one group): the log of ``_lag``'s error
-    there over the least, 0 where its best lies within ``LAG_SCATTER`` of its group's scatter of best shifts -- and
+    there over the least, 0 where its best lies within ``LAG_SCATTER`` of its group's scatter of best shifts or within
+    ``LAG_RESOLUTION`` of the usual -- and
     by how many steps from it; or, where one factor on the actions explains the demo as well as its best shift and
     lies ``SCALE_NAMED`` or more off the median of its group's demos', in every part of the demo that drives the arm
     (``SCALE_PARTS``), the log of its error as recorded over the error with that factor, and at what size."""
@@ -359,7 +364,7 @@ def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray,
             typical[groups == group] = float(np.median(factors[mine]))
             centre, spread = units(best[mine].astype(np.float64), 0.0)
             usual[groups == group], scatter[groups == group] = int(np.round(centre)), float(spread)
-    apart = np.abs(best - usual) > LAG_SCATTER * scatter
+    apart = np.abs(best - usual) > np.maximum(LAG_SCATTER * scatter, LAG_RESOLUTION)
     out, reasons = np.full(len(gains), np.nan), []
     for i, (read, base, u) in enumerate(zip(fit.lags, typical, usual)):
         if not np.isfinite(read.gain):
