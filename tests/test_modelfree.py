@@ -323,7 +323,8 @@ def test_lag_ranks_actions_recorded_late_first_and_says_by_how_much():
     read = dynamics._lag(states[bad], actions[bad], fit)
     assert read.best == min(errors, key=errors.get) == 10
     np.testing.assert_allclose(read.gain, np.log(errors[0] / errors[10]), rtol=1e-9)
-    np.testing.assert_allclose(read.curve, [errors[k] for k in range(-dynamics.LAG_MAX, dynamics.LAG_MAX + 1)], rtol=1e-9)
+    shifts = range(-dynamics.LAG_MAX, dynamics.LAG_MAX + 1)
+    np.testing.assert_allclose(read.curve, [errors[k] for k in shifts], rtol=1e-9)
 
 
 def test_a_lag_is_read_against_the_shift_its_tasks_demos_share():

@@ -18,8 +18,11 @@ and kettle place and goes at its own speed.  Planted kinds, each replacing a dem
 oracle), ``gave-up`` (the oracle until 30-60% of the steps it needs, then still), ``occluded`` (a grey card over
 35-55% of the view), ``jerky`` (the oracle's actions plus Gaussian noise of SD 0.3-0.5, executed); on request
 (``--kinds``), ``detour`` (on its way to the handle or the kettle the hand first goes to an empty spot 15-25 cm
-aside and 5-15 cm up and back, then on as the oracle goes, 35 steps longer).  Clean demos are kept only where the oracle
-succeeds.  The same seed gives the same dataset.
+aside and 5-15 cm up and back, then on as the oracle goes, 35 steps longer), and ``reset`` (a cabinet or door left
+open as the oracle leaves it, the arm from its own start pose, and the hand pushing it shut again: the task undone,
+as an operator puts the scene back between demos; the microwave and the hinge cabinet, kept only where the oracle
+opened it and the hand shut it).  Clean demos are kept only where
+the oracle succeeds.  The same seed gives the same dataset.
 """
 
 from __future__ import annotations
@@ -51,7 +54,8 @@ ENV_NAMES = ["knob1", "burner1", "knob2", "burner2", "knob3", "burner3", "knob4"
 ACTION_NAMES = [f"joint{i}.vel" for i in range(1, 8)] + ["finger.left.vel", "finger.right.vel"]
 KETTLE = slice(23, 30)  # the kettle's free joint in qpos
 JOINT = {"slide": 19, "microwave": 22, "hinge": 21}
-PLANTS = {"detour": tuple(TASKS)}
+PLANTS = {"detour": tuple(TASKS), "reset": ("microwave", "hinge")}  # the slide opened is out of the arm's reach
+SHUT = 0.1  # a reset leaves its cabinet or door within this of shut (radians: about 6 degrees ajar)
 DETOUR_STEPS = 35
 
 _W: dict = {}
@@ -102,6 +106,41 @@ def waypoints(task: str, env, rng: np.random.Generator) -> list[np.ndarray]:
     return [k + [0, -0.25, z + 0.05] + jitter(), k + [0, -0.14, z], k + [rng.uniform(-0.03, 0.03), 0.35, z]]
 
 
+def undo_waypoints(task: str, env, shut: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
+    """Where the hand goes to shut a cabinet or door the task left open: in front of its handle where it is now, then
+    to where the handle is shut (``shut``), then back off it, as a hand lets go of a door it has shut."""
+    jitter = lambda: rng.normal(0, 0.01, 3)  # noqa: E731
+    if task == "slide":
+        s = _site(env, "slide_site")
+        return [s + [0.10, -0.12, 0] + jitter(), s + [0.07, 0, 0], shut + [0.07, 0, 0], shut + [0.10, -0.12, 0]]
+    h = _site(env, "microhandle_site" if task == "microwave" else "hinge_site2")
+    return [h + [0, -0.12, 0] + jitter(), h + [0, -0.03, 0], shut + [0, -0.01, 0], shut + [0, -0.15, 0] + jitter()]
+
+
+def _opened(task: str, layout_seed: int) -> float | None:
+    """The task's joint where its oracle leaves it on this layout (a clean demo's end); None where it fails there."""
+    env = _env()
+    env.reset(seed=layout_seed)
+    layout = np.random.default_rng(layout_seed)
+    memory = _start(env, task, layout)
+    start = env.data.qpos.copy()
+    for _ in range(TASKS[task][1]):
+        env.step(oracle(env, memory))
+    return float(env.data.qpos[JOINT[task]]) if _success(task, env, start) else None
+
+
+def _start(env, task: str, layout: np.random.Generator) -> dict:
+    """The layout's arm pose and kettle place, and the oracle's memory for ``task`` on it."""
+    import mujoco
+
+    env.data.qpos[:7] += layout.normal(0, 0.06, 7)
+    env.data.qpos[KETTLE][:2] += layout.uniform(-0.03, 0.03, 2)
+    mujoco.mj_forward(env.model, env.data)
+    ee = mujoco.mj_name2id(env.model, mujoco.mjtObj.mjOBJ_SITE, "end_effector")
+    return {"points": waypoints(task, env, layout), "next": 0, "speed": layout.uniform(0.04, 0.07),
+            "rot": env.data.site_xmat[ee].reshape(3, 3).copy()}
+
+
 def oracle(env, memory: dict) -> np.ndarray:
     """The joint velocities that take the hand toward the next waypoint at the demo's speed, keeping the hand's
     orientation from the start (damped least squares on the hand site's Jacobian)."""
@@ -145,18 +184,27 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
     import mujoco
 
     env = _env()
-    obs, _ = env.reset(seed=seed)
+    opened = _opened(task, seed) if kind == "reset" else None
+    env.reset(seed=seed)
+    closed = env.data.qpos.copy()
     layout = np.random.default_rng(seed)
-    env.data.qpos[:7] += layout.normal(0, 0.06, 7)
-    env.data.qpos[KETTLE][:2] += layout.uniform(-0.03, 0.03, 2)
-    mujoco.mj_forward(env.model, env.data)
-    obs["observation"][:18] = env.robot_env._get_obs()
+    memory = _start(env, task, layout)
+    if kind == "reset" and opened is not None:  # the cabinet or door as the task leaves it, the arm at its start
+        shut = _site(env, "slide_site" if task == "slide" else "microhandle_site" if task == "microwave"
+                     else "hinge_site2")
+        env.data.qpos[JOINT[task]] = opened
+        mujoco.mj_forward(env.model, env.data)
+        memory["points"] = undo_waypoints(task, env, shut, layout)
+    obs = env._get_obs(env.robot_env._get_obs())  # the first step's record of the pose and the objects set here
     start = env.data.qpos.copy()
-    ee = mujoco.mj_name2id(env.model, mujoco.mjtObj.mjOBJ_SITE, "end_effector")
-    memory = {"points": waypoints(task, env, layout), "next": 0, "speed": layout.uniform(0.04, 0.07),
-              "rot": env.data.site_xmat[ee].reshape(3, 3).copy()}
     noise = rng.uniform(0.3, 0.5) if kind == "jerky" else 0.0
     steps = TASKS[scene][1]
+    if kind == "reset":  # done where the task is undone: shut again (never where it was never opened)
+        def done() -> bool:
+            return opened is not None and abs(env.data.qpos[JOINT[task]] - closed[JOINT[task]]) < SHUT
+    else:
+        def done() -> bool:
+            return _success(scene, env, start)
     if kind == "detour":  # from the approach to a spot aside and back, before the handle or the kettle
         turn = rng.uniform(0, 2 * np.pi)
         aside = rng.uniform(0.15, 0.25) * np.r_[np.cos(turn), np.sin(turn), 0] + np.r_[0, 0, rng.uniform(0.05, 0.15)]
@@ -172,10 +220,10 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
         a = planted_action("clean" if kind in PLANTS else kind, t, stop, rng, noise, 9, lambda: oracle(env, memory))
         actions.append(np.asarray(a, np.float32))
         obs, *_ = env.step(np.asarray(a, np.float64))
-        if first is None and _success(scene, env, start):
+        if first is None and done():
             first = t + 1
     return {"frames": np.stack(frames), "state": np.stack(state), "env_state": np.stack(env_state),
-            "actions": np.stack(actions), "first_success": first, "success": _success(scene, env, start)}
+            "actions": np.stack(actions), "first_success": first, "success": done()}
 
 
 def _episode(job: tuple) -> dict:
