@@ -346,17 +346,24 @@ def test_a_lag_is_read_against_the_shift_its_tasks_demos_share():
         "its actions go with its states as its task's demos' do (best with the actions ")
 
 
-def test_a_pairing_one_step_off_is_no_delay():
-    """Arms whose position integrates their commands, every demo's states following its actions best at one shift;
-    one demo paired a step off (an action sampled just after its state's tick), one four steps off.  A step is the
-    pairing's own resolution: no demo reads a delay but the one four steps off."""
-    rng = np.random.default_rng(6)
+def _integrating(n: int, seed: int) -> list[Demo]:
+    """Arms whose position integrates their commands (smooth ones, with noise), one task: every demo's states follow
+    its actions best at one shift, with one factor."""
+    rng = np.random.default_rng(seed)
     demos = []
-    for i in range(30):
+    for i in range(n):
         actions = rng.normal(0, 1, (T, A)) * 0.5 + np.sin(np.arange(T) / 8.0 + rng.uniform(0, 6))[:, None]
         state = np.concatenate([np.cumsum(actions, 0) * 0.05, rng.normal(0, 0.01, (T, S - A))], 1)
         demos.append(Demo(episode_index=i, task="reach", frames=np.zeros((T, 8, 8, 3), np.uint8),
                           state=state.astype(np.float32), actions=actions.astype(np.float32)))
+    return demos
+
+
+def test_a_pairing_one_step_off_is_no_delay():
+    """Arms whose position integrates their commands, every demo's states following its actions best at one shift;
+    one demo paired a step off (an action sampled just after its state's tick), one four steps off.  A step is the
+    pairing's own resolution: no demo reads a delay but the one four steps off."""
+    demos = _integrating(30, seed=6)
     one, four = 4, 11
     demos[one].actions[:] = dynamics._shifted(demos[one].actions, -1)
     demos[four].actions[:] = dynamics._shifted(demos[four].actions, -4)
@@ -1334,13 +1341,8 @@ def test_an_arm_held_against_something_is_no_scale():
     commands go on (a button pressed, a table met), and one demo's actions recorded x3.  Over the whole demo one
     factor of about a third explains the held arm best, but a unit or a gain holds throughout the recording: the
     held arm's first third follows its actions as its task's do, so it reads no scale; the x3 demo does."""
+    demos = _integrating(40, seed=5)
     rng = np.random.default_rng(5)
-    demos = []
-    for i in range(40):
-        actions = rng.normal(0, 1, (T, A)) * 0.5 + np.sin(np.arange(T) / 8.0 + rng.uniform(0, 6))[:, None]
-        state = np.concatenate([np.cumsum(actions, 0) * 0.05, rng.normal(0, 0.01, (T, S - A))], 1)
-        demos.append(Demo(episode_index=i, task="press", frames=np.zeros((T, 8, 8, 3), np.uint8),
-                          state=state.astype(np.float32), actions=actions.astype(np.float32)))
     held = T // 3
     demos[7].state[held:, :A] = demos[7].state[held, :A] + rng.normal(0, 1e-3, (T - held, A))
     demos[21].actions[:] *= 3.0
