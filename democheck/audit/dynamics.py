@@ -14,10 +14,10 @@ its task's demos' do -- the log of its mean squared prediction error with the ac
 shift (the median of its task's demos' best shifts; none for most recordings) over the least error with them moved
 up to ``LAG_MAX`` steps earlier or later (0 for a demo whose best shift lies within ``LAG_SCATTER`` robust SD of
 its task's demos' best shifts or within ``LAG_RESOLUTION`` steps of their usual one, and for one whose error still
-falls one step past
-``LAG_MAX``: a drift between actions and state, no delay located), and the shift.  A recorder that pairs each
-action with the next state shifts all of a task's demos alike, and a task whose demos something drags behind their
-commands (a door on its hinge, with no door in the state) scatters them a few steps; a delay is one demo's.
+falls one step past ``LAG_MAX``: a drift between actions and state, no delay located), and the shift.  A recorder
+that pairs each action with the next state shifts all of a task's demos alike, and a task whose demos something drags
+behind their commands (a door on its hinge, with no door in the state) scatters them a few steps; a delay is one
+demo's, and a step either way is a pairing's own resolution.
 An action stream recorded late or early against the states and frames (a clock offset between two recorders) is
 what a policy trained on it learns to be late by; the mean error above barely sees it where actions change slowly,
 since a shifted action is still close to the right one.  Actions recorded at another scale also follow the states
@@ -349,10 +349,10 @@ def lag(fit: DynamicsFit, groups: np.ndarray | None = None) -> tuple[np.ndarray,
     """How much better each demo's states follow its actions moved in time than at its group's usual shift (the
     median of its group's demos' best shifts; ``Evidence.groups``, default one group): the log of ``_lag``'s error
     there over the least, 0 where its best lies within ``LAG_SCATTER`` of its group's scatter of best shifts or within
-    ``LAG_RESOLUTION`` of the usual -- and
-    by how many steps from it; or, where one factor on the actions explains the demo as well as its best shift and
-    lies ``SCALE_NAMED`` or more off the median of its group's demos', in every part of the demo that drives the arm
-    (``SCALE_PARTS``), the log of its error as recorded over the error with that factor, and at what size."""
+    ``LAG_RESOLUTION`` of the usual -- and by how many steps from it; or, where one factor on the actions explains the
+    demo as well as its best shift and lies ``SCALE_NAMED`` or more off the median of its group's demos', in every
+    part of the demo that drives the arm (``SCALE_PARTS``), the log of its error as recorded over the error with that
+    factor, and at what size."""
     gains = np.array([lag.gain for lag in fit.lags], np.float64)
     best = np.array([lag.best for lag in fit.lags], int)
     factors = np.array([lag.factor for lag in fit.lags], np.float64)

@@ -208,8 +208,8 @@ SCORERS: dict[str, Scorer] = {s.name: s for s in (
            decode=lambda ev, rows, device: dynamics.DynamicsFit(), short="dyn."),
     Scorer("lag", f"model-free: how much better the demo's states follow its actions moved in time than its task's "
            "demos' do (log of the dynamics check's error at its task's usual shift over the least with the actions "
-           f"moved up to {dynamics.LAG_MAX} steps either way; 0 within its task's scatter of shifts, none where it "
-           "still falls past that): actions recorded late or early", ("demos",),
+           f"moved up to {dynamics.LAG_MAX} steps either way; 0 within its task's scatter of shifts or a step of its "
+           "usual one, none where it still falls past that): actions recorded late or early", ("demos",),
            _lag, behaviour="dynamics",
            decode=lambda ev, rows, device: dynamics.DynamicsFit(), short="lag"),
     Scorer("timing", "model-free: how far the worst time step is off the frame period 1/fps, log(1 + |step - "
