@@ -54,7 +54,8 @@ ENV_NAMES = ["knob1", "burner1", "knob2", "burner2", "knob3", "burner3", "knob4"
 ACTION_NAMES = [f"joint{i}.vel" for i in range(1, 8)] + ["finger.left.vel", "finger.right.vel"]
 KETTLE = slice(23, 30)  # the kettle's free joint in qpos
 JOINT = {"slide": 19, "microwave": 22, "hinge": 21}
-PLANTS = {"detour": tuple(TASKS), "reset": ("microwave", "hinge")}  # the slide opened is out of the arm's reach
+HANDLE = {"microwave": "microhandle_site", "hinge": "hinge_site2"}  # the sites the hand pushes a door shut at
+PLANTS = {"detour": tuple(TASKS), "reset": tuple(HANDLE)}  # the slide cabinet opened is beyond the arm's reach
 SHUT = 0.1  # a reset leaves its cabinet or door within this of shut (radians: about 6 degrees ajar)
 DETOUR_STEPS = 35
 
@@ -107,14 +108,12 @@ def waypoints(task: str, env, rng: np.random.Generator) -> list[np.ndarray]:
 
 
 def undo_waypoints(task: str, env, shut: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
-    """Where the hand goes to shut a cabinet or door the task left open: in front of its handle where it is now, then
-    to where the handle is shut (``shut``), then back off it, as a hand lets go of a door it has shut."""
-    jitter = lambda: rng.normal(0, 0.01, 3)  # noqa: E731
-    if task == "slide":
-        s = _site(env, "slide_site")
-        return [s + [0.10, -0.12, 0] + jitter(), s + [0.07, 0, 0], shut + [0.07, 0, 0], shut + [0.10, -0.12, 0]]
-    h = _site(env, "microhandle_site" if task == "microwave" else "hinge_site2")
-    return [h + [0, -0.12, 0] + jitter(), h + [0, -0.03, 0], shut + [0, -0.01, 0], shut + [0, -0.15, 0] + jitter()]
+    """Where the hand goes to shut a door the task left open (the microwave's, the hinge cabinet's): in front of its
+    handle where it is now, then to where the handle is shut (``shut``), then back off it, as a hand lets go of a door
+    it has shut."""
+    h = _site(env, HANDLE[task])
+    return [h + [0, -0.12, 0] + rng.normal(0, 0.01, 3), h + [0, -0.03, 0], shut + [0, -0.01, 0],
+            shut + [0, -0.15, 0] + rng.normal(0, 0.01, 3)]
 
 
 def _opened(task: str, layout_seed: int) -> float | None:
@@ -190,8 +189,7 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
     layout = np.random.default_rng(seed)
     memory = _start(env, task, layout)
     if kind == "reset" and opened is not None:  # the cabinet or door as the task leaves it, the arm at its start
-        shut = _site(env, "slide_site" if task == "slide" else "microhandle_site" if task == "microwave"
-                     else "hinge_site2")
+        shut = _site(env, HANDLE[task])
         env.data.qpos[JOINT[task]] = opened
         mujoco.mj_forward(env.model, env.data)
         memory["points"] = undo_waypoints(task, env, shut, layout)
