@@ -21,8 +21,8 @@ oracle), ``gave-up`` (the oracle until 30-60% of the steps it needs, then still)
 aside and 5-15 cm up and back, then on as the oracle goes, 35 steps longer), and ``reset`` (a cabinet or door left
 open as the oracle leaves it, the arm from its own start pose, and the hand pushing it shut again: the task undone,
 as an operator puts the scene back between demos; the microwave and the hinge cabinet, kept only where the oracle
-opened it and the hand shut it).  Clean demos are kept only where
-the oracle succeeds.  The same seed gives the same dataset.
+opened it and the hand shut it).  Clean demos are kept only where the oracle succeeds.  The same seed gives the same
+dataset.
 """
 
 from __future__ import annotations

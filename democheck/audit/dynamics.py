@@ -319,18 +319,21 @@ def _steps(k: int) -> str:
     return f"{abs(k)} step{'s' if abs(k) > 1 else ''}"
 
 
+def _moved(k: int) -> str:
+    """The actions moved ``k`` steps, in words: '3 steps earlier' (k > 0), '1 step later'."""
+    return f"{_steps(k)} {'earlier' if k > 0 else 'later'}"
+
+
 def _shift(steps: int, gain: float, named: bool, task_shift: int = 0) -> str:
-    text, than = _steps(steps), "" if not task_shift else " than its task's demos' do"
-    return (f"its states follow its actions best with the actions {text} {'earlier' if steps > 0 else 'later'}{than} "
-            f"({factor(gain)} x less error)" + (f": the actions were recorded {text} {'late' if steps > 0 else 'early'}"
-                                           if named else ""))
+    than = "" if not task_shift else " than its task's demos' do"
+    return (f"its states follow its actions best with the actions {_moved(steps)}{than} ({factor(gain)} x less error)"
+            + (f": the actions were recorded {_steps(steps)} {'late' if steps > 0 else 'early'}" if named else ""))
 
 
 def _as_recorded(task_shift: int = 0) -> str:
     if not task_shift:
         return "its actions go with its states as recorded"
-    return (f"its actions go with its states as its task's demos' do (best with the actions {_steps(task_shift)} "
-            f"{'earlier' if task_shift > 0 else 'later'})")
+    return f"its actions go with its states as its task's demos' do (best with the actions {_moved(task_shift)})"
 
 
 LAG = Vocabulary("lag", {
