@@ -34,6 +34,14 @@ def test_kinds_on_the_way_are_planted_only_where_the_simulator_can_and_on_the_ta
     assert record.options(ap.parse_args([str(tmp_path / "y"), "--kinds", "detour"]), plants)[0] == ("detour",)
 
 
+def test_a_plan_of_one_task_plants_there_what_fits_it_and_refuses_what_does_not():
+    plants = {"failed-place": ("b",), "reset": ("a", "c")}
+    jobs = record.plan(["b"], demos=3, plant=2, seed=1, kinds=("failed-place", "idle"), plants=plants)
+    assert {(j[1], j[3]) for j in jobs} == {("b", "b")} and len(jobs) == 7
+    with pytest.raises(SystemExit, match="reset: none of the tasks"):
+        record.plan(["b"], demos=3, plant=2, seed=1, kinds=("reset",), plants=plants)
+
+
 def test_a_planted_kind_is_kept_only_where_its_rollout_did_what_it_says():
     """A detour still succeeds, a failed place fails: layouts are drawn until the rollout does so."""
     def rollout(task, scene, kind, rng, layout, stop=None):

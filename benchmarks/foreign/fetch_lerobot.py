@@ -61,6 +61,7 @@ TASKS = {  # name -> (the task as the dataset names it, Gymnasium-Robotics env, 
     "lift": ("lift the block", "FetchPickAndPlace-v4", 80),
 }
 CAMERA = "head"
+RANGE = 0.15  # how far the simulator draws the block and the goal from the gripper's start (m, each axis)
 # The cameras a dataset may record (--cameras): the first the simulator's default view, the others the model's own.
 CAMERAS = {"head": (None, "the scene from the front, as the simulator shows it"),
            "gripper": ("gripper_camera_rgb", "on the gripper, looking down its fingers"),
@@ -97,9 +98,33 @@ def _env(task: str):
     return _W["env"]
 
 
-def _init(size: tuple[int, int], scale: float = 1.0, cameras: tuple[str, ...] = (CAMERA,)) -> None:
+def _init(size: tuple[int, int], scale: float = 1.0, cameras: tuple[str, ...] = (CAMERA,),
+          spread: float | None = None, seed: int = 0) -> None:
     warnings.filterwarnings("ignore")
-    _W["size"], _W["scale"], _W["cameras"] = size, scale, cameras
+    _W.update(size=size, scale=scale, cameras=cameras, spread=spread, seed=seed)
+
+
+def _near(env, rng: np.random.Generator) -> dict:
+    """The observation once the block and the goal lie within ``spread`` times the simulator's own range (RANGE)
+    of the dataset's one layout, which its seed draws: a block put back about where it stood, as in a real
+    recording."""
+    import mujoco
+
+    grip = env.initial_gripper_xpos[:2]
+    if "layout" not in _W:
+        draw = np.random.default_rng([_W["seed"], 3])
+        while True:
+            block, goal = grip + draw.uniform(-RANGE, RANGE, (2, 2))
+            if np.linalg.norm(block - grip) >= 0.1 and np.linalg.norm(goal - block) >= 0.15:
+                break
+        _W["layout"] = block, goal
+    block, goal = _W["layout"]
+    q = env._utils.get_joint_qpos(env.model, env.data, "object0:joint").copy()
+    q[:2] = block + rng.uniform(-1, 1, 2) * RANGE * _W["spread"]
+    env._utils.set_joint_qpos(env.model, env.data, "object0:joint", q)
+    env.goal[:2] = goal + rng.uniform(-1, 1, 2) * RANGE * _W["spread"]
+    mujoco.mj_forward(env.model, env.data)
+    return env._get_obs()
 
 
 def _views(env) -> dict[str, np.ndarray]:
@@ -125,12 +150,20 @@ def _views(env) -> dict[str, np.ndarray]:
 def _goal(task: str, env, obs: dict, rng: np.random.Generator) -> np.ndarray:
     block = obs["observation"][3:6]
     if task == "reach":
-        return block + np.r_[rng.uniform(-0.12, 0.12, 2), rng.uniform(0.08, 0.2)]
+        return block + np.r_[_within(rng, -0.12, 0.12, 2), _within(rng, 0.08, 0.2)]
     if task == "lift":
         return block + np.r_[0.0, 0.0, 0.15]
     if task == "pick-place":
-        return np.r_[obs["desired_goal"][:2], block[2] + rng.uniform(0.05, 0.2)]
+        return np.r_[obs["desired_goal"][:2], block[2] + _within(rng, 0.05, 0.2)]
     return obs["desired_goal"].copy()
+
+
+def _within(rng: np.random.Generator, lo: float, hi: float, n: int | None = None):
+    """Uniform in [lo, hi], narrowed about its middle to ``spread`` of its width where the layout is held."""
+    if _W.get("spread") is None:
+        return rng.uniform(lo, hi, n)
+    half = (hi - lo) / 2 * _W["spread"]
+    return (lo + hi) / 2 + rng.uniform(-half, half, n)
 
 
 PLANTS = {"detour": tuple(TASKS), "drop-regrasp": ("pick-place", "lift"), "failed-place": ("pick-place",),
@@ -240,6 +273,8 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
 
     env = _env(scene)
     obs, _ = env.reset(seed=seed)
+    if _W.get("spread") is not None:
+        obs = _near(env, np.random.default_rng([seed, 1]))
     goal = _goal(scene, env, obs, np.random.default_rng(seed))
     other_goal = _goal(task, env, obs, np.random.default_rng(seed + 1)) if task != scene else goal
     aim = goal  # where the demo's block (the reach's gripper) should end
@@ -282,7 +317,7 @@ def _episode(job: tuple) -> dict:
     return episode(job, _rollout, {name: words for name, (words, *_) in TASKS.items()}, min_first=5)
 
 
-def features(size: tuple[int, int], scale: float = 1.0, cameras: tuple[str, ...] = (CAMERA,)) -> dict:
+def features(size: tuple[int, int], scale: float = 1.0, cameras: tuple[str, ...] = (CAMERA,), *_) -> dict:
     return record.features(list(cameras), size, STATE_NAMES, ENV_NAMES, ["dx", "dy", "dz", "gripper"])
 
 
@@ -292,6 +327,9 @@ def parser():
                     help="episode lengths times this (the oracle done, the arm holds): 3 gives 150-330 steps")
     ap.add_argument("--cameras", default=CAMERA,
                     help="comma-separated, of " + "; ".join(f"{k} ({v[1]})" for k, v in CAMERAS.items()))
+    ap.add_argument("--spread", type=float,
+                    help="hold the layout: every block and goal within this share of the simulator's own range "
+                         "of one layout the seed draws (0.2: +-3 cm), as a real recording puts its objects back")
     ap.add_argument("--freeze-camera", help="the camera a frozen-camera demo's stops on (default: the second)")
     return ap
 
@@ -307,4 +345,4 @@ def cameras(args) -> tuple[str, ...]:
 if __name__ == "__main__":
     os.environ.setdefault("MUJOCO_GL", "egl")
     record.main(parser(), list(TASKS), _episode, _init, features, FPS, "fetch",
-                init_args=lambda args: (args.length_scale, cameras(args)), plants=PLANTS)
+                init_args=lambda args: (args.length_scale, cameras(args), args.spread, args.seed), plants=PLANTS)

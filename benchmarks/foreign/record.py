@@ -43,6 +43,7 @@ def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
                     help=f"comma-separated, of {', '.join(KINDS + TIME_KINDS + WAY_KINDS + CAMERA_KINDS)}, reset "
                          f"(default: {', '.join(KINDS)}; of {', '.join(WAY_KINDS)} and reset, those the simulator can "
                          "plant)")
+    ap.add_argument("--tasks", help="comma-separated: only these of the simulator's tasks (default: all)")
     ap.add_argument("--size", default=size, help="camera image size in pixels: N (square) or HxW, e.g. 480x640")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
@@ -74,12 +75,16 @@ def plan(names: list[str], demos: int, plant: int, seed: int, kinds: tuple[str, 
     order."""
     rng = np.random.default_rng([seed, 1])
     rows = [(n, "clean") for n in names for _ in range(demos)]
-    rows += [(str(rng.choice(list((plants or {}).get(k, names)))), k) for k in kinds for _ in range(plant)]
+    fits = {k: [n for n in (plants or {}).get(k, names) if n in names] for k in kinds}
+    bare = sorted(k for k, among in fits.items() if plant and not among)
+    if bare:
+        raise SystemExit(f"--kinds {', '.join(bare)}: none of the tasks asked for fits it")
+    rows += [(str(rng.choice(fits[k])), k) for k in kinds for _ in range(plant)]
     order = rng.permutation(len(rows))
     jobs = []
     for i, j in enumerate(order):
         task, kind = rows[j]
-        other = str(rng.choice([n for n in names if n != task]))
+        other = str(rng.choice([n for n in names if n != task] or [task]))
         jobs.append((i, task, kind, other, seed))
     return jobs
 
@@ -182,6 +187,14 @@ def main(ap: argparse.ArgumentParser, tasks: list[str], episode: Callable[[tuple
     each) and write (``features_of(size, *init_args(args))``).  ``plants``: the ``WAY_KINDS`` the simulator can
     plant, and on which of its tasks."""
     args = ap.parse_args()
+    if args.tasks:
+        asked = [t.strip() for t in args.tasks.split(",") if t.strip()]
+        unknown = sorted(set(asked) - set(tasks))
+        if unknown or not asked:
+            raise SystemExit(f"--tasks: unknown {', '.join(unknown) or 'none given'}; tasks: {', '.join(tasks)}")
+        tasks = [t for t in tasks if t in asked]
+    if len(tasks) < 2 and "wrong-task" in args.kinds.split(","):
+        raise SystemExit("--kinds wrong-task needs two tasks at least (--tasks)")
     kinds, size = options(args, plants)
     feats = features_of(size, *init_args(args))
     cameras = [k for k, f in feats.items() if f["dtype"] == "video"]
