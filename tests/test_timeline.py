@@ -235,6 +235,30 @@ def test_a_group_too_small_to_compare_gives_no_score():
     assert {f.kind for f in ev.findings["backwards_state"]} == {"too few demos"}
 
 
+def _resets_in_a_row(count: int, demos: int) -> list[Demo]:
+    """``demos`` carries, the first ``count`` of them played backwards: an operator's resets, all alike."""
+    rng = np.random.default_rng(5)
+    out = [_carry(i, rng) for i in range(demos)]
+    for i in range(count):
+        d = out[i]
+        out[i] = Demo(i, d.task, d.frames[::-1].copy(), d.state[::-1].copy(), -d.actions[::-1].copy(), extra=d.extra)
+    return out
+
+
+def test_resets_a_twentieth_of_a_task_shares_are_not_each_others_reference(monkeypatch):
+    """Four resets in 80 demos: against five mates, three of which are resets, a reset's start, end and path look
+    like its mates'; against more mates than twice the resets, each is beyond every clean demo."""
+    from democheck.audit import neighbours
+
+    demos = _resets_in_a_row(4, 80)
+    assert neighbours.mates(79) > 2 * 3
+    ev = _evidence(demos)
+    for check in ("start", "end", "path"):
+        assert ev.scores[check][:4].min() > ev.scores[check][4:].max(), check
+    monkeypatch.setattr(neighbours, "SHARED", 0.0)
+    hidden = _evidence(demos)
+    assert any(hidden.scores[check][:4].min() < hidden.scores[check][4:].max() for check in ("start", "end", "path"))
+
 @pytest.fixture(scope="module")
 def time_probes(tiny_dataset, tmp_path_factory):
     from democheck.sim.probes import make_probes

@@ -19,8 +19,9 @@ The start and end read the camera alone: where the state ends, and how far it mo
 would count twice.  ``backwards_state`` reads the end states too, but only along the task's way, and stands beside
 the others' sum as a recording fault does: whether the recording should be a demo, not where it left the world.
 
-A demo is compared with its ``neighbours.NEAR`` nearest task-mates, not with the task's median, so that a task done
-two ways (the object placed left or right) has two kinds of clean end.  Each feature is in units
+A demo is compared with its nearest task-mates, not with the task's median, so that a task done two ways (the object
+placed left or right) has two kinds of clean end; with enough of them (``neighbours.mates``) that a few demos
+sharing a fault -- resets recorded one after another -- are not each other's reference.  Each feature is in units
 of its robust SD over the group (at least ``VIEW_FLOOR`` grey levels, or ``STATE_FLOOR`` of the dimension's whole
 range over the dataset; a path's picture in one unit for all its pixels).  A start's or end's picture is unlike its
 mates' by the share of its pixels more than ``UNLIKE`` units from theirs (the median over the mates), as the view
