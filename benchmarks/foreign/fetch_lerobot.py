@@ -38,6 +38,11 @@ With ``--cameras head,side,gripper`` (of ``CAMERAS``) the dataset records severa
 ``--kinds frozen-camera`` plants a clean demo whose ``--freeze-camera`` (default: the second) stops delivering at
 20-50% of the episode, its last picture repeated.
 
+With ``--spread S`` every block and goal lies within S times the simulator's own range (``RANGE``) of one layout the
+seed draws, as a real recording puts its objects back about where they stood; ``--tasks pick-place`` records that
+task alone; ``--operator`` moves each demo its own way (speed, how high it comes down onto the block, a smooth
+wander), as people's demos differ where a scripted oracle's do not.
+
 Clean demos are kept only where the oracle succeeds, on a layout whose goal the arm has to move to meet.  The same seed gives the same dataset.
 """
 
@@ -99,9 +104,9 @@ def _env(task: str):
 
 
 def _init(size: tuple[int, int], scale: float = 1.0, cameras: tuple[str, ...] = (CAMERA,),
-          spread: float | None = None, seed: int = 0) -> None:
+          spread: float | None = None, seed: int = 0, operator: bool = False) -> None:
     warnings.filterwarnings("ignore")
-    _W.update(size=size, scale=scale, cameras=cameras, spread=spread, seed=seed)
+    _W.update(size=size, scale=scale, cameras=cameras, spread=spread, seed=seed, operator=operator)
 
 
 def _near(env, rng: np.random.Generator) -> dict:
@@ -170,6 +175,18 @@ PLANTS = {"detour": tuple(TASKS), "drop-regrasp": ("pick-place", "lift"), "faile
           "reset": ("push", "pick-place")}
 
 
+# How the oracle moves: its gain toward a target and how high above the block it comes down from.  ``--operator``
+# draws them per demo, with a smooth wander added to its motion (``_operator``), as people's demos differ.
+STYLE = {"gain": 10.0, "above": 0.08, "wander": 0.0}
+
+
+def _operator(seed: int) -> dict:
+    """One demo's way of moving, drawn from its layout's seed: gain 5-12, coming down from 5-11 cm, a wander of
+    SD 0.05-0.2 (of the motion's range of 1)."""
+    rng = np.random.default_rng([seed, 2])
+    return {"gain": rng.uniform(5, 12), "above": rng.uniform(0.05, 0.11), "wander": rng.uniform(0.05, 0.2)}
+
+
 def head_for(grip: np.ndarray, target: np.ndarray, gain: float = 10.0) -> np.ndarray:
     """The gripper motion [dx, dy, dz] that heads for ``target``."""
     return np.clip((target - grip) * gain, -1, 1)
@@ -179,8 +196,10 @@ def oracle(task: str, obs: np.ndarray, goal: np.ndarray, memory: dict) -> np.nda
     """The scripted action [dx, dy, dz, gripper] for ``task`` from the Fetch observation and the goal."""
     grip, block = obs[0:3], obs[3:6]
 
-    def toward(target, gain=10.0):
-        return head_for(grip, target, gain)
+    style = _W.get("style", STYLE)
+
+    def toward(target, gain=None):
+        return head_for(grip, target, gain or style["gain"])
 
     if task == "reach":
         return np.r_[toward(goal), 1.0]
@@ -191,7 +210,7 @@ def oracle(task: str, obs: np.ndarray, goal: np.ndarray, memory: dict) -> np.nda
         u = d / max(np.linalg.norm(d), 1e-6)
         behind = np.r_[block[:2] - 0.06 * u, block[2]]
         if not memory.get("behind"):
-            above = behind + np.r_[0, 0, 0.08]
+            above = behind + np.r_[0, 0, style["above"]]
             if np.linalg.norm(grip[:2] - behind[:2]) > 0.015:
                 return np.r_[toward(above), -1.0]
             if grip[2] - behind[2] > 0.01:
@@ -203,7 +222,7 @@ def oracle(task: str, obs: np.ndarray, goal: np.ndarray, memory: dict) -> np.nda
     # pick-place and lift: above the block, down, close, carry to the goal
     phase = memory.setdefault("phase", 0)
     if phase == 0:
-        above = block + np.r_[0, 0, 0.08]
+        above = block + np.r_[0, 0, style["above"]]
         if np.linalg.norm(grip - above) > 0.012:
             return np.r_[toward(above), 1.0]
         memory["phase"] = 1
@@ -288,6 +307,8 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
     steps = int(round(TASKS[scene][2] * _W.get("scale", 1.0)))
     plan = way(kind, steps, rng) if kind in record.WAY_KINDS else None
     noise = rng.uniform(0.3, 0.5) if kind == "jerky" else 0.0
+    _W["style"] = _operator(seed) if _W.get("operator") else STYLE
+    wander, drift = _W["style"]["wander"], np.zeros(3)
     memory: dict = {}
     views: dict[str, list] = {name: [] for name in _W["cameras"]}
     state, env_state, actions, first = [], [], [], None
@@ -302,6 +323,9 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
             a = way_action(kind, plan, t, task, o, other_goal, memory)
         else:
             a = planted_action(kind, t, stop, rng, noise, 4, lambda: oracle(task, o, other_goal, memory))
+        if wander and kind not in ("idle", "random") and (stop is None or t < stop):
+            drift = 0.85 * drift + np.random.default_rng([seed, 4, t]).normal(0, wander * 0.53, 3)
+            a = np.r_[np.clip(np.asarray(a[:3]) + drift, -1, 1), a[3]]
         actions.append(np.asarray(a, np.float32))
         obs, *_ = env.step(np.asarray(a, np.float32))
         if first is None and _success(scene, obs, aim):
@@ -330,6 +354,9 @@ def parser():
     ap.add_argument("--spread", type=float,
                     help="hold the layout: every block and goal within this share of the simulator's own range "
                          "of one layout the seed draws (0.2: +-3 cm), as a real recording puts its objects back")
+    ap.add_argument("--operator", action="store_true",
+                    help="each demo moved its own way, as people's differ: speed, how high it comes down from, a "
+                         "smooth wander (drawn per demo)")
     ap.add_argument("--freeze-camera", help="the camera a frozen-camera demo's stops on (default: the second)")
     return ap
 
@@ -345,4 +372,5 @@ def cameras(args) -> tuple[str, ...]:
 if __name__ == "__main__":
     os.environ.setdefault("MUJOCO_GL", "egl")
     record.main(parser(), list(TASKS), _episode, _init, features, FPS, "fetch",
-                init_args=lambda args: (args.length_scale, cameras(args), args.spread, args.seed), plants=PLANTS)
+                init_args=lambda args: (args.length_scale, cameras(args), args.spread, args.seed, args.operator),
+                plants=PLANTS)
