@@ -193,7 +193,7 @@ def main(ap: argparse.ArgumentParser, tasks: list[str], episode: Callable[[tuple
         if unknown or not asked:
             raise SystemExit(f"--tasks: unknown {', '.join(unknown) or 'none given'}; tasks: {', '.join(tasks)}")
         tasks = [t for t in tasks if t in asked]
-    if len(tasks) < 2 and "wrong-task" in args.kinds.split(","):
+    if len(tasks) < 2 and "wrong-task" in (k.strip() for k in args.kinds.split(",")):
         raise SystemExit("--kinds wrong-task needs two tasks at least (--tasks)")
     kinds, size = options(args, plants)
     feats = features_of(size, *init_args(args))
