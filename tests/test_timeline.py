@@ -245,6 +245,17 @@ def _resets_in_a_row(count: int, demos: int) -> list[Demo]:
     return out
 
 
+def test_a_task_of_sixty_demos_or_fewer_keeps_five_mates_and_the_median_is_numpys():
+    from democheck.audit import neighbours
+
+    assert [neighbours.mates(n - 1) for n in (4, 11, 60)] == [1, 5, 5]
+    assert [neighbours.mates(n - 1) for n in (61, 93, 110, 1000)] == [7, 9, 11, 99]
+    rng = np.random.default_rng(0)
+    for k in (1, 4, 5, 11):
+        x = rng.normal(size=(3, 7, k)).astype(np.float32)
+        assert np.array_equal(neighbours._median_last(x), np.median(x, axis=-1))
+
+
 def test_resets_a_twentieth_of_a_task_shares_are_not_each_others_reference(monkeypatch):
     """Four resets in 80 demos: against five mates, three of which are resets, a reset's start, end and path look
     like its mates'; against more mates than twice the resets, each is beyond every clean demo."""
