@@ -40,6 +40,11 @@ def test_a_plan_of_one_task_plants_there_what_fits_it_and_refuses_what_does_not(
     assert {(j[1], j[3]) for j in jobs} == {("b", "b")} and len(jobs) == 7
     with pytest.raises(SystemExit, match="reset: none of the tasks"):
         record.plan(["b"], demos=3, plant=2, seed=1, kinds=("reset",), plants=plants)
+    assert record.listed("--tasks", " b, a", ("a", "b", "c")) == ("b", "a")
+    with pytest.raises(SystemExit, match="--tasks: unknown d; tasks: a, b, c"):
+        record.listed("--tasks", "a,d", ("a", "b", "c"))
+    with pytest.raises(SystemExit, match="--tasks: unknown none given"):
+        record.listed("--tasks", " , ", ("a", "b", "c"))
 
 
 def test_a_planted_kind_is_kept_only_where_its_rollout_did_what_it_says():

@@ -362,11 +362,7 @@ def parser():
 
 
 def cameras(args) -> tuple[str, ...]:
-    names = tuple(c.strip() for c in args.cameras.split(",") if c.strip())
-    unknown = sorted(set(names) - set(CAMERAS))
-    if unknown or not names:
-        raise SystemExit(f"--cameras: unknown {', '.join(unknown) or 'none given'}; cameras: {', '.join(CAMERAS)}")
-    return names
+    return record.listed("--cameras", args.cameras, CAMERAS)
 
 
 if __name__ == "__main__":

@@ -51,6 +51,17 @@ def parser(doc: str, demos: int, size: str) -> argparse.ArgumentParser:
     return ap
 
 
+def listed(flag: str, text: str, known) -> tuple[str, ...]:
+    """The names the comma-separated ``text`` of option ``flag`` gives, in its order; refused unless each is one of
+    ``known`` and there is one at least."""
+    names = tuple(t.strip() for t in text.split(",") if t.strip())
+    unknown = sorted(set(names) - set(known))
+    if unknown or not names:
+        raise SystemExit(f"{flag}: unknown {', '.join(unknown) or 'none given'}; "
+                         f"{flag.lstrip('-')}: {', '.join(known)}")
+    return names
+
+
 def options(args: argparse.Namespace, plants: dict[str, tuple[str, ...]] | None = None
             ) -> tuple[tuple[str, ...], tuple[int, int]]:
     """The kinds asked for and the image size (height, width); OUT cleared when --force allows it.  ``plants``:
@@ -188,10 +199,7 @@ def main(ap: argparse.ArgumentParser, tasks: list[str], episode: Callable[[tuple
     plant, and on which of its tasks."""
     args = ap.parse_args()
     if args.tasks:
-        asked = [t.strip() for t in args.tasks.split(",") if t.strip()]
-        unknown = sorted(set(asked) - set(tasks))
-        if unknown or not asked:
-            raise SystemExit(f"--tasks: unknown {', '.join(unknown) or 'none given'}; tasks: {', '.join(tasks)}")
+        asked = listed("--tasks", args.tasks, tasks)
         tasks = [t for t in tasks if t in asked]
     if len(tasks) < 2 and "wrong-task" in (k.strip() for k in args.kinds.split(",")):
         raise SystemExit("--kinds wrong-task needs two tasks at least (--tasks)")
