@@ -66,6 +66,14 @@ def test_a_planted_kind_is_kept_only_where_its_rollout_did_what_it_says():
         with pytest.raises(RuntimeError, match="no usable rollout"):
             record.episode((0, "a", kind, "b", 9), rollout, {"a": "do a", "b": "do b"}, min_first=2)
 
+    # a rollout that says its kind's deed never came (a carry that ended before the drop) is drawn again
+    def undone(task, scene, kind, rng, layout, stop=None):
+        return {**rollout(task, scene, kind, rng, layout, stop), "planted": layout % 3 == 0}
+
+    for index in range(6):
+        ep = record.episode((index, "a", "drop-regrasp", "b", 9), undone, {"a": "do a", "b": "do b"})
+        assert int(ep["state"][0, 0]) % 6 == 0
+
 
 def test_the_card_covers_35_to_55_percent_of_every_frame_alike():
     frames = np.zeros((5, 48, 64, 3), np.uint8)

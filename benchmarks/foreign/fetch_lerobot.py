@@ -41,7 +41,10 @@ With ``--cameras head,side,gripper`` (of ``CAMERAS``) the dataset records severa
 With ``--spread S`` every block and goal lies within S times the simulator's own range (``RANGE``) of one layout the
 seed draws, as a real recording puts its objects back about where they stood; ``--tasks pick-place`` records that
 task alone; ``--operator`` moves each demo its own way (speed, how high it comes down onto the block, a smooth
-wander), as people's demos differ where a scripted oracle's do not.
+wander), as people's demos differ where a scripted oracle's do not; ``--home`` has every pick-and-place demo put
+the block down on a goal on the table, open and take the arm back to where it began (``HOME_STEPS`` more steps),
+as people's demos end -- so that a reset is the task with its two places swapped, and a failed place a block put
+down off its goal.
 
 Clean demos are kept only where the oracle succeeds, on a layout whose goal the arm has to move to meet.  The same seed gives the same dataset.
 """
@@ -66,6 +69,8 @@ TASKS = {  # name -> (the task as the dataset names it, Gymnasium-Robotics env, 
     "lift": ("lift the block", "FetchPickAndPlace-v4", 80),
 }
 CAMERA = "head"
+HOME_STEPS = 90  # the steps ``--home`` adds to a pick-and-place demo: the block put down, the arm taken home
+CARRY = 0.1  # m: how high above the table ``--home`` carries the block and lifts the arm after letting go
 RANGE = 0.15  # how far the simulator draws the block and the goal from the gripper's start (m, each axis)
 # The cameras a dataset may record (--cameras): the first the simulator's default view, the others the model's own.
 CAMERAS = {"head": (None, "the scene from the front, as the simulator shows it"),
@@ -104,9 +109,9 @@ def _env(task: str):
 
 
 def _init(size: tuple[int, int], scale: float = 1.0, cameras: tuple[str, ...] = (CAMERA,),
-          spread: float | None = None, seed: int = 0, operator: bool = False) -> None:
+          spread: float | None = None, seed: int = 0, operator: bool = False, home: bool = False) -> None:
     warnings.filterwarnings("ignore")
-    _W.update(size=size, scale=scale, cameras=cameras, spread=spread, seed=seed, operator=operator)
+    _W.update(size=size, scale=scale, cameras=cameras, spread=spread, seed=seed, operator=operator, home=home)
 
 
 def _near(env, rng: np.random.Generator) -> dict:
@@ -159,7 +164,8 @@ def _goal(task: str, env, obs: dict, rng: np.random.Generator) -> np.ndarray:
     if task == "lift":
         return block + np.r_[0.0, 0.0, 0.15]
     if task == "pick-place":
-        return np.r_[obs["desired_goal"][:2], block[2] + _within(rng, 0.05, 0.2)]
+        up = 0.0 if _W.get("home") else _within(rng, 0.05, 0.2)
+        return np.r_[obs["desired_goal"][:2], block[2] + up]
     return obs["desired_goal"].copy()
 
 
@@ -235,7 +241,29 @@ def oracle(task: str, obs: np.ndarray, goal: np.ndarray, memory: dict) -> np.nda
         if memory["closing"] < 8:
             return np.r_[0, 0, 0, -1.0]
         memory["phase"] = 3
-    return np.r_[toward(goal), -1.0]
+    if not (_W.get("home") and task == "pick-place"):
+        return np.r_[toward(goal), -1.0]
+    # --home: carry the block aloft to above its goal, put it down there, let go, rise and take the arm back to
+    # where it began
+    aloft = goal + np.r_[0, 0, CARRY]
+    if memory["phase"] == 3:
+        if np.linalg.norm(grip - aloft) > 0.02:
+            return np.r_[toward(aloft), -1.0]
+        memory["phase"] = 4
+    if memory["phase"] == 4:
+        if np.linalg.norm(grip - goal) > 0.012:
+            return np.r_[toward(goal), -1.0]
+        memory["phase"], memory["opening"] = 5, 0
+    if memory["phase"] == 5:
+        memory["opening"] += 1
+        if memory["opening"] < 6:
+            return np.r_[0, 0, 0, 1.0]
+        memory["phase"] = 6
+    if memory["phase"] == 6:
+        if np.linalg.norm(grip - aloft) > 0.02:
+            return np.r_[toward(aloft), 1.0]
+        memory["phase"] = 7
+    return np.r_[toward(_W["start"]), 1.0]
 
 
 def way(kind: str, steps: int, rng: np.random.Generator) -> dict:
@@ -266,6 +294,8 @@ def way_action(kind: str, plan: dict, t: int, task: str, obs: np.ndarray, goal: 
                 return np.r_[0.0, 0.0, 0.0, 1.0]
             plan["done"] = True
             memory.clear()  # grasp it again from above
+    if kind == "failed-place" and _W.get("home"):  # put down off its goal, the arm taken home as in any demo
+        return oracle(task, obs, goal + plan["off"], memory)
     if kind == "failed-place":
         if "let go" in plan:
             return np.r_[head_for(grip, plan["let go"]), 1.0]
@@ -280,8 +310,20 @@ def way_action(kind: str, plan: dict, t: int, task: str, obs: np.ndarray, goal: 
 
 
 def _success(task: str, obs: dict, goal: np.ndarray) -> bool:
-    where = obs["observation"][0:3] if task == "reach" else obs["observation"][3:6]
-    return bool(np.linalg.norm(where - goal) < 0.04)
+    """The gripper (reach) or the block within 4 cm of the goal; with ``--home``, a pick-and-place block also let
+    go, resting on the table (within 5 mm of the height it began at), and the gripper back within 3 cm of where it
+    began."""
+    o = obs["observation"]
+    where = o[0:3] if task == "reach" else o[3:6]
+    if not np.linalg.norm(where - goal) < 0.04:
+        return False
+    return _done(o) if _W.get("home") and task == "pick-place" else True
+
+
+def _done(o: np.ndarray) -> bool:
+    """``--home``: the block resting on the table (within 5 mm of the height it began at) and the gripper back
+    within 3 cm of where it began."""
+    return bool(abs(o[5] - _W["rest"]) < 0.005 and np.linalg.norm(o[0:3] - _W["start"]) < 0.03)
 
 
 def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: int, stop: int | None = None
@@ -304,7 +346,9 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
         env._utils.set_joint_qpos(env.model, env.data, "object0:joint", q)
         mujoco.mj_forward(env.model, env.data)
         obs = env._get_obs()
-    steps = int(round(TASKS[scene][2] * _W.get("scale", 1.0)))
+    _W["start"], _W["rest"] = obs["observation"][0:3].copy(), float(obs["observation"][5])
+    steps = TASKS[scene][2] + (HOME_STEPS if _W.get("home") and scene == "pick-place" else 0)
+    steps = int(round(steps * _W.get("scale", 1.0)))
     plan = way(kind, steps, rng) if kind in record.WAY_KINDS else None
     noise = rng.uniform(0.3, 0.5) if kind == "jerky" else 0.0
     _W["style"] = _operator(seed) if _W.get("operator") else STYLE
@@ -333,7 +377,16 @@ def _rollout(task: str, scene: str, kind: str, rng: np.random.Generator, seed: i
     first_camera, *others = _W["cameras"]
     return {"frames": np.stack(views[first_camera]), "views": {k: np.stack(views[k]) for k in others},
             "state": np.stack(state), "env_state": np.stack(env_state), "actions": np.stack(actions),
-            "first_success": first, "success": _success(scene, obs, aim)}
+            "first_success": first, "success": _success(scene, obs, aim),
+            "planted": _planted(kind, plan, obs["observation"])}
+
+
+def _planted(kind: str, plan: dict | None, o: np.ndarray) -> bool:
+    """Whether a kind on the way did what it says: a drop's block let go on the way; with ``--home``, a failed
+    place's block put down and the arm back home, as any demo ends."""
+    if kind == "drop-regrasp":
+        return bool(plan.get("done"))
+    return _done(o) if kind == "failed-place" and _W.get("home") else True
 
 
 def _episode(job: tuple) -> dict:
@@ -357,6 +410,9 @@ def parser():
     ap.add_argument("--operator", action="store_true",
                     help="each demo moved its own way, as people's differ: speed, how high it comes down from, a "
                          "smooth wander (drawn per demo)")
+    ap.add_argument("--home", action="store_true",
+                    help="every pick-and-place demo puts the block down on a goal on the table and takes the arm "
+                         "back to where it began, as people's demos end")
     ap.add_argument("--freeze-camera", help="the camera a frozen-camera demo's stops on (default: the second)")
     return ap
 
@@ -368,5 +424,6 @@ def cameras(args) -> tuple[str, ...]:
 if __name__ == "__main__":
     os.environ.setdefault("MUJOCO_GL", "egl")
     record.main(parser(), list(TASKS), _episode, _init, features, FPS, "fetch",
-                init_args=lambda args: (args.length_scale, cameras(args), args.spread, args.seed, args.operator),
+                init_args=lambda args: (args.length_scale, cameras(args), args.spread, args.seed, args.operator,
+                                           args.home),
                 plants=PLANTS)

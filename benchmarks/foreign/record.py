@@ -126,8 +126,9 @@ def cover(frames: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min_first: int = 0) -> dict:
     """One planned episode (a ``plan`` job): ``rollout(task, scene, kind, rng, layout, stop=None)`` on layouts the
     job's seed draws until one fits its kind -- a clean, occluded or reset demo succeeds (its goal met no sooner
-    than ``min_first`` steps in), another task's oracle does not do this one by chance, a demo that gave up stops at
-    30-60% of the steps the oracle needs and fails.  ``words``: each task as the dataset names it."""
+    than ``min_first`` steps in), a kind on the way did what it says (the rollout's ``planted``, where it says),
+    another task's oracle does not do this one by chance, a demo that gave up stops at 30-60% of the steps the
+    oracle needs and fails.  ``words``: each task as the dataset names it."""
     index, task, kind, other, seed = job
     rng = np.random.default_rng([seed, index])
     for _ in range(30):
@@ -145,6 +146,8 @@ def episode(job: tuple, rollout: Callable[..., dict], words: dict[str, str], min
             rec = rollout(other if kind == "wrong-task" else task, task, led, rng, layout)
             fails = led in ("wrong-task", "failed-place")  # a detour and a regrasp still do the task
             if led in ("clean", "occluded", "reset", *WAY_KINDS, "wrong-task") and rec["success"] == fails:
+                continue
+            if not rec.get("planted", True):  # the kind's deed never came (the carry ended before the drop)
                 continue
             if led in ("clean", "occluded", "reset") and (rec["first_success"] or 0) < min_first:
                 continue
