@@ -1107,6 +1107,24 @@ def test_a_tenth_of_a_nat_of_coupling_is_no_evidence_however_alike_the_demos():
     assert np.exp(rank({"coupling": values}, tasks, config.with_spec("coupling", floor=0.0)).log_p[5, 0]) < 1e-8
 
 
+def test_an_arm_every_demo_takes_back_to_one_home_pose_ends_no_demo_far_out():
+    """Where each demo ends with the arm back at one home pose, the outcome reads most demos exactly at their task's
+    median and a few one float32 step of the recorded pose away (about 5e-6 of a feature's unit): the outcome's
+    floor in the ranking recipe keeps those in the robust core, and a demo that ended 5 units off is far out."""
+    from democheck.audit.ranking import rank
+    from democheck.audit.scorers import ranking_config
+
+    values = np.zeros(80)
+    values[10:22] = 5.4e-6
+    values[7] = 5.0
+    config, tasks = ranking_config(["outcome"]), np.array(["pick"] * 80)
+    p = np.exp(rank({"outcome": values}, tasks, config).log_p[:, 0])
+    assert (np.delete(p, 7) > 1e-2).all() and p[7] < 1e-6, (np.delete(p, 7).min(), p[7])
+    # Without the floor (a variant, as a sweep makes one) the noise's own spread calls some demo far out.
+    bare = np.exp(rank({"outcome": values}, tasks, config.with_spec("outcome", floor=0.0)).log_p[:, 0])
+    assert np.delete(bare, 7).min() < 1e-4
+
+
 def test_a_clock_that_drops_a_frame_in_most_demos_makes_two_dropped_no_fault():
     """A recorder that drops a frame in most demos (the worst step two periods long) and two or three in a few: its
     timing's floor in the ranking recipe, the half period at which the check calls a step irregular, keeps those in
