@@ -72,6 +72,7 @@ VARIANTS: dict[str, Callable[[RankingConfig], RankingConfig]] = {
     "path-own-beside": lambda c: _set(c, ("path",), look="", beside=True),
     "time-one-look": lambda c: replace(c, specs=tuple(replace(s, look="in time") if s.name in TIME_ALIGNED else s
                                                       for s in c.specs)),
+    "outcome-normal": lambda c: _set(c, ("outcome",), tail="normal"),
 }
 
 
