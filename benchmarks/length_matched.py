@@ -1,13 +1,13 @@
 """Is a score seeing the fault, or the episode's length?  Per planted kind, the AUROC of the suspicion within
-length-matched pairs -- each bad demo against the clean demo of its task nearest it in length -- beside the AUROC
+length-matched pairs -- each bad demo against the clean demos of its task nearest it in length -- beside the AUROC
 of the length alone:
 
     python benchmarks/length_matched.py AUDIT DATA [--labels LABELS.csv] [--score suspicion]
 
 AUDIT is a ``democheck audit`` folder of DATA; labels come from the table's ``label`` column or a csv of
 ``episode_index,label``.  A pair counts 1 where the bad demo scores higher, 0.5 on a tie (against several clean
-demos as near in length, the mean over them).  Length's AUROC is
-taken both ways (the larger of longer-is-bad and shorter-is-bad): near 0.5, length says nothing of the kind.
+demos as near in length, the mean over them).  Length's AUROC is taken both ways (the larger of longer-is-bad and
+shorter-is-bad): near 0.5, length says nothing of the kind.
 """
 
 from __future__ import annotations
